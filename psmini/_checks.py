@@ -1,0 +1,77 @@
+"""Guards shared by every stage: shapes, finiteness, dtypes. Internal."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from psmini.errors import InputError, ShapeError
+
+
+def check_tensor(x: object, name: str) -> Tensor:
+    """Raise :class:`InputError` unless ``x`` is a floating-point tensor."""
+    if not isinstance(x, Tensor):
+        raise InputError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if not x.is_floating_point():
+        raise InputError(
+            f"{name} must be a floating-point tensor (float32 or float64), got {x.dtype}; "
+            "convert integer images with psmini.io (which scales uint8/uint16 to [0, 1])"
+        )
+    return x
+
+
+def check_shape(x: Tensor, dims: Sequence[str], name: str) -> dict[str, int]:
+    """Check the number of dimensions and the fixed sizes of ``x``; return the named sizes.
+
+    ``dims`` holds one entry per dimension: a letter names a free size (``"B"``), a digit string a fixed one
+    (``"3"``). The same letter used twice must match.
+    """
+    check_tensor(x, name)
+    expected = "(" + ", ".join(dims) + ")"
+    if x.ndim != len(dims):
+        raise ShapeError(f"{name} must have shape {expected}, got {tuple(x.shape)}")
+    sizes: dict[str, int] = {}
+    for dim, size in zip(dims, x.shape):
+        if dim.isdigit():
+            if size != int(dim):
+                raise ShapeError(f"{name} must have shape {expected}, got {tuple(x.shape)}")
+        elif sizes.setdefault(dim, size) != size:
+            raise ShapeError(f"{name} must have shape {expected} with equal {dim}, got {tuple(x.shape)}")
+    return sizes
+
+
+def check_same_size(a: int, b: int, what: str, name_a: str, name_b: str) -> None:
+    """Raise :class:`ShapeError` unless two sizes agree."""
+    if a != b:
+        raise ShapeError(f"{what} of {name_a} ({a}) and {name_b} ({b}) must match")
+
+
+def check_finite(x: Tensor, name: str) -> Tensor:
+    """Raise :class:`InputError` when ``x`` holds NaN or infinite values.
+
+    This one check syncs with the device; it runs once per public call, never inside a loop.
+    """
+    if not bool(torch.isfinite(x).all()):
+        bad = int((~torch.isfinite(x)).sum())
+        raise InputError(f"{name} must be finite, got {bad} NaN or infinite value(s) of {x.numel()}")
+    return x
+
+
+def check_mask(mask: Tensor | None, batch: int, height: int, width: int, name: str = "mask") -> Tensor | None:
+    """Check an optional ``(B, 1, H, W)`` mask (bool or float); broadcast a batch of one."""
+    if mask is None:
+        return None
+    if not isinstance(mask, Tensor):
+        raise InputError(f"{name} must be a torch.Tensor, got {type(mask).__name__}")
+    if mask.ndim != 4 or mask.shape[1] != 1 or tuple(mask.shape[2:]) != (height, width) or mask.shape[0] not in (1, batch):
+        raise ShapeError(f"{name} must have shape ({batch}, 1, {height}, {width}), got {tuple(mask.shape)}")
+    return mask.expand(batch, 1, height, width)
+
+
+def check_positive(value: float, name: str) -> float:
+    """Raise :class:`InputError` unless ``value`` is a finite positive number."""
+    if not (isinstance(value, (int, float)) and value > 0 and value == value and value != float("inf")):
+        raise InputError(f"{name} must be a positive finite number, got {value!r}")
+    return float(value)

@@ -1,0 +1,56 @@
+"""The ``psmini`` command.
+
+Each sub-command lives in its own module of :mod:`psmini.commands` with two functions, ``register(subparsers)``
+and ``run(args) -> int``; this module discovers them, parses the command line and turns every
+:class:`~psmini.errors.PsminiError` into a one-line message on stderr and exit status 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import pkgutil
+import sys
+from collections.abc import Sequence
+
+from psmini import __version__, commands
+from psmini.errors import PsminiError
+
+logger = logging.getLogger("psmini")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser with every sub-command of :mod:`psmini.commands`."""
+    parser = argparse.ArgumentParser(
+        prog="psmini", description="Close-range photometric stereo of textiles: reconstruct, evaluate, synthesise."
+    )
+    parser.add_argument("--version", action="version", version=f"psmini {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log progress details on stderr")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
+        if not info.name.startswith("_"):
+            importlib.import_module(f"{commands.__name__}.{info.name}").register(subparsers)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``psmini`` command; return its exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s: %(message)s")
+    if args.command is None:
+        parser.print_help()
+        return 2
+    try:
+        return int(args.run(args) or 0)
+    except PsminiError as error:
+        print(f"psmini {args.command}: error: {error}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"psmini {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
