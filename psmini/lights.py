@@ -120,8 +120,8 @@ def _check_points(points: Tensor) -> dict[str, int]:
 
 
 def _as_parameter(x: Tensor, learnable: bool) -> Tensor:
-    x = x.detach().clone()
-    return nn.Parameter(x) if learnable else x
+    """A fresh ``nn.Parameter`` when learnable; otherwise ``x`` itself, so gradients flow back to the caller's tensor."""
+    return nn.Parameter(x.detach().clone()) if learnable else x
 
 
 class DirectionalLights(nn.Module):

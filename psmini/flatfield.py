@@ -1,0 +1,169 @@
+r"""Flat-fielding: dark-frame subtraction and division by the image of a matte card under the same LED.
+
+Under LED k a Lambertian pixel of the cloth reads :math:`I_k = \rho\,E_k(x)\,(n \cdot l_k)` and the card of known
+albedo :math:`\rho_c` lying flat at the same place reads :math:`R_k = \rho_c\,E_k(x)\,(e_z \cdot l_k)`. Their ratio
+
+.. math:: \hat I_k = \rho_c \, \frac{I_k - D}{R_k - D_R}
+
+cancels the LED's inverse-square fall-off, its beam shape, vignetting and gain, leaving what a distant light of
+unit intensity with direction :math:`l_k` would give, up to the factor :math:`e_z \cdot l_k` that the light
+directions account for (the seed paper's step 1; Woodham 1980 for the model). The cancellation is exact only
+while the cloth lies at the card's height; see :mod:`psmini.lights` for the near-light models.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from psmini._checks import check_finite, check_shape, check_tensor
+from psmini.errors import InputError, ShapeError
+
+__all__ = ["FlatFieldResult", "flatfield", "FlatField"]
+
+
+@dataclass
+class FlatFieldResult:
+    """What :func:`flatfield` returns.
+
+    Attributes:
+        images: flat-fielded intensities, shape :math:`(B, K, H, W)`, clamped at 0; 0 where not valid.
+        valid: observations to trust, shape :math:`(B, K, H, W)`, bool: not saturated, and the reference
+            bright enough there.
+    """
+
+    images: Tensor
+    valid: Tensor
+
+
+def _check_frame(frame: Tensor | None, batch: int, count: int, height: int, width: int, name: str) -> Tensor | None:
+    """Check a dark frame or a reference stack, broadcastable to (B, K, H, W); return it 4-D."""
+    if frame is None:
+        return None
+    check_tensor(frame, name)
+    if frame.ndim == 2:
+        frame = frame[None, None]
+    elif frame.ndim == 3:
+        frame = frame.unsqueeze(0)
+    ok = (
+        frame.ndim == 4
+        and frame.shape[0] in (1, batch)
+        and frame.shape[1] in (1, count)
+        and tuple(frame.shape[2:]) == (height, width)
+    )
+    if not ok:
+        raise ShapeError(
+            f"{name} must broadcast to the images' shape ({batch}, {count}, {height}, {width}) "
+            f"(as (B|1, K|1, H, W), (K|1, H, W) or (H, W)), got {tuple(frame.shape)}"
+        )
+    return check_finite(frame, name)
+
+
+def flatfield(
+    images: Tensor,
+    reference: Tensor | None = None,
+    dark: Tensor | None = None,
+    reference_dark: Tensor | None = None,
+    card_albedo: float = 1.0,
+    min_reference: float = 0.02,
+    saturation_level: float | None = None,
+) -> FlatFieldResult:
+    r"""Subtract the dark frame and divide by the per-LED reference (matte card) images.
+
+    Args:
+        images: raw images, shape :math:`(B, K, H, W)`, linear values (e.g. in [0, 1]).
+        reference: the matte card under each LED, broadcastable to :math:`(B, K, H, W)`; when omitted only the
+            dark frame is subtracted (distant, equal lights assumed).
+        dark: all-LEDs-off frame of the sample, broadcastable to :math:`(B, K, H, W)` (usually :math:`(B, 1, H, W)`).
+        reference_dark: all-LEDs-off frame of the card capture; defaults to ``dark``.
+        card_albedo: the card's known albedo, so that the result is the cloth's albedo times shading.
+        min_reference: reference values below this fraction of that LED's brightest reference pixel are not
+            trusted (the LED barely lights the card there): those observations are marked not valid.
+        saturation_level: raw values at or above it are saturated and marked not valid (in the images and in
+            the reference); ``None`` disables the check.
+
+    Returns:
+        :class:`FlatFieldResult` with ``images`` :math:`(B, K, H, W)` and ``valid`` :math:`(B, K, H, W)`.
+
+    Raises:
+        ShapeError: when a frame does not broadcast to the images' shape.
+        InputError: when a value is NaN or infinite, or an option is out of range.
+
+    Example:
+        >>> images = torch.rand(2, 8, 16, 16)
+        >>> card = torch.full((8, 16, 16), 0.5)
+        >>> result = flatfield(images, card, card_albedo=0.8)
+        >>> torch.allclose(result.images, images / 0.5 * 0.8)
+        True
+    """
+    sizes = check_shape(images, ["B", "K", "H", "W"], "images")
+    check_finite(images, "images")
+    if not 0.0 <= min_reference < 1.0:
+        raise InputError(f"min_reference must lie in [0, 1), got {min_reference}")
+    if not card_albedo > 0.0:
+        raise InputError(f"card_albedo must be positive, got {card_albedo}")
+    shape = (sizes["B"], sizes["K"], sizes["H"], sizes["W"])
+    dark = _check_frame(dark, *shape, "dark")
+    reference = _check_frame(reference, *shape, "reference")
+    reference_dark = _check_frame(reference_dark, *shape, "reference_dark") if reference_dark is not None else dark
+
+    valid = torch.ones(shape, dtype=torch.bool, device=images.device)
+    if saturation_level is not None:
+        valid = valid & (images < saturation_level)
+    signal = images if dark is None else images - dark.to(images)
+    signal = signal.clamp_min(0)
+    if reference is None:
+        return FlatFieldResult(torch.where(valid, signal, torch.zeros_like(signal)), valid)
+
+    reference = reference.to(images)
+    if saturation_level is not None:
+        valid = valid & (reference < saturation_level)
+    card = reference if reference_dark is None else reference - reference_dark.to(images)
+    brightest = card.amax(dim=(-2, -1), keepdim=True)
+    trusted = card > min_reference * brightest
+    trusted = trusted & (card > 0)
+    valid = valid & trusted
+    # divide only where trusted: torch.where alone would still send NaN gradients through 0/0
+    safe_card = torch.where(trusted, card, torch.ones_like(card))
+    ratio = card_albedo * signal / safe_card
+    return FlatFieldResult(torch.where(valid, ratio, torch.zeros_like(ratio)), valid)
+
+
+class FlatField(nn.Module):
+    """Flat-fielding with a stored reference (card) capture; see :func:`flatfield`.
+
+    Args:
+        reference: the card under each LED, :math:`(K, H, W)` or :math:`(1, K, H, W)`.
+        reference_dark: the card capture's dark frame, :math:`(H, W)`, :math:`(1, H, W)` or :math:`(1, 1, H, W)`.
+        card_albedo: the card's albedo.
+        min_reference: fraction of each LED's brightest card pixel below which it is not trusted.
+        saturation_level: raw level at which pixels count as saturated, or ``None``.
+
+    Example:
+        >>> module = FlatField(torch.full((8, 16, 16), 0.5), card_albedo=0.8)
+        >>> module(torch.rand(2, 8, 16, 16)).images.shape
+        torch.Size([2, 8, 16, 16])
+    """
+
+    def __init__(
+        self,
+        reference: Tensor,
+        reference_dark: Tensor | None = None,
+        card_albedo: float = 1.0,
+        min_reference: float = 0.02,
+        saturation_level: float | None = None,
+    ) -> None:
+        super().__init__()
+        check_tensor(reference, "reference")
+        self.register_buffer("reference", reference)
+        self.register_buffer("reference_dark", reference_dark)
+        self.card_albedo, self.min_reference, self.saturation_level = card_albedo, min_reference, saturation_level
+
+    def forward(self, images: Tensor, dark: Tensor | None = None) -> FlatFieldResult:
+        """Flat-field ``images`` :math:`(B, K, H, W)` with the stored reference."""
+        reference_dark = self.reference_dark if self.reference_dark is not None else dark
+        return flatfield(
+            images, self.reference, dark, reference_dark, self.card_albedo, self.min_reference, self.saturation_level
+        )

@@ -1,0 +1,135 @@
+"""Accuracy metrics: angular error of normals, depth error after alignment.
+
+The angular error follows the DiLiGenT protocol (Shi et al., CVPR 2016 / TPAMI 2019): the angle between the
+estimated and the true unit normal, in degrees, averaged over the mask.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from psmini._checks import check_mask, check_shape
+from psmini.errors import InputError, ShapeError
+
+__all__ = ["angular_error_deg", "mean_angular_error", "median_angular_error", "depth_error"]
+
+
+def _masked(values: Tensor, mask: Tensor | None) -> Tensor:
+    """(B, 1, H, W) bool mask of where to measure: the given mask and finite values."""
+    keep = torch.isfinite(values)
+    if mask is not None:
+        keep = keep & mask.bool()
+    if bool((keep.flatten(1).sum(1) == 0).any()):
+        raise InputError("the mask selects no pixel with a finite value in at least one batch item")
+    return keep
+
+
+def angular_error_deg(normals: Tensor, normals_gt: Tensor) -> Tensor:
+    """Per-pixel angle between two normal maps, degrees.
+
+    Computed as ``atan2(|a × b|, a · b)`` after normalising both, which stays accurate near 0° where ``acos``
+    loses precision.
+
+    Args:
+        normals: estimated normals, shape :math:`(B, 3, H, W)`.
+        normals_gt: reference normals, same shape (or batch 1).
+
+    Returns:
+        angles :math:`(B, 1, H, W)` in degrees, in [0, 180].
+
+    Example:
+        >>> a = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
+        >>> b = torch.tensor([1.0, 0.0, 1.0]).view(1, 3, 1, 1)
+        >>> round(float(angular_error_deg(a, b)), 6)
+        45.0
+    """
+    sizes = check_shape(normals, ["B", "3", "H", "W"], "normals")
+    check_shape(normals_gt, ["B", "3", "H", "W"], "normals_gt")
+    if normals_gt.shape[0] not in (1, sizes["B"]) or normals_gt.shape[2:] != normals.shape[2:]:
+        raise ShapeError(f"normals_gt {tuple(normals_gt.shape)} does not match normals {tuple(normals.shape)}")
+    a = torch.nn.functional.normalize(normals, dim=1)
+    b = torch.nn.functional.normalize(normals_gt.to(normals), dim=1)
+    cross = torch.linalg.cross(a, b.expand_as(a), dim=1).norm(dim=1, keepdim=True)
+    dot = (a * b).sum(dim=1, keepdim=True)
+    return torch.rad2deg(torch.atan2(cross, dot))
+
+
+def mean_angular_error(normals: Tensor, normals_gt: Tensor, mask: Tensor | None = None) -> Tensor:
+    """Mean angular error over a mask, degrees; one value per batch item.
+
+    Args:
+        normals: estimated normals, shape :math:`(B, 3, H, W)`.
+        normals_gt: reference normals, same shape.
+        mask: pixels to average over, shape :math:`(B, 1, H, W)`; all pixels when omitted.
+
+    Returns:
+        mean error :math:`(B,)`, degrees.
+
+    Example:
+        >>> n = torch.nn.functional.normalize(torch.rand(2, 3, 8, 8), dim=1)
+        >>> mean_angular_error(n, n).abs().max() < 1e-3
+        tensor(True)
+    """
+    errors = angular_error_deg(normals, normals_gt)
+    keep = _masked(errors, check_mask(mask, *(errors.shape[0], errors.shape[2], errors.shape[3])))
+    return torch.where(keep, errors, torch.zeros_like(errors)).flatten(1).sum(1) / keep.flatten(1).sum(1)
+
+
+def median_angular_error(normals: Tensor, normals_gt: Tensor, mask: Tensor | None = None) -> Tensor:
+    """Median angular error over a mask, degrees; one value per batch item (see :func:`mean_angular_error`).
+
+    Example:
+        >>> n = torch.nn.functional.normalize(torch.rand(1, 3, 8, 8), dim=1)
+        >>> float(median_angular_error(n, n)) < 1e-3
+        True
+    """
+    errors = angular_error_deg(normals, normals_gt)
+    keep = _masked(errors, check_mask(mask, *(errors.shape[0], errors.shape[2], errors.shape[3])))
+    return torch.stack([e[k].median() for e, k in zip(errors, keep)])
+
+
+def depth_error(depth: Tensor, depth_gt: Tensor, mask: Tensor | None = None, align: str = "offset") -> dict[str, Tensor]:
+    """Depth error after alignment, over a mask; NaN in ``depth_gt`` counts as outside the mask.
+
+    Args:
+        depth: estimated depth or height, shape :math:`(B, 1, H, W)`, mm.
+        depth_gt: reference, same shape, mm.
+        mask: pixels to compare, shape :math:`(B, 1, H, W)`.
+        align: ``"offset"`` (heights up to a constant: subtract the mean difference; orthographic integration),
+            ``"scale"`` (depth up to a factor: multiply by the median ratio, the protocol of Cao et al. 2022 for
+            perspective integration) or ``"none"``.
+
+    Returns:
+        dict of ``mae`` and ``rmse`` (each :math:`(B,)`, mm) and ``aligned`` depth :math:`(B, 1, H, W)`.
+
+    Example:
+        >>> gt = torch.rand(1, 1, 8, 8)
+        >>> float(depth_error(gt + 3.0, gt)["rmse"]) < 1e-6
+        True
+    """
+    sizes = check_shape(depth, ["B", "1", "H", "W"], "depth")
+    check_shape(depth_gt, ["B", "1", "H", "W"], "depth_gt")
+    if depth_gt.shape != depth.shape:
+        raise ShapeError(f"depth_gt {tuple(depth_gt.shape)} does not match depth {tuple(depth.shape)}")
+    keep = _masked(depth_gt + depth, check_mask(mask, sizes["B"], sizes["H"], sizes["W"]))
+    count = keep.flatten(1).sum(1).view(-1, 1, 1, 1)
+
+    def masked_mean(x: Tensor) -> Tensor:
+        return torch.where(keep, x, torch.zeros_like(x)).flatten(1).sum(1).view(-1, 1, 1, 1) / count
+
+    if align == "offset":
+        aligned = depth + masked_mean(depth_gt - depth)
+    elif align == "scale":
+        ratios = [(g[k] / d[k]).median() for d, g, k in zip(depth, depth_gt, keep)]
+        aligned = depth * torch.stack(ratios).view(-1, 1, 1, 1)
+    elif align == "none":
+        aligned = depth
+    else:
+        raise InputError(f"align must be 'offset', 'scale' or 'none', got {align!r}")
+    difference = aligned - depth_gt
+    return {
+        "mae": masked_mean(difference.abs()).flatten(),
+        "rmse": masked_mean(difference.square()).sqrt().flatten(),
+        "aligned": aligned,
+    }

@@ -1,0 +1,176 @@
+r"""Lambertian least-squares albedo and normals, and surface gradients from normals.
+
+Woodham, "Photometric method for determining surface orientation from multiple images", Optical Engineering
+19(1), 1980: under K distant lights with scaled directions :math:`L \in \mathbb{R}^{K \times 3}`, a Lambertian
+pixel reads :math:`I = \rho L n`; least squares gives :math:`m = L^{+} I`, albedo :math:`\rho = \lVert m \rVert` and
+normal :math:`n = m / \lVert m \rVert`. With per-observation weights :math:`w_k` (0 for shadowed or saturated
+observations) the normal equations :math:`(L^T W L) m = L^T W I` are solved per pixel instead.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from psmini._checks import check_finite, check_mask, check_same_size, check_shape, check_tensor
+from psmini.errors import InputError, ShapeError
+from psmini.lights import as_batched_lights, check_spans_3d
+
+__all__ = ["albedo_normals", "LeastSquaresNormals", "normals_to_gradients"]
+
+# Per-pixel normal matrices whose smallest eigenvalue falls below this fraction of the largest are taken as
+# rank-deficient (fewer than three usable lights): the pixel is then left out.
+_RANK_RATIO = 1e-6
+
+
+def _default_normals(like: Tensor) -> Tensor:
+    """Normals (0, 0, 1) with the shape (B, 3, H, W) of ``like``."""
+    normals = torch.zeros_like(like)
+    normals[:, 2] = 1
+    return normals
+
+
+def _unit_and_length(m: Tensor, solved: Tensor) -> tuple[Tensor, Tensor]:
+    """Split m (B, 3, H, W) into albedo |m| and unit normal; (0, 0, 1) and albedo 0 where not solved."""
+    tiny = torch.finfo(m.dtype).tiny
+    length = m.square().sum(dim=1, keepdim=True).clamp_min(tiny).sqrt()  # no NaN gradient at m = 0
+    solved = solved & (length > torch.finfo(m.dtype).eps)
+    normals = torch.where(solved, m / length, _default_normals(m))
+    albedo = torch.where(solved, length, torch.zeros_like(length))
+    return albedo, normals
+
+
+def _check_weights(weights: Tensor | None, shape: torch.Size) -> Tensor | None:
+    if weights is None:
+        return None
+    check_tensor(weights.float() if weights.dtype == torch.bool else weights, "weights")
+    if weights.shape != shape:
+        raise ShapeError(f"weights must have the shape of the intensities {tuple(shape)}, got {tuple(weights.shape)}")
+    if weights.dtype != torch.bool:
+        check_finite(weights, "weights")
+        if bool((weights < 0).any()):
+            raise InputError("weights must be non-negative")
+    return weights
+
+
+def _weighted_solve(intensities: Tensor, lights: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
+    """Per-pixel weighted least squares; returns m (B, 3, H, W) and where it is well posed (B, 1, H, W)."""
+    weights = weights.to(intensities)
+    gram = torch.einsum("bkhw,bki,bkj->bhwij", weights, lights, lights)  # (B, H, W, 3, 3)
+    rhs = torch.einsum("bkhw,bkhw,bki->bhwi", weights, intensities, lights)
+    eigenvalues = torch.linalg.eigvalsh(gram.detach())
+    well_posed = eigenvalues[..., 0] > _RANK_RATIO * eigenvalues[..., -1].clamp_min(torch.finfo(gram.dtype).tiny)
+    identity = torch.eye(3, device=gram.device, dtype=gram.dtype)
+    # rank-deficient pixels get an identity system (solution 0) so that the batched solve never fails
+    gram = torch.where(well_posed[..., None, None], gram, identity)
+    rhs = torch.where(well_posed[..., None], rhs, torch.zeros_like(rhs))
+    m = torch.linalg.solve(gram, rhs.unsqueeze(-1)).squeeze(-1)
+    return m.permute(0, 3, 1, 2), well_posed.unsqueeze(1)
+
+
+def albedo_normals(
+    intensities: Tensor, lights: Tensor, mask: Tensor | None = None, weights: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    r"""Lambertian least-squares albedo and normals (Woodham 1980).
+
+    Solves :math:`I = \rho L n` per pixel with the pseudo-inverse of the light matrix, or, with ``weights``, by
+    weighted least squares per pixel (weights 0 drop shadowed or saturated observations).
+
+    Args:
+        intensities: flat-fielded images, shape :math:`(B, K, H, W)`.
+        lights: light directions scaled by their intensities, shape :math:`(B, K, 3)` or :math:`(K, 3)`, camera
+            frame (x right, y up, z toward the camera).
+        mask: optional pixels to solve, shape :math:`(B, 1, H, W)` (bool); others get albedo 0 and normal
+            (0, 0, 1).
+        weights: optional per-observation weights, shape :math:`(B, K, H, W)`, bool or non-negative float.
+            Pixels left with fewer than three usable lights get albedo 0 and normal (0, 0, 1).
+
+    Returns:
+        albedo :math:`(B, 1, H, W)` and unit normals :math:`(B, 3, H, W)`.
+
+    Raises:
+        ShapeError: when K differs between ``intensities`` and ``lights``, or a mask or weights do not fit.
+        CalibrationError: when the lights do not span 3D (fewer than 3, or coplanar).
+        InputError: when an input holds NaN or infinite values.
+
+    Example:
+        >>> from psmini.lights import ring_lights
+        >>> albedo, normals = albedo_normals(torch.rand(2, 8, 4, 4), ring_lights(8, zenith_deg=55.0))
+        >>> normals.shape
+        torch.Size([2, 3, 4, 4])
+    """
+    sizes = check_shape(intensities, ["B", "K", "H", "W"], "intensities")
+    check_finite(intensities, "intensities")
+    check_spans_3d(lights)
+    check_same_size(lights.shape[-2], sizes["K"], "the number of lights", "lights", "intensities")
+    mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
+    weights = _check_weights(weights, intensities.shape)
+    lights = as_batched_lights(lights, sizes["B"], intensities)
+
+    if weights is None:
+        pinv = torch.linalg.pinv(lights)  # (B, 3, K)
+        m = torch.einsum("bck,bkhw->bchw", pinv, intensities)
+        solved = torch.ones_like(intensities[:, :1], dtype=torch.bool)
+    else:
+        m, solved = _weighted_solve(intensities, lights, weights)
+    if mask is not None:
+        solved = solved & mask.bool()
+    return _unit_and_length(m, solved)
+
+
+class LeastSquaresNormals(nn.Module):
+    """Least-squares albedo and normals with stored light directions; see :func:`albedo_normals`.
+
+    Args:
+        lights: scaled light directions, shape :math:`(K, 3)`; checked to span 3D once, here.
+
+    Example:
+        >>> from psmini.lights import ring_lights
+        >>> solver = LeastSquaresNormals(ring_lights(8, 55.0))
+        >>> albedo, normals = solver(torch.rand(1, 8, 4, 4))
+        >>> albedo.shape
+        torch.Size([1, 1, 4, 4])
+    """
+
+    def __init__(self, lights: Tensor) -> None:
+        super().__init__()
+        self.register_buffer("lights", check_spans_3d(lights).clone())
+
+    def forward(
+        self, intensities: Tensor, mask: Tensor | None = None, weights: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """Albedo :math:`(B, 1, H, W)` and normals :math:`(B, 3, H, W)` of ``intensities`` :math:`(B, K, H, W)`."""
+        return albedo_normals(intensities, self.lights, mask, weights)
+
+
+def normals_to_gradients(normals: Tensor, min_nz: float = 1e-2) -> tuple[Tensor, Tensor]:
+    r"""Surface gradients :math:`p = \partial z / \partial x = -n_x / n_z` and :math:`q = \partial z / \partial y = -n_y / n_z`.
+
+    x points right and y up (so along image rows, downward, the height changes by :math:`-q` per pixel step).
+    A normal with :math:`n_z \le` ``min_nz`` (grazing, or facing away from the camera, which a surface seen by the
+    camera cannot have) would give huge or sign-flipped slopes: its :math:`n_z` is clamped to ``min_nz``, capping
+    the slope at :math:`1/\text{min\_nz}` (about 89.4° for the default) with the normal's own azimuth.
+
+    Args:
+        normals: unit normals, shape :math:`(B, 3, H, W)`.
+        min_nz: smallest :math:`n_z` used in the division, in (0, 1).
+
+    Returns:
+        p and q, each :math:`(B, 1, H, W)`, dimensionless (height per unit of x or y).
+
+    Raises:
+        ShapeError: when ``normals`` is not :math:`(B, 3, H, W)`.
+        InputError: for NaN input or ``min_nz`` outside (0, 1).
+
+    Example:
+        >>> n = torch.tensor([0.6, 0.0, 0.8]).view(1, 3, 1, 1)
+        >>> p, q = normals_to_gradients(n)
+        >>> float(p), float(q)
+        (-0.75, -0.0)
+    """
+    check_shape(normals, ["B", "3", "H", "W"], "normals")
+    check_finite(normals, "normals")
+    if not 0.0 < min_nz < 1.0:
+        raise InputError(f"min_nz must lie in (0, 1), got {min_nz}")
+    nz = normals[:, 2:3].clamp_min(min_nz)
+    return -normals[:, 0:1] / nz, -normals[:, 1:2] / nz

@@ -1,0 +1,72 @@
+import pytest
+import torch
+
+from psmini import InputError, ShapeError
+from psmini.flatfield import FlatField, flatfield
+from tests.conftest import BaseTester
+
+
+class TestFlatField(BaseTester):
+    def test_cancels_falloff(self, device, dtype):
+        """Cloth = albedo * shading * falloff + dark; card = card_albedo * falloff + dark."""
+        torch.manual_seed(0)
+        falloff = torch.rand(1, 8, 16, 16, device=device, dtype=dtype) + 0.2
+        shading = torch.rand(2, 8, 16, 16, device=device, dtype=dtype)
+        dark = torch.full((2, 1, 16, 16), 0.05, device=device, dtype=dtype)
+        images = 0.6 * shading * falloff + dark
+        reference = 0.8 * falloff + 0.05
+        result = flatfield(images, reference[0], dark, dark[:1], card_albedo=0.8)
+        self.assert_close(result.images, 0.6 * shading)
+        assert bool(result.valid.all())
+
+    def test_dark_reference_untrusted(self, device, dtype):
+        reference = torch.ones(8, 4, 4, device=device, dtype=dtype)
+        reference[3, 0, 0] = 0.01
+        result = flatfield(torch.ones(1, 8, 4, 4, device=device, dtype=dtype), reference, min_reference=0.05)
+        assert not bool(result.valid[0, 3, 0, 0]) and float(result.images[0, 3, 0, 0]) == 0.0
+        assert int((~result.valid).sum()) == 1
+
+    def test_saturation(self, device, dtype):
+        images = torch.full((1, 8, 4, 4), 0.5, device=device, dtype=dtype)
+        images[0, 2, 1, 1] = 1.0
+        reference = torch.full((8, 4, 4), 0.5, device=device, dtype=dtype)
+        reference[5, 2, 2] = 1.0
+        result = flatfield(images, reference, saturation_level=0.99)
+        assert not bool(result.valid[0, 2, 1, 1]) and not bool(result.valid[0, 5, 2, 2])
+        assert int((~result.valid).sum()) == 2
+
+    def test_no_reference_subtracts_dark_and_clamps(self, device, dtype):
+        images = torch.tensor([0.2, 0.05], device=device, dtype=dtype).view(1, 2, 1, 1)
+        result = flatfield(images, dark=torch.full((1, 1, 1, 1), 0.1, device=device, dtype=dtype))
+        self.assert_close(result.images.flatten(), torch.tensor([0.1, 0.0], device=device, dtype=dtype))
+
+    def test_module_equals_functional(self, device, dtype):
+        reference = torch.rand(8, 6, 6, device=device, dtype=dtype) + 0.1
+        images = torch.rand(2, 8, 6, 6, device=device, dtype=dtype)
+        a = FlatField(reference, card_albedo=0.7)(images)
+        b = flatfield(images, reference, card_albedo=0.7)
+        self.assert_close(a.images, b.images)
+        assert torch.equal(a.valid, b.valid)
+
+    def test_bad_shapes_raise(self):
+        with pytest.raises(ShapeError, match="reference must broadcast"):
+            flatfield(torch.rand(1, 8, 4, 4), torch.rand(7, 4, 4))
+        with pytest.raises(ShapeError, match="dark must broadcast"):
+            flatfield(torch.rand(1, 8, 4, 4), dark=torch.rand(1, 1, 4, 5))
+
+    def test_nan_raise(self):
+        reference = torch.rand(8, 4, 4)
+        reference[0, 0, 0] = float("nan")
+        with pytest.raises(InputError, match="reference must be finite"):
+            flatfield(torch.rand(1, 8, 4, 4), reference)
+
+    def test_bad_options_raise(self):
+        with pytest.raises(InputError, match="min_reference"):
+            flatfield(torch.rand(1, 8, 4, 4), min_reference=1.5)
+        with pytest.raises(InputError, match="card_albedo"):
+            flatfield(torch.rand(1, 8, 4, 4), card_albedo=0.0)
+
+    def test_gradcheck(self):
+        images = torch.rand(1, 3, 3, 3, dtype=torch.float64, requires_grad=True)
+        reference = (torch.rand(3, 3, 3, dtype=torch.float64) + 0.5).requires_grad_()
+        self.gradcheck(lambda i, r: flatfield(i, r, card_albedo=0.8).images, (images, reference))

@@ -1,0 +1,36 @@
+import pytest
+import torch
+
+from psmini import InputError, ShapeError
+from psmini.geometry import depth_to_points, pixel_grid_mm, point_cloud
+from tests.conftest import BaseTester
+
+
+class TestGeometry(BaseTester):
+    def test_grid_axes(self, device, dtype):
+        x, y = pixel_grid_mm(4, 6, 0.025, device=device, dtype=dtype)
+        self.assert_close(x[0, 1] - x[0, 0], torch.tensor(0.025, device=device, dtype=dtype))
+        self.assert_close(y[1, 0] - y[0, 0], torch.tensor(-0.025, device=device, dtype=dtype))  # rows go down, y up
+        self.assert_close(x.mean(), torch.tensor(0.0, device=device, dtype=dtype))
+        self.assert_close(y.mean(), torch.tensor(0.0, device=device, dtype=dtype))
+
+    def test_points_and_cloud(self, device, dtype):
+        depth = torch.arange(6, device=device, dtype=dtype).view(1, 1, 2, 3).expand(2, 1, 2, 3)
+        points = depth_to_points(depth, 2.0)
+        assert points.shape == (2, 3, 2, 3)
+        self.assert_close(points[0, :, 1, 2], torch.tensor([2.0, -1.0, 5.0], device=device, dtype=dtype))
+        cloud = point_cloud(depth, 2.0)
+        assert cloud.shape == (2, 6, 3)
+        self.assert_close(cloud[1, 5], points[1, :, 1, 2])
+
+    def test_bad_pitch_raise(self):
+        with pytest.raises(InputError, match="pixel_pitch_mm"):
+            depth_to_points(torch.zeros(1, 1, 2, 2), -1.0)
+
+    def test_bad_shape_raise(self):
+        with pytest.raises(ShapeError, match="depth"):
+            depth_to_points(torch.zeros(1, 2, 2, 2), 1.0)
+
+    def test_gradcheck(self):
+        depth = torch.rand(1, 1, 3, 3, dtype=torch.float64, requires_grad=True)
+        self.gradcheck(lambda d: point_cloud(d, 0.5), (depth,))

@@ -1,0 +1,55 @@
+import math
+
+import pytest
+import torch
+
+from psmini import InputError, ShapeError
+from psmini.metrics import angular_error_deg, depth_error, mean_angular_error, median_angular_error
+from tests.conftest import BaseTester
+
+
+def _tilted(angle_deg: float, shape=(1, 3, 4, 4)):
+    a = math.radians(angle_deg)
+    return torch.tensor([math.sin(a), 0.0, math.cos(a)]).view(1, 3, 1, 1).expand(*shape).clone()
+
+
+class TestAngular(BaseTester):
+    def test_known_angles(self, device, dtype):
+        reference = _tilted(0).to(device, dtype)
+        for angle in (0.01, 1.0, 30.0, 90.0, 150.0):
+            error = angular_error_deg(_tilted(angle).to(device, dtype), reference)
+            self.assert_close(error, torch.full_like(error, angle), rtol=1e-4, atol=1e-4)
+
+    def test_mean_median_masked(self, device, dtype):
+        normals = _tilted(0).to(device, dtype)
+        normals[..., 0, :] = _tilted(10)[..., 0, :].to(device, dtype)
+        mask = torch.ones(1, 1, 4, 4, dtype=torch.bool, device=device)
+        mask[..., 3, :] = False
+        reference = _tilted(0).to(device, dtype)
+        self.assert_close(mean_angular_error(normals, reference, mask), torch.tensor([10 / 3], device=device, dtype=dtype), rtol=1e-4, atol=1e-4)
+        self.assert_close(median_angular_error(normals, reference), torch.tensor([0.0], device=device, dtype=dtype), rtol=0, atol=1e-3)
+
+    def test_empty_mask_raise(self):
+        with pytest.raises(InputError, match="selects no pixel"):
+            mean_angular_error(_tilted(1), _tilted(0), torch.zeros(1, 1, 4, 4, dtype=torch.bool))
+
+    def test_shape_mismatch_raise(self):
+        with pytest.raises(ShapeError, match="does not match"):
+            angular_error_deg(_tilted(1), _tilted(0, shape=(1, 3, 4, 5)))
+
+
+class TestDepthError(BaseTester):
+    def test_offset_and_scale(self, device, dtype):
+        gt = torch.rand(2, 1, 8, 8, device=device, dtype=dtype) + 1.0
+        gt[0, 0, 0, 0] = float("nan")  # NaN in the ground truth counts as outside
+        noise = torch.zeros_like(gt)
+        noise[..., 4, 4] = 0.64
+        result = depth_error(gt + 2.0 + noise, gt, align="offset")
+        expected_rmse = torch.tensor([0.64 * math.sqrt(62) / 63, 0.64 * math.sqrt(63) / 64], device=device, dtype=dtype)
+        self.assert_close(result["rmse"], expected_rmse, rtol=1e-3, atol=1e-4)
+        scaled = depth_error(gt * 3.0, gt, align="scale")
+        self.assert_close(scaled["mae"], torch.zeros(2, device=device, dtype=dtype), rtol=0, atol=1e-5)
+
+    def test_bad_align_raise(self):
+        with pytest.raises(InputError, match="align"):
+            depth_error(torch.rand(1, 1, 2, 2), torch.rand(1, 1, 2, 2), align="median")

@@ -1,0 +1,131 @@
+import pytest
+import torch
+
+from psmini import CalibrationError, InputError, ShapeError, ring_lights
+from psmini.normals import LeastSquaresNormals, albedo_normals, normals_to_gradients
+from tests._analytic import analytic_sphere, render
+from tests.conftest import BaseTester
+
+
+def _lit_everywhere(normals, lights):
+    """Pixels where every light has a positive cosine (no attached shadow): least squares is exact there."""
+    return (torch.einsum("kc,bchw->bkhw", lights.to(normals), normals) > 1e-3).all(dim=1, keepdim=True)
+
+
+class TestAlbedoNormals(BaseTester):
+    def test_recovers_sphere(self, device, dtype):
+        normals, inside, albedo = analytic_sphere(48, device=device, dtype=dtype)
+        lights = ring_lights(8, 35.0, device=device, dtype=dtype) * torch.linspace(0.8, 1.2, 8, device=device, dtype=dtype)[:, None]
+        images = render(normals, albedo, lights)
+        est_albedo, est_normals = albedo_normals(images, lights)
+        region = inside & _lit_everywhere(normals, lights)
+        assert int(region.sum()) > 500
+        self.assert_close(est_normals * region, normals * region, rtol=1e-4, atol=1e-4)
+        self.assert_close(est_albedo * region, albedo * region, rtol=1e-4, atol=1e-4)
+
+    def test_weights_drop_shadowed_observations(self, device, dtype):
+        normals, inside, albedo = analytic_sphere(48, device=device, dtype=dtype)
+        lights = ring_lights(8, 55.0, device=device, dtype=dtype)
+        images = render(normals, albedo, lights)
+        lit = torch.einsum("kc,bchw->bkhw", lights, normals) > 1e-3
+        _, plain = albedo_normals(images, lights)
+        _, weighted = albedo_normals(images, lights, mask=inside, weights=lit)
+        enough = inside & (lit.sum(1, keepdim=True) >= 3)
+        shadowed = enough & ~lit.all(1, keepdim=True)
+        # with shadows ignored the solution is exact wherever three lights remain; plain least squares is not
+        self.assert_close(weighted * enough, normals * enough, rtol=1e-4, atol=1e-4)
+        assert float(((plain - normals).norm(dim=1, keepdim=True) * shadowed).max()) > 0.05
+
+    def test_rank_deficient_pixels_get_default(self, device, dtype):
+        lights = ring_lights(8, 55.0, device=device, dtype=dtype)
+        images = torch.rand(1, 8, 2, 2, device=device, dtype=dtype)
+        weights = torch.ones_like(images)
+        weights[0, 2:, 0, 0] = 0  # two lights left at pixel (0, 0)
+        albedo, normals = albedo_normals(images, lights, weights=weights)
+        assert float(albedo[0, 0, 0, 0]) == 0.0
+        assert normals[0, :, 0, 0].tolist() == [0.0, 0.0, 1.0]
+        assert bool((albedo[0, 0].flatten()[1:] > 0).all())
+
+    def test_mask(self, device, dtype):
+        lights = ring_lights(8, 55.0, device=device, dtype=dtype)
+        mask = torch.zeros(1, 1, 3, 3, dtype=torch.bool, device=device)
+        mask[..., 1, 1] = True
+        albedo, normals = albedo_normals(torch.rand(1, 8, 3, 3, device=device, dtype=dtype) + 0.1, lights, mask)
+        assert int((albedo > 0).sum()) == 1 and normals[0, 2, 0, 0] == 1
+
+    def test_batched_lights(self, device, dtype):
+        lights = torch.stack([ring_lights(8, 45.0, device=device, dtype=dtype), ring_lights(8, 30.0, device=device, dtype=dtype)])
+        normals, _, albedo = analytic_sphere(16, device=device, dtype=dtype)
+        images = torch.cat([render(normals, albedo, lights[0]), render(normals, albedo, lights[1])])
+        _, est = albedo_normals(images, lights)
+        region = _lit_everywhere(normals, lights[0]) & _lit_everywhere(normals, lights[1])
+        self.assert_close(est * region, normals.expand(2, -1, -1, -1) * region, rtol=1e-4, atol=1e-4)
+
+    def test_module_equals_functional(self, device, dtype):
+        lights = ring_lights(8, 55.0, device=device, dtype=dtype)
+        images = torch.rand(2, 8, 5, 5, device=device, dtype=dtype)
+        for a, b in zip(LeastSquaresNormals(lights)(images), albedo_normals(images, lights)):
+            self.assert_close(a, b)
+
+    def test_count_mismatch_raise(self):
+        with pytest.raises(ShapeError, match=r"number of lights.*\(8\).*\(7\)"):
+            albedo_normals(torch.rand(1, 7, 4, 4), ring_lights(8, 55.0))
+
+    def test_coplanar_raise(self):
+        with pytest.raises(CalibrationError, match="coplanar"):
+            albedo_normals(torch.rand(1, 4, 8, 8), ring_lights(4, zenith_deg=90.0))
+
+    def test_two_lights_raise(self):
+        with pytest.raises(CalibrationError, match="got 2"):
+            albedo_normals(torch.rand(1, 2, 8, 8), ring_lights(2, 45.0))
+
+    def test_nan_raise(self):
+        images = torch.rand(1, 8, 4, 4)
+        images[0, 3, 1, 1] = float("nan")
+        with pytest.raises(InputError, match="intensities must be finite"):
+            albedo_normals(images, ring_lights(8, 55.0))
+
+    def test_wrong_shape_raise(self):
+        with pytest.raises(ShapeError, match=r"\(B, K, H, W\)"):
+            albedo_normals(torch.rand(8, 4, 4), ring_lights(8, 55.0))
+        with pytest.raises(ShapeError, match="weights"):
+            albedo_normals(torch.rand(1, 8, 4, 4), ring_lights(8, 55.0), weights=torch.ones(1, 8, 4, 3))
+
+    def test_integer_images_raise(self):
+        with pytest.raises(InputError, match="floating-point"):
+            albedo_normals(torch.zeros(1, 8, 4, 4, dtype=torch.uint8), ring_lights(8, 55.0))
+
+    def test_gradcheck(self):
+        lights = ring_lights(8, 55.0, dtype=torch.float64)
+        images = (torch.rand(1, 8, 3, 3, dtype=torch.float64) + 0.5).requires_grad_()
+        self.gradcheck(lambda i: albedo_normals(i, lights), (images,))
+        weights = torch.rand(1, 8, 3, 3, dtype=torch.float64) + 0.1
+        self.gradcheck(lambda i: albedo_normals(i, lights, weights=weights), (images,))
+
+    def test_gradcheck_lights(self):
+        lights = ring_lights(8, 55.0, dtype=torch.float64).requires_grad_()
+        images = torch.rand(1, 8, 2, 2, dtype=torch.float64) + 0.5
+        self.gradcheck(lambda light: albedo_normals(images, light), (lights,))
+
+
+class TestGradients(BaseTester):
+    def test_plane(self, device, dtype):
+        # plane z = 0.3 x - 0.2 y has normal (-0.3, 0.2, 1) / norm
+        normal = torch.tensor([-0.3, 0.2, 1.0], device=device, dtype=dtype)
+        normals = (normal / normal.norm()).view(1, 3, 1, 1).expand(2, 3, 4, 4)
+        p, q = normals_to_gradients(normals)
+        self.assert_close(p, torch.full_like(p, 0.3))
+        self.assert_close(q, torch.full_like(q, -0.2))
+
+    def test_grazing_normal_is_capped(self):
+        normals = torch.tensor([1.0, 0.0, -0.1]).view(1, 3, 1, 1)
+        p, _ = normals_to_gradients(normals, min_nz=0.05)
+        assert float(p) == pytest.approx(-20.0)
+
+    def test_bad_min_nz_raise(self):
+        with pytest.raises(InputError, match="min_nz"):
+            normals_to_gradients(torch.rand(1, 3, 2, 2), min_nz=0.0)
+
+    def test_gradcheck(self):
+        normals = torch.nn.functional.normalize(torch.rand(1, 3, 3, 3, dtype=torch.float64) + 0.3, dim=1).requires_grad_()
+        self.gradcheck(normals_to_gradients, (normals,))
