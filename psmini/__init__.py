@@ -9,6 +9,8 @@ from __future__ import annotations
 __version__ = "0.1.0"
 
 from psmini.errors import CalibrationError, DataFormatError, InputError, PsminiError, RigError, ShapeError
+from psmini.integrate import METHODS as INTEGRATION_METHODS
+from psmini.integrate import FrankotChellappa, frankot_chellappa, integrate
 from psmini.lights import DirectionalLights, LEDLights, PointLights, as_batched_lights, check_spans_3d, ring_lights
 
 __all__ = [
@@ -27,4 +29,9 @@ __all__ = [
     "DirectionalLights",
     "PointLights",
     "LEDLights",
+    # integration
+    "integrate",
+    "INTEGRATION_METHODS",
+    "frankot_chellappa",
+    "FrankotChellappa",
 ]

@@ -1,0 +1,49 @@
+"""The one entry point of normal integration, dispatching on ``method=``."""
+
+from __future__ import annotations
+
+import inspect
+from typing import Any
+
+from torch import Tensor
+
+from psmini.errors import InputError
+from psmini.integrate.fourier import frankot_chellappa
+
+__all__ = ["integrate", "METHODS"]
+
+METHODS = {"fc": frankot_chellappa}
+
+
+def integrate(
+    p: Tensor, q: Tensor, method: str = "fc", pixel_pitch_mm: float = 1.0, mask: Tensor | None = None, **options: Any
+) -> Tensor:
+    r"""Integrate surface gradients to height, with the integrator named by ``method``.
+
+    Args:
+        p: :math:`\partial z/\partial x`, shape :math:`(B, 1, H, W)` (x right).
+        q: :math:`\partial z/\partial y`, shape :math:`(B, 1, H, W)` (y up).
+        method: one of :data:`METHODS`: ``"fc"`` (:func:`frankot_chellappa`).
+        pixel_pitch_mm: size of one pixel on the surface in mm.
+        mask: optional pixels to integrate, shape :math:`(B, 1, H, W)`.
+        **options: passed to the method (e.g. ``boundary="periodic"`` for ``"fc"``).
+
+    Returns:
+        height toward the camera in mm, shape :math:`(B, 1, H, W)`; see each method for its offset convention.
+
+    Raises:
+        InputError: when ``method`` is unknown or an option does not belong to it; see each method.
+
+    Example:
+        >>> z = integrate(torch.zeros(1, 1, 8, 8), torch.zeros(1, 1, 8, 8), method="fc", pixel_pitch_mm=0.025)
+        >>> z.shape
+        torch.Size([1, 1, 8, 8])
+    """
+    if method not in METHODS:
+        raise InputError(f"unknown integration method {method!r}; expected one of {', '.join(sorted(METHODS))}")
+    func = METHODS[method]
+    accepted = set(inspect.signature(func).parameters) - {"p", "q", "pixel_pitch_mm", "mask"}
+    unknown = sorted(set(options) - accepted)
+    if unknown:
+        raise InputError(f"method {method!r} takes options {sorted(accepted)}, got unknown {unknown}")
+    return func(p, q, pixel_pitch_mm=pixel_pitch_mm, mask=mask, **options)

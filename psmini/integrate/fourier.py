@@ -1,0 +1,111 @@
+"""Integrators on the full rectangle by fast transforms: Frankot–Chellappa (FFT) and a DCT Poisson solver."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+from psmini.errors import InputError
+from psmini.integrate._common import centred_grid, check_gradients, masked_mean
+
+__all__ = ["frankot_chellappa", "FrankotChellappa", "dct_poisson", "DCTPoisson"]
+
+_FC_BOUNDARIES = ("mirror", "periodic")
+
+
+def _mirror(gu: Tensor, gv: Tensor) -> tuple[Tensor, Tensor]:
+    """Extend pixel-grid gradients to ``(2H, 2W)`` as the gradients of the even (mirrored) depth.
+
+    The depth is mirrored about the half-pixel beyond each edge, so its column derivative is odd under a
+    left-right flip and even under an up-down flip (and the other way round for the row derivative).
+    """
+    gu = torch.cat([gu, -gu.flip(-1)], dim=-1)
+    gv = torch.cat([gv, gv.flip(-1)], dim=-1)
+    gu = torch.cat([gu, gu.flip(-2)], dim=-2)
+    gv = torch.cat([gv, -gv.flip(-2)], dim=-2)
+    return gu, gv
+
+
+def _fc_periodic(gu: Tensor, gv: Tensor) -> Tensor:
+    """Least-squares periodic surface for pixel-grid gradients ``(B, 1, H, W)``, zero mean (Frankot–Chellappa)."""
+    height, width = gu.shape[-2:]
+    # Angular frequencies in radians per pixel; the spectral derivative of exp(i w u) is i w.
+    wu = 2 * math.pi * torch.fft.rfftfreq(width, device=gu.device, dtype=gu.dtype).view(1, 1, 1, -1)
+    wv = 2 * math.pi * torch.fft.fftfreq(height, device=gu.device, dtype=gu.dtype).view(1, 1, -1, 1)
+    denom = wu**2 + wv**2
+    denom[..., 0, 0] = 1.0  # the mean is free: its numerator is zero, keep the division finite
+    spectrum = (-1j * wu * torch.fft.rfft2(gu) - 1j * wv * torch.fft.rfft2(gv)) / denom
+    return torch.fft.irfft2(spectrum, s=(height, width))
+
+
+def frankot_chellappa(
+    p: Tensor, q: Tensor, pixel_pitch_mm: float = 1.0, boundary: str = "mirror", mask: Tensor | None = None
+) -> Tensor:
+    r"""Depth from surface gradients by Frankot–Chellappa's Fourier projection, keeping the mean slope.
+
+    Frankot and Chellappa (TPAMI 1988) project the gradient field onto the integrable fields with the FFT:
+    :math:`\hat z = (-i\omega_u \hat g_u - i\omega_v \hat g_v)/(\omega_u^2 + \omega_v^2)`. The zero frequency
+    carries no slope, so the classical method returns a tilted plane flat. Here the mean slope
+    :math:`(\bar p, \bar q)` is subtracted before the transform and the plane :math:`\bar p x + \bar q y` added
+    back, so planes come back exactly. ``boundary="mirror"`` integrates the mirrored :math:`(2H, 2W)` extension
+    (even depth, no periodic wrap-around), ``"periodic"`` the rectangle as a torus.
+
+    Args:
+        p: :math:`\partial z/\partial x`, shape :math:`(B, 1, H, W)`, camera frame (x right).
+        q: :math:`\partial z/\partial y`, shape :math:`(B, 1, H, W)`, camera frame (y up; image rows grow
+            downward, so the derivative along a row index is :math:`-q`).
+        pixel_pitch_mm: size of one pixel on the surface in mm (the step of x and y).
+        boundary: ``"mirror"`` (default) or ``"periodic"``.
+        mask: optional pixels to trust, shape :math:`(B, 1, H, W)` (bool or float). The mean slope is taken
+            over the mask and the gradients outside it are replaced by that mean slope; the solve still runs
+            on the whole rectangle (use ``integrate(..., method="masked")`` for a solve on the mask alone).
+
+    Returns:
+        height toward the camera in mm, shape :math:`(B, 1, H, W)`, with zero mean over the mask (over every
+        pixel without a mask). Differentiable with respect to ``p`` and ``q``.
+
+    Raises:
+        ShapeError: when ``p`` and ``q`` differ in shape, are not :math:`(B, 1, H, W)`, or the mask does not fit.
+        InputError: when the gradients hold NaN/inf, the pitch is not positive, or ``boundary`` is unknown.
+
+    Example:
+        >>> ys, xs = torch.meshgrid(torch.arange(8.0), torch.arange(8.0), indexing="ij")
+        >>> p, q = torch.full((1, 1, 8, 8), 0.2), torch.full((1, 1, 8, 8), -0.1)
+        >>> z = frankot_chellappa(p, q, pixel_pitch_mm=0.5)
+        >>> round(float(z[0, 0, 0, 1] - z[0, 0, 0, 0]), 4)  # 0.2 * 0.5 mm per column
+        0.1
+    """
+    mask, pitch = check_gradients(p, q, mask, pixel_pitch_mm)
+    if boundary not in _FC_BOUNDARIES:
+        raise InputError(f"boundary must be one of {', '.join(_FC_BOUNDARIES)}, got {boundary!r}")
+    height, width = p.shape[-2:]
+    p0, q0 = masked_mean(p, mask), masked_mean(q, mask)
+    # Residual slopes in mm per pixel step along columns (u) and rows (v, downward: -q).
+    gu, gv = (p - p0) * pitch, -(q - q0) * pitch
+    if mask is not None:
+        gu, gv = gu * mask, gv * mask
+    if boundary == "mirror":
+        gu, gv = _mirror(gu, gv)
+    z = _fc_periodic(gu, gv)[..., :height, :width]
+    u, v = centred_grid(height, width, p)
+    z = z + (p0 * u - q0 * v) * pitch
+    return z - masked_mean(z, mask)
+
+
+class FrankotChellappa(nn.Module):
+    """Module form of :func:`frankot_chellappa` holding the pixel pitch and the boundary.
+
+    Example:
+        >>> integrator = FrankotChellappa(pixel_pitch_mm=0.025)
+        >>> integrator(torch.zeros(2, 1, 16, 16), torch.zeros(2, 1, 16, 16)).shape
+        torch.Size([2, 1, 16, 16])
+    """
+
+    def __init__(self, pixel_pitch_mm: float = 1.0, boundary: str = "mirror") -> None:
+        super().__init__()
+        self.pixel_pitch_mm, self.boundary = pixel_pitch_mm, boundary
+
+    def forward(self, p: Tensor, q: Tensor, mask: Tensor | None = None) -> Tensor:
+        return frankot_chellappa(p, q, self.pixel_pitch_mm, self.boundary, mask)
