@@ -1,0 +1,194 @@
+"""The classical pipeline in one differentiable module: flat-field → least-squares normals → gradients → depth.
+
+This is the seed paper's method (Woodham's least squares with flat-fielding by a matte card, Frankot–Chellappa
+integration) on batched tensors. Light models that are not distant (points, LEDs) are used here through their
+distant approximation at the field centre, which is what a mirror sphere at the centre would measure; the
+near-light solver lives beside it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import torch
+from torch import Tensor, nn
+
+from psmini._checks import check_mask, check_shape, check_tensor
+from psmini.errors import InputError
+from psmini.flatfield import flatfield
+from psmini.integrate import integrate
+from psmini.lights import DirectionalLights, check_spans_3d
+from psmini.normals import albedo_normals, normals_to_gradients
+
+__all__ = ["Reconstruction", "PhotometricStereo", "distant_light_matrix", "reconstruct"]
+
+
+@dataclass
+class Reconstruction:
+    """What :class:`PhotometricStereo` returns; every field is batched.
+
+    Attributes:
+        albedo: :math:`(B, 1, H, W)`, relative to the card's albedo scale when flat-fielded.
+        normals: unit normals :math:`(B, 3, H, W)`, camera frame.
+        p: :math:`\\partial z / \\partial x`, :math:`(B, 1, H, W)`.
+        q: :math:`\\partial z / \\partial y` (y up), :math:`(B, 1, H, W)`.
+        depth: height toward the camera :math:`(B, 1, H, W)`, mm (pixel units when no pitch is known).
+        mask: where a normal was solved, :math:`(B, 1, H, W)` bool.
+    """
+
+    albedo: Tensor
+    normals: Tensor
+    p: Tensor
+    q: Tensor
+    depth: Tensor
+    mask: Tensor
+
+    def to(self, device: torch.device | str) -> Reconstruction:
+        """A copy with every field on ``device``."""
+        return Reconstruction(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
+
+
+def distant_light_matrix(lights: nn.Module, flatfielded: bool, reference: Tensor) -> Tensor:
+    r"""The :math:`(K, 3)` light matrix of least squares for a light model, seen from the field centre.
+
+    The model is evaluated at the origin (on the optical axis, at the card plane). Without flat-fielding the
+    rows are unit directions times irradiance. After division by a flat card's image the irradiance cancels and
+    a pixel reads :math:`\rho\,(n \cdot l_k) / (e_z \cdot l_k)`, so the rows are :math:`l_k / l_{k,z}`.
+
+    Args:
+        lights: a light model of :mod:`psmini.lights`.
+        flatfielded: whether the images were divided by a card image.
+        reference: a tensor whose device and dtype the result takes.
+
+    Returns:
+        light matrix :math:`(K, 3)`.
+
+    Example:
+        >>> from psmini.lights import ring_lights
+        >>> matrix = distant_light_matrix(DirectionalLights(ring_lights(8, 60.0)), True, torch.zeros(1))
+        >>> round(float(matrix[0, 2]), 6)
+        1.0
+    """
+    centre = torch.zeros(1, 3, 1, 1, device=reference.device, dtype=reference.dtype)
+    directions, irradiance = lights(centre)
+    directions, irradiance = directions[0, :, :, 0, 0], irradiance[0, :, :, 0, 0]
+    if not flatfielded:
+        return directions * irradiance
+    facing = directions[:, 2:3]
+    if bool((facing <= 0).any()):
+        raise InputError("flat-fielding needs every light above the card plane (positive z)")
+    return directions / facing
+
+
+def _as_light_model(lights: nn.Module | Tensor) -> nn.Module:
+    if isinstance(lights, Tensor):
+        check_spans_3d(lights)
+        norms = lights.norm(dim=-1)
+        return DirectionalLights(lights, norms)
+    if not isinstance(lights, nn.Module):
+        raise InputError(f"lights must be a psmini light model or a (K, 3) tensor, got {type(lights).__name__}")
+    return lights
+
+
+class PhotometricStereo(nn.Module):
+    """Flat-field, normals and depth in one differentiable module.
+
+    Args:
+        lights: a light model of :mod:`psmini.lights`, or a :math:`(K, 3)` tensor of directions scaled by
+            intensity.
+        integrator: integration method of :func:`psmini.integrate.integrate` (``"fc"``: Frankot–Chellappa).
+        pixel_pitch_mm: size of one pixel on the cloth, mm; ``None`` integrates in pixel units.
+        min_reference: see :func:`psmini.flatfield.flatfield`.
+        saturation_level: raw level at which an observation counts as saturated and is dropped; ``None`` keeps all.
+
+    Example:
+        >>> from psmini.lights import ring_lights
+        >>> ps = PhotometricStereo(ring_lights(8, 55.0), pixel_pitch_mm=0.025)
+        >>> result = ps(torch.rand(2, 8, 32, 32))
+        >>> result.depth.shape
+        torch.Size([2, 1, 32, 32])
+    """
+
+    def __init__(
+        self,
+        lights: nn.Module | Tensor,
+        integrator: str = "fc",
+        pixel_pitch_mm: float | None = 0.025,
+        min_reference: float = 0.02,
+        saturation_level: float | None = None,
+    ) -> None:
+        super().__init__()
+        self.lights = _as_light_model(lights)
+        self.integrator, self.pixel_pitch_mm = integrator, pixel_pitch_mm
+        self.min_reference, self.saturation_level = min_reference, saturation_level
+
+    def forward(
+        self,
+        images: Tensor,
+        reference: Tensor | None = None,
+        dark: Tensor | None = None,
+        reference_dark: Tensor | None = None,
+        mask: Tensor | None = None,
+        card_albedo: float = 1.0,
+    ) -> Reconstruction:
+        """Reconstruct ``images`` :math:`(B, K, H, W)`; see :func:`psmini.flatfield.flatfield` for the rest."""
+        sizes = check_shape(images, ["B", "K", "H", "W"], "images")
+        mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
+        flat = flatfield(
+            images, reference, dark, reference_dark, card_albedo, self.min_reference, self.saturation_level
+        )
+        matrix = distant_light_matrix(self.lights, reference is not None, images)
+        weights = None if bool(flat.valid.all()) else flat.valid
+        albedo, normals = albedo_normals(flat.images, matrix, mask, weights)
+        solved = albedo > 0
+        p, q = normals_to_gradients(normals)
+        zeros = torch.zeros_like(p)
+        p, q = torch.where(solved, p, zeros), torch.where(solved, q, zeros)
+        depth = integrate(p, q, method=self.integrator, pixel_pitch_mm=self.pixel_pitch_mm or 1.0, mask=solved)
+        return Reconstruction(albedo, normals, p, q, depth, solved)
+
+
+def reconstruct(
+    sample,
+    *,
+    device: torch.device | str = "cpu",
+    dtype: torch.dtype = torch.float32,
+    integrator: str = "fc",
+    min_reference: float = 0.02,
+) -> Reconstruction:
+    """Reconstruct one loaded sample (:func:`psmini.io.load_sample`) with the classical pipeline.
+
+    Args:
+        sample: a :class:`psmini.io.Sample` (DiLiGenT or capture folder).
+        device: where to compute.
+        dtype: floating dtype of the computation.
+        integrator: integration method.
+        min_reference: see :func:`psmini.flatfield.flatfield`.
+
+    Returns:
+        :class:`Reconstruction` with batch size 1, on ``device``.
+
+    Example:
+        >>> # sample = psmini.io.load_sample("capture_folder"); result = reconstruct(sample)
+    """
+    check_tensor(sample.images, "sample.images")
+
+    def batch(x: Tensor | None) -> Tensor | None:
+        return None if x is None else x.to(device=device, dtype=dtype).unsqueeze(0)
+
+    model = PhotometricStereo(
+        sample.lights.to(device=device, dtype=dtype),
+        integrator=integrator,
+        pixel_pitch_mm=sample.pixel_pitch_mm,
+        min_reference=min_reference,
+        saturation_level=sample.saturation_level,
+    )
+    mask = None if sample.mask is None else sample.mask.to(device).unsqueeze(0)
+    return model(
+        batch(sample.images),
+        reference=batch(sample.reference),
+        dark=batch(sample.dark),
+        reference_dark=batch(sample.reference_dark),
+        mask=mask,
+        card_albedo=sample.card_albedo or 1.0,
+    )

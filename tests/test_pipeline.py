@@ -1,0 +1,105 @@
+import math
+
+import pytest
+import torch
+
+from psmini import CalibrationError, DirectionalLights, InputError, LEDLights, ShapeError, ring_lights
+from psmini.flatfield import flatfield
+from psmini.integrate import frankot_chellappa
+from psmini.normals import albedo_normals, normals_to_gradients
+from psmini.pipeline import PhotometricStereo, distant_light_matrix
+from tests._analytic import analytic_sphere, render
+from tests.conftest import BaseTester
+
+
+def _bumpy_plane(size: int, pitch: float, device=None, dtype=torch.float32):
+    """Height (1, 1, H, W) mm of a tilted plane plus Gaussian bumps, and its analytic normals."""
+    coords = (torch.arange(size, device=device, dtype=dtype) - (size - 1) / 2) * pitch
+    y, x = torch.meshgrid(-coords, coords, indexing="ij")
+    sigma = 8 * pitch
+    z, zx, zy = 0.05 * x - 0.03 * y, torch.full_like(x, 0.05), torch.full_like(x, -0.03)
+    for cx, cy, amp in ((0.1, 0.2, 0.08), (-0.3, -0.1, -0.05), (0.25, -0.3, 0.06)):
+        g = amp * torch.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * sigma**2))
+        z, zx, zy = z + g, zx - g * (x - cx) / sigma**2, zy - g * (y - cy) / sigma**2
+    normals = torch.stack([-zx, -zy, torch.ones_like(z)])
+    return z[None, None], (normals / normals.norm(dim=0)).unsqueeze(0)
+
+
+class TestPhotometricStereo(BaseTester):
+    def test_bumpy_plane_end_to_end(self, device, dtype):
+        """Render a tilted bumpy plane under a card-normalised ring, recover normals and the surface."""
+        pitch = 0.025
+        height, normals = _bumpy_plane(64, pitch, device, dtype)
+        lights = ring_lights(8, 45.0, device=device, dtype=dtype)
+        falloff = torch.rand(1, 8, 64, 64, device=device, dtype=dtype) * 0.5 + 0.5  # LED beam shape, cancels
+        albedo = torch.full_like(height, 0.6)
+        images = render(normals, albedo, lights / lights[:, 2:3]) * lights[:, 2].view(1, 8, 1, 1) * falloff + 0.02
+        reference = 0.8 * falloff * lights[:, 2].view(1, 8, 1, 1) + 0.02
+        dark = torch.full((1, 1, 64, 64), 0.02, device=device, dtype=dtype)
+        result = PhotometricStereo(lights, pixel_pitch_mm=pitch)(images, reference, dark, card_albedo=0.8)
+        self.assert_close(result.normals, normals, rtol=1e-3, atol=1e-3)
+        self.assert_close(result.albedo, albedo, rtol=1e-3, atol=1e-3)
+        expected = height - height.mean()
+        rmse = (result.depth - expected).square().mean().sqrt() / (expected.max() - expected.min())
+        assert float(rmse) < 2e-3
+
+    def test_functional_equals_module(self, device, dtype):
+        lights = ring_lights(8, 55.0, device=device, dtype=dtype)
+        images = torch.rand(2, 8, 16, 16, device=device, dtype=dtype) + 0.1
+        result = PhotometricStereo(lights, pixel_pitch_mm=0.5)(images)
+        albedo, normals = albedo_normals(flatfield(images).images, lights)
+        p, q = normals_to_gradients(normals)
+        self.assert_close(result.normals, normals)
+        self.assert_close(result.depth, frankot_chellappa(p, q, 0.5, mask=albedo > 0))
+
+    def test_led_model_uses_centre_directions(self, device, dtype):
+        ring = ring_lights(8, 55.0, device=device, dtype=dtype)
+        positions = ring * 12.0
+        leds = LEDLights(positions, -ring)
+        matrix = distant_light_matrix(leds, flatfielded=True, reference=positions)
+        self.assert_close(matrix, ring / ring[:, 2:3])
+        unflat = distant_light_matrix(leds, flatfielded=False, reference=positions)
+        self.assert_close(unflat.norm(dim=-1), torch.full((8,), 1 / 144.0, device=device, dtype=dtype))
+
+    def test_mask_and_shadows(self, device, dtype):
+        normals, inside, albedo = analytic_sphere(32, device=device, dtype=dtype)
+        lights = ring_lights(8, 55.0, device=device, dtype=dtype)
+        images = render(normals, albedo, lights)
+        result = PhotometricStereo(lights, pixel_pitch_mm=None)(images, mask=inside)
+        assert not bool(result.mask[~inside].any())
+        assert torch.isfinite(result.depth).all()
+
+    def test_wrong_count_raise(self):
+        with pytest.raises(ShapeError, match="number of lights"):
+            PhotometricStereo(ring_lights(8, 55.0))(torch.rand(1, 6, 8, 8))
+
+    def test_coplanar_raise(self):
+        with pytest.raises(CalibrationError, match="coplanar"):
+            PhotometricStereo(ring_lights(8, 90.0))(torch.rand(1, 8, 8, 8))
+
+    def test_nan_raise(self):
+        images = torch.rand(1, 8, 8, 8)
+        images[0, 0, 0, 0] = math.nan
+        with pytest.raises(InputError, match="finite"):
+            PhotometricStereo(ring_lights(8, 55.0))(images)
+
+    def test_bad_lights_raise(self):
+        with pytest.raises(InputError, match="light model"):
+            PhotometricStereo("ring")
+
+    def test_light_below_card_raise(self):
+        lights = DirectionalLights(torch.tensor([[0.5, 0, 0.8], [-0.5, 0, 0.8], [0, 0.5, -0.8]]))
+        with pytest.raises(InputError, match="above the card"):
+            PhotometricStereo(lights)(torch.rand(1, 3, 4, 4), reference=torch.ones(3, 4, 4))
+
+    def test_gradcheck_whole_pipeline(self):
+        lights = ring_lights(8, 45.0, dtype=torch.float64)
+        reference = torch.rand(1, 8, 4, 4, dtype=torch.float64) + 0.5
+        model = PhotometricStereo(lights, pixel_pitch_mm=0.1)
+
+        def run(images, ref):
+            result = model(images, ref, card_albedo=0.8)
+            return result.albedo, result.normals, result.depth
+
+        images = (torch.rand(1, 8, 4, 4, dtype=torch.float64) * 0.5 + 0.5).requires_grad_()
+        self.gradcheck(run, (images, reference.requires_grad_()))
