@@ -1,0 +1,64 @@
+"""Input and output around the core: images (16-bit safe), DiLiGenT folders, psmini capture folders, exports.
+
+Nothing in the core imports this package; it turns files into the tensors the core expects (``Sample``) and
+reconstructions back into files. Formats: ``docs/capture-format.md`` and the README's "File formats".
+"""
+
+from __future__ import annotations
+
+from psmini.io.capture import (
+    Capture,
+    lights_from_dict,
+    lights_to_dict,
+    read_capture,
+    read_manifest,
+    write_capture,
+)
+from psmini.io.diligent import is_diligent_folder, read_diligent
+from psmini.io.export import robust_max, save_albedo_png, save_depth, save_normal_png, save_ply, write_outputs
+from psmini.io.images import (
+    DILIGENT_GRAY_WEIGHTS,
+    read_gray,
+    read_image,
+    read_image_raw,
+    read_image_stack,
+    read_image_tensor,
+    rgb_to_gray,
+    write_image,
+)
+from psmini.io.load import find_samples, load_sample
+from psmini.io.matfile import read_mat
+from psmini.io.sample import Sample
+
+__all__ = [
+    # images
+    "DILIGENT_GRAY_WEIGHTS",
+    "read_image",
+    "read_image_raw",
+    "read_image_tensor",
+    "read_gray",
+    "read_image_stack",
+    "rgb_to_gray",
+    "write_image",
+    "read_mat",
+    # samples
+    "Sample",
+    "load_sample",
+    "find_samples",
+    "read_diligent",
+    "is_diligent_folder",
+    # capture folders
+    "Capture",
+    "read_capture",
+    "read_manifest",
+    "write_capture",
+    "lights_to_dict",
+    "lights_from_dict",
+    # export
+    "robust_max",
+    "save_albedo_png",
+    "save_normal_png",
+    "save_depth",
+    "save_ply",
+    "write_outputs",
+]

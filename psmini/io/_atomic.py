@@ -1,0 +1,70 @@
+"""Write a folder atomically: into a temporary sibling, renamed into place only when complete. Internal."""
+
+from __future__ import annotations
+
+import logging
+import os
+import secrets
+import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from psmini.errors import DataFormatError
+
+logger = logging.getLogger(__name__)
+
+
+@contextmanager
+def atomic_folder(destination: str | Path, overwrite: bool = False) -> Iterator[Path]:
+    """Yield a fresh temporary folder beside ``destination``; on success rename it to ``destination``.
+
+    The temporary folder is named ``.NAME.tmp-XXXX`` in the destination's parent (same file system, so the
+    rename is atomic). On any exception it is removed and the exception propagates: the destination is
+    never left half-written. With ``overwrite=True`` an existing destination is moved aside, the new folder
+    renamed in, and the old one deleted.
+
+    Raises:
+        DataFormatError: when the destination exists and ``overwrite`` is False, exists and is not a folder,
+            or the parent folder cannot be created or written.
+    """
+    destination = Path(destination)
+    _refuse_existing(destination, overwrite)
+    try:
+        destination.parent.mkdir(parents=True, exist_ok=True)
+        temporary = _fresh_sibling(destination, "tmp")
+    except OSError as error:
+        raise DataFormatError(f"cannot create a folder beside {destination}: {error}") from error
+    try:
+        yield temporary
+        _refuse_existing(destination, overwrite)  # again: someone may have created it meanwhile
+        if destination.exists():
+            old = _fresh_sibling(destination, "old")
+            os.replace(destination, old / destination.name)
+            os.replace(temporary, destination)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(temporary, destination)
+    except BaseException:
+        shutil.rmtree(temporary, ignore_errors=True)
+        raise
+    logger.debug("wrote folder %s", destination)
+
+
+def _fresh_sibling(destination: Path, tag: str) -> Path:
+    """Create ``.NAME.TAG-XXXXXXXX`` beside ``destination`` with os.mkdir, which honours the umask (mkdtemp
+    would leave the finished folder readable by its owner only)."""
+    while True:
+        candidate = destination.parent / f".{destination.name}.{tag}-{secrets.token_hex(4)}"
+        try:
+            candidate.mkdir()
+            return candidate
+        except FileExistsError:
+            continue
+
+
+def _refuse_existing(destination: Path, overwrite: bool) -> None:
+    if destination.exists() and not destination.is_dir():
+        raise DataFormatError(f"{destination} exists and is not a folder")
+    if destination.exists() and not overwrite:
+        raise DataFormatError(f"{destination} already exists; pass overwrite=True to replace it")

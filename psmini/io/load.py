@@ -1,0 +1,146 @@
+"""One entry point for every sample folder (DiLiGenT or psmini capture), and a walker for batches."""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+from psmini.errors import DataFormatError
+from psmini.io.capture import MANIFEST_NAME, read_capture, read_manifest
+from psmini.io.diligent import is_diligent_folder, read_diligent
+from psmini.io.sample import Sample
+
+__all__ = ["load_sample", "find_samples", "NOT_SAMPLE_KINDS"]
+
+logger = logging.getLogger(__name__)
+
+#: Capture kinds that are calibration or focus data, not samples to reconstruct.
+NOT_SAMPLE_KINDS = ("flatfield", "sphere", "focus")
+
+
+def load_sample(path: str | Path) -> Sample:
+    """Load a DiLiGenT object folder or a psmini capture folder as a :class:`Sample`.
+
+    A folder with ``capture.json`` is a capture (``docs/capture-format.md``); one with ``filenames.txt`` and
+    ``light_directions.txt`` is DiLiGenT (:func:`read_diligent`). For a capture, the referenced flat-field
+    capture is read too: its images become ``reference``, its dark frame ``reference_dark`` and its card
+    albedo ``card_albedo``; ``saturation_level`` is 1.0 (the largest code of the sensor's bit depth).
+
+    Args:
+        path: the sample folder.
+
+    Returns:
+        the :class:`Sample` (CPU tensors, ``float32``).
+
+    Raises:
+        DataFormatError: a folder that is neither kind, a ``focus`` capture (no lights to reconstruct with),
+            a flat-field capture with a different number of images or a different size, and every error of
+            :func:`read_diligent` and :func:`psmini.io.read_capture`.
+
+    Example:
+        >>> sample = load_sample("../shared/data/DiLiGenT/cat")  # doctest: +SKIP
+        >>> sample.images.shape  # doctest: +SKIP
+        torch.Size([96, 512, 612])
+    """
+    path = Path(path)
+    if (path / MANIFEST_NAME).is_file():
+        return _capture_sample(path)
+    if is_diligent_folder(path):
+        return read_diligent(path)
+    if not path.is_dir():
+        raise DataFormatError(f"sample folder {path} does not exist or is not a folder")
+    raise DataFormatError(
+        f"{path} is not a sample folder: expected {MANIFEST_NAME} (psmini capture) or filenames.txt and "
+        "light_directions.txt (DiLiGenT)"
+    )
+
+
+def _capture_sample(path: Path) -> Sample:
+    capture = read_capture(path)
+    if capture.lights is None:
+        raise DataFormatError(f"capture {path} is a {capture.kind!r} capture without lights; it cannot be reconstructed")
+    reference = reference_dark = None
+    if capture.flatfield_path is not None:
+        card = read_capture(capture.flatfield_path)
+        if card.images.shape != capture.images.shape:
+            raise DataFormatError(
+                f"flat-field capture {capture.flatfield_path} has images {tuple(card.images.shape)} (K, H, W) but "
+                f"capture {path} has {tuple(capture.images.shape)}; the card must be imaged under the same LEDs"
+            )
+        reference, reference_dark = card.images, card.dark
+    gt = capture.gt
+    return Sample(
+        name=path.name,
+        images=capture.images,
+        lights=capture.lights,
+        mask=capture.mask,
+        dark=capture.dark,
+        reference=reference,
+        reference_dark=reference_dark,
+        card_albedo=capture.card_albedo if reference is not None else 1.0,
+        pixel_pitch_mm=capture.pixel_pitch_mm,
+        normals_gt=gt.get("normals"),
+        depth_gt=gt.get("depth"),
+        albedo_gt=gt.get("albedo"),
+        saturation_level=1.0,
+        gt_mask=gt.get("mask"),
+        meta={
+            "source": "capture",
+            "path": str(path),
+            "kind": capture.kind,
+            "bit_depth": capture.bit_depth,
+            "flatfield": str(capture.flatfield_path) if capture.flatfield_path is not None else None,
+            "gt_lights": gt.get("lights"),
+            "crop": capture.crop,
+            "camera": capture.camera,
+            "metadata": capture.metadata,
+        },
+    )
+
+
+def find_samples(root: str | Path) -> list[Path]:
+    """List the sample folders under ``root`` (``root`` included), sorted, for batch processing.
+
+    A folder counts when it is a DiLiGenT object folder or a capture folder whose kind is not a calibration
+    or focus kind (``flatfield``, ``sphere``, ``focus``). A capture whose manifest cannot be parsed is listed
+    (with a warning) so that the batch reports its error. The walk does not descend into sample folders
+    (their ``gt/`` is part of them) nor into hidden folders (such as a capture being written).
+
+    Args:
+        root: the folder to walk.
+
+    Returns:
+        the sample folders, sorted.
+
+    Raises:
+        DataFormatError: when ``root`` is not a folder.
+
+    Example:
+        >>> find_samples("../shared/data/DiLiGenT")  # doctest: +SKIP
+        [PosixPath('../shared/data/DiLiGenT/ball'), PosixPath('../shared/data/DiLiGenT/cat')]
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise DataFormatError(f"{root} does not exist or is not a folder")
+    found: list[Path] = []
+    for current, subfolders, _ in os.walk(root):
+        folder = Path(current)
+        subfolders[:] = sorted(name for name in subfolders if not name.startswith("."))
+        if (folder / MANIFEST_NAME).is_file():
+            subfolders[:] = []
+            if _is_sample_capture(folder):
+                found.append(folder)
+        elif is_diligent_folder(folder):
+            subfolders[:] = []
+            found.append(folder)
+    return sorted(found)
+
+
+def _is_sample_capture(folder: Path) -> bool:
+    try:
+        kind = read_manifest(folder)["kind"]
+    except DataFormatError as error:
+        logger.warning("listing %s although its manifest is invalid: %s", folder, error)
+        return True
+    return kind not in NOT_SAMPLE_KINDS
