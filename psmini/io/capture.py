@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from psmini.errors import DataFormatError, InputError
+from psmini.errors import DataFormatError, InputError, PsminiError
 from psmini.io._atomic import atomic_folder
 from psmini.io.images import read_gray, read_image_stack, rgb_to_gray, write_image
 from psmini.lights import DirectionalLights, LEDLights, PointLights
@@ -145,12 +145,6 @@ def lights_from_dict(data: Mapping[str, Any], *, dtype: torch.dtype | None = Non
     if model == "point":
         return PointLights(values["positions_mm"], values["intensities"])
     return LEDLights(values["positions_mm"], values["principal_directions"], values["intensities"], values["mu"])
-
-
-def _light_count(data: Mapping[str, Any]) -> int:
-    key = "directions" if data.get("model") == "directional" else "positions_mm"
-    entries = data.get(key)
-    return len(entries) if isinstance(entries, list) else -1
 
 
 # ------------------------------------------------------------------------------------------------ reading
@@ -283,7 +277,10 @@ def _check_lights_entry(folder: Path, manifest: dict[str, Any], count: int) -> N
         return
     if not isinstance(lights, dict):
         raise _fail(folder, f"lights must be a light model object, got {lights!r}")
-    lights_count = _light_count(lights)
+    try:
+        lights_count = lights_from_dict(lights).count
+    except PsminiError as error:
+        raise _fail(folder, f"bad light model: {error}") from error
     if lights_count != count:
         raise _fail(folder, f"{count} images but the light model has {lights_count} lights; they must be equal")
 
@@ -367,7 +364,10 @@ def _read_gt(folder: Path, entries: dict[str, Any], height: int, width: int) -> 
     gt: dict[str, Any] = {}
     for key, value in entries.items():
         if key == "lights":
-            gt["lights"] = lights_from_dict(value)
+            try:
+                gt["lights"] = lights_from_dict(value)
+            except PsminiError as error:
+                raise _fail(folder, f"bad ground-truth light model: {error}") from error
             continue
         path = _existing(folder, value, f"ground truth {key}")
         try:
@@ -598,8 +598,8 @@ def write_capture(
         # a JSON object goes through the module too: validated and normalised like a module's
         module = lights if isinstance(lights, nn.Module) else lights_from_dict(lights)
         lights_entry = lights_to_dict(module)
-        if _light_count(lights_entry) != count:
-            raise InputError(f"{count} images but {_light_count(lights_entry)} lights; they must be equal")
+        if module.count != count:
+            raise InputError(f"{count} images but {module.count} lights; they must be equal")
     elif kind != "focus":
         raise InputError(f"lights are required for a {kind!r} capture")
     if kind == "flatfield" and (not _is_number(card_albedo) or card_albedo <= 0):
