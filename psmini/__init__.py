@@ -9,9 +9,16 @@ from __future__ import annotations
 __version__ = "0.1.0"
 
 from psmini.errors import CalibrationError, DataFormatError, InputError, PsminiError, RigError, ShapeError
+from psmini import integrate  # the package, callable as psmini.integrate.integrate
 from psmini.integrate import METHODS as INTEGRATION_METHODS
-from psmini.integrate import FrankotChellappa, frankot_chellappa, integrate
+from psmini.integrate import FrankotChellappa, frankot_chellappa
+from psmini.evaluation import evaluate_sample, score_reconstruction
+from psmini.flatfield import FlatField, FlatFieldResult, flatfield
+from psmini.geometry import depth_to_points, pixel_grid_mm, point_cloud
 from psmini.lights import DirectionalLights, LEDLights, PointLights, as_batched_lights, check_spans_3d, ring_lights
+from psmini.metrics import angular_error_deg, depth_error, mean_angular_error, median_angular_error
+from psmini.normals import LeastSquaresNormals, albedo_normals, normals_to_gradients
+from psmini.pipeline import PhotometricStereo, Reconstruction, distant_light_matrix, reconstruct
 
 __all__ = [
     "__version__",
@@ -29,6 +36,30 @@ __all__ = [
     "DirectionalLights",
     "PointLights",
     "LEDLights",
+    # flat-fielding
+    "flatfield",
+    "FlatField",
+    "FlatFieldResult",
+    # normals
+    "albedo_normals",
+    "LeastSquaresNormals",
+    "normals_to_gradients",
+    # geometry
+    "pixel_grid_mm",
+    "depth_to_points",
+    "point_cloud",
+    # metrics and evaluation
+    "angular_error_deg",
+    "mean_angular_error",
+    "median_angular_error",
+    "depth_error",
+    "evaluate_sample",
+    "score_reconstruction",
+    # pipeline
+    "PhotometricStereo",
+    "Reconstruction",
+    "distant_light_matrix",
+    "reconstruct",
     # integration
     "integrate",
     "INTEGRATION_METHODS",

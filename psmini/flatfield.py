@@ -109,26 +109,27 @@ def flatfield(
     reference = _check_frame(reference, *shape, "reference")
     reference_dark = _check_frame(reference_dark, *shape, "reference_dark") if reference_dark is not None else dark
 
-    valid = torch.ones(shape, dtype=torch.bool, device=images.device)
-    if saturation_level is not None:
-        valid = valid & (images < saturation_level)
-    signal = images if dark is None else images - dark.to(images)
-    signal = signal.clamp_min(0)
+    signal = images.clamp_min(0) if dark is None else (images - dark.to(images)).clamp_min_(0)
+    saturated = None if saturation_level is None else images >= saturation_level
     if reference is None:
-        return FlatFieldResult(torch.where(valid, signal, torch.zeros_like(signal)), valid)
+        valid = torch.ones_like(images, dtype=torch.bool) if saturated is None else ~saturated
+        return FlatFieldResult(signal if saturated is None else signal.masked_fill(saturated, 0), valid)
 
     reference = reference.to(images)
-    if saturation_level is not None:
-        valid = valid & (reference < saturation_level)
     card = reference if reference_dark is None else reference - reference_dark.to(images)
-    brightest = card.amax(dim=(-2, -1), keepdim=True)
-    trusted = card > min_reference * brightest
-    trusted = trusted & (card > 0)
-    valid = valid & trusted
-    # divide only where trusted: torch.where alone would still send NaN gradients through 0/0
-    safe_card = torch.where(trusted, card, torch.ones_like(card))
-    ratio = card_albedo * signal / safe_card
-    return FlatFieldResult(torch.where(valid, ratio, torch.zeros_like(ratio)), valid)
+    trusted = (card > min_reference * card.amax(dim=(-2, -1), keepdim=True)) & (card > 0)
+    if saturation_level is not None:
+        trusted = trusted & (reference < saturation_level)
+    # Everything that depends on the card alone is computed once, at the card's size, not per sample: the
+    # scale is card_albedo / card where trusted and 0 elsewhere (the 1 in the denominator keeps 0/0 out of
+    # the gradient).
+    scale = torch.where(trusted, card_albedo / torch.where(trusted, card, torch.ones_like(card)), torch.zeros_like(card))
+    ratio = signal * scale
+    valid = trusted.expand(shape)
+    if saturated is not None:
+        valid = valid & ~saturated
+        ratio = ratio.masked_fill(saturated, 0)
+    return FlatFieldResult(ratio, valid)
 
 
 class FlatField(nn.Module):

@@ -23,21 +23,17 @@ __all__ = ["albedo_normals", "LeastSquaresNormals", "normals_to_gradients"]
 _RANK_RATIO = 1e-6
 
 
-def _default_normals(like: Tensor) -> Tensor:
-    """Normals (0, 0, 1) with the shape (B, 3, H, W) of ``like``."""
-    normals = torch.zeros_like(like)
-    normals[:, 2] = 1
-    return normals
+def _unit_and_length(m: Tensor, solved: Tensor | None) -> tuple[Tensor, Tensor]:
+    """Split m (B, 3, H, W) into albedo |m| and unit normal; (0, 0, 1) and albedo 0 where not solved.
 
-
-def _unit_and_length(m: Tensor, solved: Tensor) -> tuple[Tensor, Tensor]:
-    """Split m (B, 3, H, W) into albedo |m| and unit normal; (0, 0, 1) and albedo 0 where not solved."""
+    ``solved`` (B, 1, H, W) marks well-posed pixels; ``None`` means all. Pixels with |m| = 0 count as not solved.
+    """
     tiny = torch.finfo(m.dtype).tiny
     length = m.square().sum(dim=1, keepdim=True).clamp_min(tiny).sqrt()  # no NaN gradient at m = 0
-    solved = solved & (length > torch.finfo(m.dtype).eps)
-    normals = torch.where(solved, m / length, _default_normals(m))
-    albedo = torch.where(solved, length, torch.zeros_like(length))
-    return albedo, normals
+    nonzero = length > torch.finfo(m.dtype).eps
+    solved = nonzero if solved is None else solved & nonzero
+    up = torch.tensor([0.0, 0.0, 1.0], device=m.device, dtype=m.dtype).view(1, 3, 1, 1)  # broadcast, not filled
+    return length.masked_fill(~solved, 0), torch.where(solved, m / length, up)
 
 
 def _check_weights(weights: Tensor | None, shape: torch.Size) -> Tensor | None:
@@ -109,12 +105,12 @@ def albedo_normals(
 
     if weights is None:
         pinv = torch.linalg.pinv(lights)  # (B, 3, K)
-        m = torch.einsum("bck,bkhw->bchw", pinv, intensities)
-        solved = torch.ones_like(intensities[:, :1], dtype=torch.bool)
+        m = torch.matmul(pinv, intensities.flatten(2)).view(sizes["B"], 3, sizes["H"], sizes["W"])
+        solved = None
     else:
         m, solved = _weighted_solve(intensities, lights, weights)
     if mask is not None:
-        solved = solved & mask.bool()
+        solved = mask.bool() if solved is None else solved & mask.bool()
     return _unit_and_length(m, solved)
 
 

@@ -141,9 +141,7 @@ class PhotometricStereo(nn.Module):
         weights = None if bool(flat.valid.all()) else flat.valid
         albedo, normals = albedo_normals(flat.images, matrix, mask, weights)
         solved = albedo > 0
-        p, q = normals_to_gradients(normals)
-        zeros = torch.zeros_like(p)
-        p, q = torch.where(solved, p, zeros), torch.where(solved, q, zeros)
+        p, q = normals_to_gradients(normals)  # 0 where not solved: the normal there is (0, 0, 1)
         depth = integrate(p, q, method=self.integrator, pixel_pitch_mm=self.pixel_pitch_mm or 1.0, mask=solved)
         return Reconstruction(albedo, normals, p, q, depth, solved)
 
