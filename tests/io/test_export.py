@@ -1,0 +1,242 @@
+"""Exports: PNG encodings read back, depth preview decoding, PLY read back with plyfile, atomic write_outputs."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from plyfile import PlyData
+
+from psmini import DataFormatError, InputError, ShapeError
+from psmini.geometry import depth_to_points
+from psmini.io import export as export_module
+from psmini.io.export import robust_max, save_albedo_png, save_depth, save_normal_png, save_ply, write_outputs
+from psmini.io.images import read_image, read_image_raw
+
+H, W = 6, 8
+
+
+def sphere_normals() -> torch.Tensor:
+    y, x = torch.meshgrid(torch.linspace(0.7, -0.7, H), torch.linspace(-0.7, 0.7, W), indexing="ij")
+    z = (1 - x**2 - y**2).clamp_min(0.01).sqrt()
+    n = torch.stack([x, y, z])
+    return n / n.norm(dim=0, keepdim=True)
+
+
+class TestAlbedo:
+    def test_scaled_by_robust_max(self, tmp_path):
+        albedo = torch.linspace(0, 1, H * W).reshape(1, 1, H, W)
+        albedo[0, 0, 0, 0] = 50.0  # one outlier must not darken the picture
+        scale = save_albedo_png(tmp_path / "a.png", albedo)
+        expected_scale = float(np.percentile(albedo.numpy(), 99.5))
+        assert scale == pytest.approx(expected_scale)
+        raw, bits = read_image_raw(tmp_path / "a.png")
+        assert bits == 8 and raw.shape == (H, W)
+        np.testing.assert_array_equal(raw, np.rint(np.clip(albedo[0, 0].numpy() / scale, 0, 1) * 255).astype(np.uint8))
+
+    def test_mask_blacks_out_and_ignores_nan_outside(self, tmp_path):
+        albedo = torch.full((1, H, W), 0.4)
+        albedo[0, :, 0] = float("nan")
+        mask = torch.ones(1, 1, H, W, dtype=torch.bool)
+        mask[..., 0] = False
+        save_albedo_png(tmp_path / "a.png", albedo, mask)
+        raw, _ = read_image_raw(tmp_path / "a.png")
+        assert (raw[:, 0] == 0).all() and (raw[:, 1:] == 255).all()
+
+    def test_nan_inside_mask_raises(self, tmp_path):
+        albedo = torch.full((H, W), 0.4)
+        albedo[2, 2] = float("nan")
+        with pytest.raises(InputError, match="1 NaN or infinite value"):
+            save_albedo_png(tmp_path / "a.png", albedo)
+
+    def test_bad_shape(self, tmp_path):
+        with pytest.raises(ShapeError, match=r"albedo must have shape \(1, 1, H, W\)"):
+            save_albedo_png(tmp_path / "a.png", torch.rand(2, 1, H, W))
+
+    def test_robust_max(self):
+        assert robust_max(np.arange(1001.0)) == pytest.approx(995.0)
+        assert robust_max(np.zeros(5)) == 1.0
+        with pytest.raises(InputError, match="percentile"):
+            robust_max(np.ones(3), percentile=0)
+
+
+class TestNormals:
+    @pytest.mark.parametrize("bits", [8, 16])
+    def test_encoding_read_back(self, tmp_path, bits):
+        normals = sphere_normals()
+        save_normal_png(tmp_path / "n.png", normals[None], bit_depth=bits)
+        image, read_bits = read_image(tmp_path / "n.png")  # RGB order
+        assert read_bits == bits
+        decoded = torch.from_numpy(image.transpose(2, 0, 1)).double() * 2 - 1
+        torch.testing.assert_close(decoded, normals.double(), rtol=0, atol=1.0 / (2**bits - 1) + 1e-6)
+
+    def test_flat_surface_is_the_usual_blue_and_stored_bgr(self, tmp_path):
+        flat = torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).expand(3, H, W)
+        save_normal_png(tmp_path / "n.png", flat)
+        bgr = cv2.imread(str(tmp_path / "n.png"), cv2.IMREAD_UNCHANGED)
+        assert bgr[0, 0].tolist() == [255, 128, 128]  # B = n_z on disk in OpenCV's order: viewers show RGB (128,128,255)
+
+    def test_right_facing_is_red(self, tmp_path):
+        right = torch.tensor([1.0, 0.0, 0.0]).view(3, 1, 1).expand(3, H, W)
+        save_normal_png(tmp_path / "n.png", right)
+        raw, _ = read_image_raw(tmp_path / "n.png")
+        assert raw[0, 0].tolist() == [255, 128, 128]
+
+    def test_outside_mask_is_black(self, tmp_path):
+        mask = torch.zeros(H, W, dtype=torch.bool)
+        save_normal_png(tmp_path / "n.png", sphere_normals(), mask)
+        assert (read_image_raw(tmp_path / "n.png")[0] == 0).all()
+
+    def test_errors(self, tmp_path):
+        with pytest.raises(InputError, match="bit_depth must be 8 or 16"):
+            save_normal_png(tmp_path / "n.png", sphere_normals(), bit_depth=12)
+        with pytest.raises(ShapeError, match=r"normals must have shape \(1, 3, H, W\) or \(3, H, W\)"):
+            save_normal_png(tmp_path / "n.png", torch.rand(H, W))
+        with pytest.raises(ShapeError, match="mask must be"):
+            save_normal_png(tmp_path / "n.png", sphere_normals(), torch.ones(H + 1, W))
+
+
+class TestDepth:
+    def test_npy_png_and_sidecar(self, tmp_path):
+        depth = torch.linspace(-1.0, 3.0, H * W, dtype=torch.float64).reshape(1, 1, H, W)
+        mask = torch.ones(1, 1, H, W, dtype=torch.bool)
+        mask[..., 0, :] = False
+        paths = save_depth(tmp_path / "depth.npy", depth, mask)
+        assert [p.name for p in paths] == ["depth.npy", "depth.png", "depth.json"]
+        exact = np.load(tmp_path / "depth.npy")
+        assert exact.dtype == np.float32 and np.isnan(exact[0]).all()
+        np.testing.assert_array_equal(exact[1:], depth[0, 0, 1:].numpy().astype(np.float32))
+        sidecar = json.loads((tmp_path / "depth.json").read_text())
+        assert sidecar["units"] == "mm" and sidecar["min"] == pytest.approx(float(depth[0, 0, 1, 0]))
+        code, bits = read_image_raw(tmp_path / "depth.png")
+        assert bits == 16 and (code[0] == 0).all() and code[1:].min() == 1 and code[1:].max() == 65535
+        decoded = sidecar["min"] + (code[1:].astype(np.float64) - 1) / 65534 * (sidecar["max"] - sidecar["min"])
+        np.testing.assert_allclose(decoded, exact[1:], atol=(sidecar["max"] - sidecar["min"]) / 65534)
+
+    def test_flat_depth(self, tmp_path):
+        save_depth(tmp_path / "d.npy", torch.full((H, W), 2.0))
+        assert (read_image_raw(tmp_path / "d.png")[0] == 1).all()
+
+    def test_errors(self, tmp_path):
+        with pytest.raises(InputError, match="mask is empty"):
+            save_depth(tmp_path / "d.npy", torch.zeros(H, W), torch.zeros(H, W))
+        with pytest.raises(InputError, match="NaN"):
+            save_depth(tmp_path / "d.npy", torch.full((H, W), float("inf")))
+        with pytest.raises(DataFormatError, match="cannot write"):
+            save_depth(tmp_path / "none" / "d.npy", torch.zeros(H, W))
+
+
+class TestPly:
+    def test_points_and_albedo_read_back(self, tmp_path):
+        points = torch.randn(50, 3, dtype=torch.float64)
+        albedo = torch.linspace(0, 1, 50)
+        keep = torch.arange(50) % 3 != 0
+        count = save_ply(tmp_path / "p.ply", points, albedo, keep)
+        ply = PlyData.read(str(tmp_path / "p.ply"))
+        assert count == int(keep.sum()) and ply.elements[0].count == count
+        assert not ply.text and ply.byte_order == "<"
+        vertex = ply["vertex"]
+        back = np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1)
+        assert vertex["x"].dtype == np.float32 and vertex["red"].dtype == np.uint8
+        np.testing.assert_array_equal(back, points[keep].numpy().astype(np.float32))
+        expected = np.rint(np.clip(albedo[keep].numpy() / robust_max(albedo[keep].numpy()), 0, 1) * 255)
+        np.testing.assert_array_equal(vertex["red"], expected.astype(np.uint8))
+        np.testing.assert_array_equal(vertex["red"], vertex["blue"])
+
+    def test_point_image_and_rgb(self, tmp_path):
+        points = depth_to_points(torch.rand(1, 1, H, W), 0.025)
+        colours = torch.randint(0, 256, (H * W, 3), dtype=torch.uint8)
+        save_ply(tmp_path / "p.ply", points, colours)
+        vertex = PlyData.read(str(tmp_path / "p.ply"))["vertex"]
+        np.testing.assert_array_equal(vertex["z"], points[0, 2].reshape(-1).numpy())
+        np.testing.assert_array_equal(vertex["y"], points[0, 1].reshape(-1).numpy())  # row-major order
+        np.testing.assert_array_equal(np.stack([vertex["red"], vertex["green"], vertex["blue"]], 1), colours.numpy())
+
+    def test_without_colours(self, tmp_path):
+        save_ply(tmp_path / "p.ply", np.zeros((3, 3)))
+        assert [p.name for p in PlyData.read(str(tmp_path / "p.ply"))["vertex"].properties] == ["x", "y", "z"]
+
+    def test_errors(self, tmp_path):
+        with pytest.raises(ShapeError, match="3 coordinates"):
+            save_ply(tmp_path / "p.ply", torch.zeros(5, 2))
+        with pytest.raises(ShapeError, match="colors must give 5 rows"):
+            save_ply(tmp_path / "p.ply", torch.zeros(5, 3), torch.zeros(4))
+        with pytest.raises(ShapeError, match="1 \\(albedo\\) or 3 \\(RGB\\)"):
+            save_ply(tmp_path / "p.ply", torch.zeros(5, 3), torch.zeros(5, 2))
+        points = torch.zeros(5, 3)
+        points[1, 2] = float("nan")
+        with pytest.raises(InputError, match="points holds 1 NaN"):
+            save_ply(tmp_path / "p.ply", points)
+        save_ply(tmp_path / "p.ply", points, mask=torch.tensor([1, 0, 1, 1, 1]))  # masked out: fine
+        with pytest.raises(InputError, match="torch.Tensor or numpy"):
+            save_ply(tmp_path / "p.ply", [[0.0, 0.0, 0.0]])
+        with pytest.raises(DataFormatError, match="cannot write"):
+            save_ply(tmp_path / "none" / "p.ply", torch.zeros(5, 3))
+
+
+def reconstruction(batched: bool = True) -> dict[str, torch.Tensor]:
+    depth = torch.rand(1, 1, H, W) * 0.3
+    mask = torch.ones(1, 1, H, W, dtype=torch.bool)
+    mask[..., 0, 0] = False
+    depth[..., 0, 0] = float("nan")
+    result = {"albedo": torch.rand(1, 1, H, W), "normals": sphere_normals()[None], "depth": depth, "mask": mask}
+    return result if batched else {key: value[0] for key, value in result.items()}
+
+
+class TestWriteOutputs:
+    @pytest.mark.parametrize("batched", [True, False])
+    def test_writes_every_file(self, tmp_path, batched):
+        result = reconstruction(batched)
+        written = write_outputs(tmp_path / "out", result, pixel_pitch_mm=0.025, metadata={"sample": "denim"})
+        names = ["albedo.png", "normals.png", "depth.npy", "depth.png", "depth.json", "points.ply", "outputs.json"]
+        assert [p.name for p in written] == names and all(p.is_file() for p in written)
+        assert sorted(os.listdir(tmp_path)) == ["out"]
+        summary = json.loads((tmp_path / "out" / "outputs.json").read_text())
+        assert summary["vertices"] == H * W - 1 and summary["pixel_pitch_mm"] == 0.025
+        assert summary["files"] == names[:-1] and summary["metadata"] == {"sample": "denim"}
+        vertex = PlyData.read(str(tmp_path / "out" / "points.ply"))["vertex"]
+        depth = result["depth"].reshape(1, 1, H, W).double()
+        expected = depth_to_points(depth, 0.025)[0].reshape(3, -1)[:, 1:].T.numpy().astype(np.float32)
+        np.testing.assert_array_equal(np.stack([vertex["x"], vertex["y"], vertex["z"]], 1), expected)
+
+    def test_reconstruction_object_from_the_pipeline(self, tmp_path):
+        from psmini.pipeline import Reconstruction
+
+        result = reconstruction()
+        rec = Reconstruction(result["albedo"], result["normals"], result["depth"], result["depth"], result["depth"], result["mask"])
+        write_outputs(tmp_path / "out", rec)
+        assert json.loads((tmp_path / "out" / "depth.json").read_text())["units"] == "pixels"
+
+    def test_existing_out_dir(self, tmp_path):
+        write_outputs(tmp_path / "out", reconstruction())
+        with pytest.raises(DataFormatError, match="already exists"):
+            write_outputs(tmp_path / "out", reconstruction())
+        write_outputs(tmp_path / "out", reconstruction(), overwrite=True)
+        assert sorted(os.listdir(tmp_path)) == ["out"]
+
+    def test_failure_mid_write_leaves_nothing(self, tmp_path, monkeypatch):
+        def failing_ply(*args, **kwargs):
+            raise DataFormatError("disk full (simulated)")
+
+        monkeypatch.setattr(export_module, "save_ply", failing_ply)
+        with pytest.raises(DataFormatError, match="simulated"):
+            write_outputs(tmp_path / "out", reconstruction())
+        assert os.listdir(tmp_path) == []
+
+    def test_errors(self, tmp_path):
+        result = reconstruction()
+        with pytest.raises(InputError, match="lacks 'normals'"):
+            write_outputs(tmp_path / "out", {"albedo": result["albedo"], "depth": result["depth"]})
+        with pytest.raises(ShapeError, match="must share one size"):
+            write_outputs(tmp_path / "out", result | {"depth": torch.zeros(1, 1, H, W + 1)})
+        with pytest.raises(InputError, match="NaN"):
+            write_outputs(tmp_path / "out", result | {"mask": None})
+        with pytest.raises(InputError, match="serialise"):
+            write_outputs(tmp_path / "out", result, metadata={"x": object()})
+        with pytest.raises(InputError, match="bit_depth"):
+            write_outputs(tmp_path / "out", result, normal_bit_depth=4)
+        assert os.listdir(tmp_path) == []
