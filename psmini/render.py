@@ -159,41 +159,39 @@ def cast_shadows(height_mm: Tensor, light_vectors: Tensor, pixel_pitch_mm: float
     vectors = _per_pixel_vectors(light_vectors, batch, height, width, height_mm)
     z = height_mm.detach()
     vectors = vectors.detach()
-    horizontal = vectors[:, :, :2].norm(dim=2, keepdim=True)  # (B, K, 1, H, W)
-    # Height gained per mm of horizontal travel; a light straight overhead (horizontal 0) casts no shadow.
-    rise = vectors[:, :, 2:3] / horizontal.clamp_min(1e-12)
-    steps = _march_steps(z, rise, pitch)
-    # Unit horizontal direction in pixel units: columns follow x, rows follow -y.
-    dcol = vectors[:, :, 0:1] / horizontal.clamp_min(1e-12)
-    drow = -vectors[:, :, 1:2] / horizontal.clamp_min(1e-12)
-    rows = torch.arange(height, device=z.device, dtype=z.dtype).view(1, 1, 1, height, 1)
-    cols = torch.arange(width, device=z.device, dtype=z.dtype).view(1, 1, 1, 1, width)
     count = vectors.shape[1]
-    start = z[:, None].expand(batch, count, 1, height, width)
-    field = z.expand(batch, 1, height, width).repeat_interleave(count, dim=0)  # (B*K, 1, H, W)
-    lit = torch.ones(batch, count, 1, height, width, dtype=torch.bool, device=z.device)
-    for step in range(1, steps + 1):
-        col = cols + step * dcol
-        row = rows + step * drow
-        inside = (col >= 0) & (col <= width - 1) & (row >= 0) & (row <= height - 1)
-        grid = torch.stack([2 * col / max(width - 1, 1) - 1, 2 * row / max(height - 1, 1) - 1], dim=-1)
-        grid = grid.reshape(batch * count, height, width, 2)
-        sampled = F.grid_sample(field, grid, mode="bilinear", padding_mode="border", align_corners=True)
-        ray = start + step * pitch * rise
-        blocked = inside & (sampled.view(batch, count, 1, height, width) > ray + bias_mm)
-        lit &= ~blocked
-    return lit.to(height_mm.dtype)
+    horizontal = vectors[:, :, :2].norm(dim=2)  # (B, K, H, W)
+    safe = horizontal.clamp_min(1e-12)
+    # Height gained per pixel of horizontal travel; a light straight overhead (horizontal 0) casts no shadow.
+    rise = vectors[:, :, 2] / safe * pitch
+    # Work relative to the lowest point plus one: grid_sample's zero padding then reads "below every ray"
+    # outside the image, so nothing there occludes.
+    field = z - z.amin(dim=(-2, -1), keepdim=True) + 1  # (B, 1, H, W)
+    start = field.expand(batch, count, height, width) + bias_mm
+    steps = _march_steps(field, start, rise)
+    # One pixel of travel moves 2/(W-1) in grid_sample's normalised x (columns follow x) and -2/(H-1)·l_y in y.
+    delta = torch.stack(
+        [vectors[:, :, 0] / safe * (2 / max(width - 1, 1)), -vectors[:, :, 1] / safe * (2 / max(height - 1, 1))],
+        dim=-1,
+    ).reshape(batch * count, height, width, 2)
+    ys = torch.linspace(-1, 1, height, device=z.device, dtype=z.dtype)
+    xs = torch.linspace(-1, 1, width, device=z.device, dtype=z.dtype)
+    base = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), dim=-1).expand(batch * count, height, width, 2)
+    source = field.repeat_interleave(count, dim=0)  # (B*K, 1, H, W)
+    excess = torch.full((batch, count, height, width), -math.inf, device=z.device, dtype=z.dtype)
+    for step in range(1, steps + 1):  # a loop over ray steps; every pixel and light moves at once
+        grid = torch.add(base, delta, alpha=step)
+        sampled = F.grid_sample(source, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+        excess = torch.maximum(excess, sampled.view(batch, count, height, width) - torch.add(start, rise, alpha=step))
+    return (excess <= 0).to(height_mm.dtype).unsqueeze(2)
 
 
-def _march_steps(z: Tensor, rise: Tensor, pitch: float) -> int:
-    """Pixels of horizontal travel after which a ray from the lowest point clears the highest one."""
-    relief = float(z.max() - z.min())
-    if relief <= 0:
-        return 0
-    lowest_rise = float(rise.min())
-    if lowest_rise <= 0:
-        return _MAX_MARCH_STEPS
-    return min(_MAX_MARCH_STEPS, int(math.ceil(relief / lowest_rise / pitch)) + 1)
+def _march_steps(field: Tensor, start: Tensor, rise: Tensor) -> int:
+    """Steps after which every ray has climbed above the highest point of its field (one device sync)."""
+    top = field.amax(dim=(-2, -1), keepdim=True)
+    climbing = rise > 0
+    needed = torch.where(climbing, (top - start) / rise.clamp_min(1e-12), torch.zeros_like(rise))
+    return min(_MAX_MARCH_STEPS, int(math.ceil(float(needed.max().clamp_min(0)))))
 
 
 def _per_pixel_vectors(vectors: Tensor, batch: int, height: int, width: int, like: Tensor) -> Tensor:
