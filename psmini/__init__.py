@@ -19,6 +19,7 @@ from psmini.lights import DirectionalLights, LEDLights, PointLights, as_batched_
 from psmini.metrics import angular_error_deg, depth_error, mean_angular_error, median_angular_error
 from psmini.normals import LeastSquaresNormals, albedo_normals, normals_to_gradients
 from psmini.pipeline import PhotometricStereo, Reconstruction, distant_light_matrix, reconstruct
+from psmini.io import Sample, load_sample, read_capture, read_diligent, read_image, save_ply, write_capture, write_outputs
 
 __all__ = [
     "__version__",
@@ -60,6 +61,15 @@ __all__ = [
     "Reconstruction",
     "distant_light_matrix",
     "reconstruct",
+    # io
+    "read_image",
+    "read_diligent",
+    "read_capture",
+    "write_capture",
+    "load_sample",
+    "Sample",
+    "write_outputs",
+    "save_ply",
     # integration
     "integrate",
     "INTEGRATION_METHODS",
