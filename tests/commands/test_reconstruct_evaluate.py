@@ -1,0 +1,76 @@
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from psmini.cli import main
+from tests.conftest import shared_data
+
+
+def _last_json(capsys) -> dict:
+    lines = capsys.readouterr().out.strip().splitlines()
+    return json.loads(lines[-1])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("name", "low", "high"), [("cat", 8.39, 8.43), ("ball", 4.10, 4.20)])
+def test_evaluate_reproduces_diligent_baseline(capsys, name, low, high):
+    folder = shared_data("DiLiGenT", name)
+    assert main(["evaluate", str(folder), "--json"]) == 0
+    scores = _last_json(capsys)
+    assert low <= scores["mean_angular_error_deg"] <= high
+    assert scores["pixels"] > 10000
+
+
+@pytest.mark.slow
+def test_reconstruct_writes_outputs(tmp_path, capsys):
+    folder = shared_data("DiLiGenT", "ball")
+    out = tmp_path / "ball-out"
+    assert main(["reconstruct", str(folder), "--out", str(out), "--json"]) == 0
+    report = _last_json(capsys)
+    assert {p.rsplit("/", 1)[-1] for p in report["files"]} >= {"albedo.png", "normals.png", "depth.npy", "depth.png", "points.ply"}
+    depth = np.load(out / "depth.npy")
+    assert depth.shape == (512, 612)
+    # the ball bulges toward the camera: its centre stands higher than its rim
+    inside = np.isfinite(depth)
+    rows, cols = np.nonzero(inside)
+    centre = depth[int(rows.mean()), int(cols.mean())]
+    assert centre > np.nanpercentile(depth, 10) + 20
+
+
+def test_missing_folder_fails_cleanly(tmp_path, capsys):
+    assert main(["evaluate", str(tmp_path / "nowhere")]) == 1
+    assert "nowhere" in capsys.readouterr().err
+
+
+def test_reconstruct_count_mismatch_fails_cleanly(tmp_path, capsys):
+    folder = shared_data("DiLiGenT", "ball")
+    copy = tmp_path / "ball"
+    shutil.copytree(folder, copy, symlinks=True, ignore=shutil.ignore_patterns("*.png"))
+    for image in folder.glob("*.png"):
+        (copy / image.name).symlink_to(image)
+    lines = (copy / "light_directions.txt").read_text().splitlines()
+    (copy / "light_directions.txt").write_text("\n".join(lines[:-1]) + "\n")
+    assert main(["reconstruct", str(copy), "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err
+    assert "96" in err and "95" in err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="tests the error raised when CUDA is absent")
+def test_cuda_absent_fails_cleanly(tmp_path, capsys):
+    assert main(["evaluate", str(tmp_path), "--device", "cuda"]) == 1
+    assert "CUDA" in capsys.readouterr().err
+
+
+def test_evaluate_without_ground_truth_fails_cleanly(tmp_path, capsys):
+    folder = shared_data("DiLiGenT", "ball")
+    copy = tmp_path / "ball"
+    copy.mkdir()
+    for item in folder.iterdir():
+        if item.name not in ("Normal_gt.mat", "Normal_gt.png"):
+            (copy / item.name).symlink_to(item)
+    assert main(["evaluate", str(copy)]) == 1
+    assert "ground-truth normals" in capsys.readouterr().err
