@@ -76,7 +76,11 @@ def lights_to_dict(lights: nn.Module) -> dict[str, Any]:
         'directional'
     """
     if isinstance(lights, DirectionalLights):
-        return {"model": "directional", "directions": _floats(lights.directions), "intensities": _floats(lights.intensities)}
+        return {
+            "model": "directional",
+            "directions": _floats(lights.directions),
+            "intensities": _floats(lights.intensities),
+        }
     if isinstance(lights, LEDLights):
         return {
             "model": "led",
@@ -86,7 +90,11 @@ def lights_to_dict(lights: nn.Module) -> dict[str, Any]:
             "mu": _floats(lights.mu),
         }
     if isinstance(lights, PointLights):
-        return {"model": "point", "positions_mm": _floats(lights.positions_mm), "intensities": _floats(lights.intensities)}
+        return {
+            "model": "point",
+            "positions_mm": _floats(lights.positions_mm),
+            "intensities": _floats(lights.intensities),
+        }
     raise InputError(
         f"lights must be DirectionalLights, PointLights or LEDLights from psmini.lights, got {type(lights).__name__}"
     )
@@ -294,7 +302,8 @@ def _check_kind_fields(folder: Path, manifest: dict[str, Any], count: int) -> No
     if kind == "focus":
         positions = manifest.get("positions_mm")
         if not isinstance(positions, list) or len(positions) != count or not all(map(_is_number, positions)):
-            raise _fail(folder, f"a focus capture needs positions_mm, {count} numbers (one per image); got {positions!r}")
+            raise _fail(folder, f"a focus capture needs positions_mm, {count} numbers (one per image); got "
+                f"{positions!r}")
     reference = manifest.get("flatfield")
     if reference is None:
         return
@@ -314,7 +323,8 @@ def _check_gt_entry(folder: Path, gt: Any) -> None:
         if key == "lights":
             continue
         if key not in _GT_SHAPES:
-            raise _fail(folder, f"unknown ground-truth entry {key!r}; expected some of {sorted(_GT_SHAPES)} or 'lights'")
+            raise _fail(folder, f"unknown ground-truth entry {key!r}; expected some of {sorted(_GT_SHAPES)} or "
+                "'lights'")
         _check_file_name(folder, f"gt.{key}", value)
 
 
@@ -337,7 +347,8 @@ def _read_frames(folder: Path, names: list[str], bit_depth: int) -> np.ndarray:
 
     def to_gray(index: int, image: np.ndarray) -> np.ndarray:
         if bit_depth not in (8, 16) and float(image.max(initial=0.0)) > limit:
-            raise _fail(folder, f"{names[index]} holds values above {2**bit_depth - 1}, the largest {bit_depth}-bit code")
+            raise _fail(folder, f"{names[index]} holds values above {2**bit_depth - 1}, the largest "
+                f"{bit_depth}-bit code")
         return rgb_to_gray(image)
 
     try:
@@ -352,7 +363,8 @@ def _read_frames(folder: Path, names: list[str], bit_depth: int) -> np.ndarray:
 def _read_plain(folder: Path, name: str, what: str, height: int, width: int, bit_depth: int | None) -> np.ndarray:
     image, bits = read_gray(_existing(folder, name, what))
     if image.shape != (height, width):
-        raise _fail(folder, f"{what} {name!r} is {image.shape[1]}x{image.shape[0]} (WxH) but the images are {width}x{height}")
+        raise _fail(folder, f"{what} {name!r} is {image.shape[1]}x{image.shape[0]} (WxH) but the images are "
+            f"{width}x{height}")
     if bit_depth is not None:
         if bits != _container_bits(bit_depth):
             raise _fail(folder, f"{what} {name!r} is {bits}-bit but the images are {_container_bits(bit_depth)}-bit")
@@ -419,7 +431,9 @@ def read_capture(folder: str | Path) -> Capture:
     flatfield_path, card_albedo = _resolve_flatfield(folder, manifest)
     lights = lights_from_dict(manifest["lights"]) if manifest.get("lights") is not None else None
     gt = _read_gt(folder, manifest["gt"], height, width) if manifest.get("gt") else {}
-    logger.info("read capture %s: %s, %d images %dx%d, %d-bit", folder, manifest["kind"], len(frames), width, height, bit_depth)
+    logger.info(
+        "read capture %s: %s, %d images %dx%d, %d-bit", folder, manifest["kind"], len(frames), width, height, bit_depth
+    )
     return Capture(
         path=folder,
         kind=manifest["kind"],
@@ -451,9 +465,11 @@ def _resolve_flatfield(folder: Path, manifest: dict[str, Any]) -> tuple[Path | N
     try:
         card = read_manifest(path)
     except DataFormatError as error:
-        raise _fail(folder, f"the flatfield reference {reference['path']!r} is not a readable capture: {error}") from error
+        raise _fail(folder, f"the flatfield reference {reference['path']!r} is not a readable capture: "
+            f"{error}") from error
     if card["kind"] != "flatfield":
-        raise _fail(folder, f"the flatfield reference {reference['path']!r} is a {card['kind']!r} capture, not 'flatfield'")
+        raise _fail(folder, f"the flatfield reference {reference['path']!r} is a {card['kind']!r} capture, not "
+            "'flatfield'")
     albedo = reference.get("albedo")
     if albedo is not None and not math.isclose(albedo, card["card_albedo"], rel_tol=1e-6):
         raise _fail(
@@ -494,7 +510,8 @@ def _quantise(array: np.ndarray, bit_depth: int, name: str) -> np.ndarray:
             raise InputError(f"{name} holds NaN or infinite values")
         low, high = float(array.min(initial=0.0)), float(array.max(initial=0.0))
         if low < 0 or high > 1:
-            raise InputError(f"{name} must be floats in [0, 1] (scaled to {bit_depth}-bit codes), got [{low:g}, {high:g}]")
+            raise InputError(f"{name} must be floats in [0, 1] (scaled to {bit_depth}-bit codes), got [{low:g}, "
+                f"{high:g}]")
         return np.rint(array * top).astype(storage)
     if np.issubdtype(array.dtype, np.integer) and not np.issubdtype(array.dtype, np.bool_):
         if array.size and (array.min() < 0 or array.max() > top):
@@ -512,7 +529,8 @@ def _gt_manifest(target: Path, gt: Mapping[str, Any], height: int, width: int) -
     entries: dict[str, Any] = {}
     unknown = set(gt) - set(_GT_SHAPES) - {"lights"}
     if unknown:
-        raise InputError(f"unknown ground-truth entries {sorted(unknown)}; expected some of {sorted(_GT_SHAPES)} or 'lights'")
+        raise InputError(f"unknown ground-truth entries {sorted(unknown)}; expected some of "
+            f"{sorted(_GT_SHAPES)} or 'lights'")
     (target / "gt").mkdir()
     for key, value in gt.items():
         if key == "lights":

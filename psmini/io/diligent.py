@@ -61,7 +61,8 @@ def _read_filenames(path: Path) -> list[str]:
 def _read_normals_gt(path: Path, height: int, width: int) -> torch.Tensor:
     variables = read_mat(path)
     if "Normal_gt" not in variables:
-        raise DataFormatError(f"{path} has no variable 'Normal_gt'; it holds {sorted(variables) or 'no numeric arrays'}")
+        raise DataFormatError(f"{path} has no variable 'Normal_gt'; it holds "
+            f"{sorted(variables) or 'no numeric arrays'}")
     normals = variables["Normal_gt"]
     if normals.shape != (height, width, 3):
         raise DataFormatError(

@@ -157,7 +157,8 @@ def save_normal_png(path: str | Path, normals: Any, mask: Any = None, *, bit_dep
         ShapeError: bad shapes. DataFormatError: the file cannot be written.
 
     Example:
-        >>> save_normal_png("normals.png", torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).expand(3, 4, 4))  # doctest: +SKIP
+        >>> flat = torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).expand(3, 4, 4)
+        >>> save_normal_png("normals.png", flat)  # doctest: +SKIP
     """
     if bit_depth not in (8, 16):
         raise InputError(f"bit_depth must be 8 or 16, got {bit_depth!r}")

@@ -59,7 +59,8 @@ def load_sample(path: str | Path) -> Sample:
 def _capture_sample(path: Path) -> Sample:
     capture = read_capture(path)
     if capture.lights is None:
-        raise DataFormatError(f"capture {path} is a {capture.kind!r} capture without lights; it cannot be reconstructed")
+        raise DataFormatError(f"capture {path} is a {capture.kind!r} capture without lights; it cannot be "
+            "reconstructed")
     reference = reference_dark = None
     if capture.flatfield_path is not None:
         card = read_capture(capture.flatfield_path)
