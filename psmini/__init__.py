@@ -19,6 +19,7 @@ from psmini.lights import DirectionalLights, LEDLights, PointLights, as_batched_
 from psmini.metrics import angular_error_deg, depth_error, mean_angular_error, median_angular_error
 from psmini.normals import LeastSquaresNormals, albedo_normals, normals_to_gradients
 from psmini.pipeline import PhotometricStereo, Reconstruction, distant_light_matrix, reconstruct
+# psmini.render is the function once the package is imported; reach the module by `from psmini.render import ...`
 from psmini.render import Renderer, cast_shadows, normals_from_height, render, render_lambertian
 from psmini.io import Sample, load_sample, read_capture, read_diligent, read_image, save_ply, write_capture, write_outputs
 
