@@ -1,0 +1,45 @@
+import json
+
+import numpy as np
+import pytest
+
+from psmini.cli import main
+
+
+def _last_json(capsys) -> dict:
+    return json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+
+def test_synth_writes_sample_and_card(tmp_path, capsys):
+    assert main(["synth", "twill", "--out", str(tmp_path), "--size", "40", "--no-noise", "--seed", "3", "--json"]) == 0
+    report = _last_json(capsys)
+    manifest = json.loads((tmp_path / "twill" / "capture.json").read_text())
+    assert manifest["kind"] == "sample" and manifest["flatfield"]["path"] == "../card"
+    assert manifest["lights"]["model"] == "led" and manifest["metadata"]["seed"] == 3
+    assert json.loads((tmp_path / "card" / "capture.json").read_text())["kind"] == "flatfield"
+    assert report["sample"].endswith("twill")
+
+
+def test_synth_directional_and_errors(tmp_path, capsys):
+    assert main(["synth", "silk", "--out", str(tmp_path), "--size", "32", "--light-model", "directional"]) == 0
+    assert json.loads((tmp_path / "silk" / "capture.json").read_text())["lights"]["model"] == "directional"
+    assert main(["synth", "silk", "--out", str(tmp_path), "--size", "32"]) == 1  # exists, no --overwrite
+    assert "exists" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["synth", "denim", "--out", str(tmp_path)])
+
+
+def test_demo_reconstructs_and_scores(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--size", "64", "--fabric", "cotton", "--json"]) == 0
+    report = _last_json(capsys)
+    for name in ("albedo.png", "normals.png", "depth.npy", "points.ply", "outputs.json"):
+        assert (out / name).is_file()
+    assert (out / "capture" / "cotton" / "capture.json").is_file()
+    assert np.load(out / "depth.npy").shape == (64, 64)
+    assert 0.0 < report["mean_angular_error_deg"] < 10.0
+    # an earlier demo is replaced; any other folder is refused
+    assert main(["demo", "--out", str(out), "--size", "32"]) == 0
+    other = tmp_path / "mine"
+    other.mkdir()
+    assert main(["demo", "--out", str(other), "--size", "32"]) == 1
