@@ -285,3 +285,70 @@ class TestErrors:
                      normalized_variance):
             with pytest.raises(ShapeError):
                 func(torch.zeros(2, 2, 2, 2))
+
+
+class TestFocusCommand:
+    """``psmini focus DIR``: frames in name order or from a focus capture manifest."""
+
+    @staticmethod
+    def write_sweep(folder, sigmas=(3.0, 1.5, 0.0, 1.0, 2.5), dtype=np.uint8):
+        import cv2
+
+        folder.mkdir(parents=True, exist_ok=True)
+        scale = np.iinfo(dtype).max
+        for i, sigma in enumerate(sigmas):
+            image = texture(40, 11, sigma)
+            cv2.imwrite(str(folder / f"frame_{i:02d}.png"), (image * scale).round().astype(dtype))
+        return [f"frame_{i:02d}.png" for i in range(len(sigmas))]
+
+    def run(self, capsys, *argv):
+        from psmini.cli import main
+
+        status = main(["focus", *map(str, argv)])
+        out, err = capsys.readouterr()
+        return status, out, err
+
+    def test_name_order_json(self, tmp_path, capsys):
+        self.write_sweep(tmp_path / "sweep")
+        status, out, _ = self.run(capsys, tmp_path / "sweep", "--json")
+        assert status == 0
+        import json
+
+        payload = json.loads(out.strip().splitlines()[-1])
+        assert payload["best_index"] == 2 and len(payload["scores"]) == 5
+        assert 1.5 <= payload["best_position"] <= 2.5 and payload["positions_are_indices"]
+        assert "best index 2" in out
+
+    def test_manifest_positions_roi_metric(self, tmp_path, capsys):
+        import json
+
+        folder = tmp_path / "sweep16"
+        names = self.write_sweep(folder, dtype=np.uint16)
+        positions = [0.0, 0.5, 1.0, 1.5, 2.0]
+        (folder / "capture.json").write_text(json.dumps({
+            "format": "psmini-capture", "version": 1, "kind": "focus", "images": names, "dark": None, "mask": None,
+            "bit_depth": 16, "pixel_pitch_mm": 0.025, "lights": None, "positions_mm": positions,
+        }))
+        (folder / "notes.txt").write_text("not an image")
+        status, out, _ = self.run(capsys, folder, "--metric", "tenengrad", "--roi", "4,4,30,30", "--json")
+        assert status == 0
+        payload = json.loads(out.strip().splitlines()[-1])
+        assert payload["best_index"] == 2 and payload["metric"] == "tenengrad" and payload["roi"] == [4, 4, 30, 30]
+        assert 0.5 <= payload["best_position"] <= 1.5 and payload["positions"] == positions
+
+    def test_errors(self, tmp_path, capsys):
+        import cv2
+
+        (tmp_path / "empty").mkdir()
+        status, _, err = self.run(capsys, tmp_path / "empty")
+        assert status == 1 and "no image files" in err
+        mixed = tmp_path / "mixed"
+        self.write_sweep(mixed, sigmas=(0.0, 1.0))
+        cv2.imwrite(str(mixed / "frame_99.png"), np.zeros((20, 30), np.uint8))
+        status, _, err = self.run(capsys, mixed)
+        assert status == 1 and "different sizes" in err
+        self.write_sweep(tmp_path / "ok", sigmas=(0.0, 1.0))
+        status, _, err = self.run(capsys, tmp_path / "ok", "--roi", "30,30,20,20")
+        assert status == 1 and "outside the 40×40 frame" in err
+        status, _, err = self.run(capsys, tmp_path / "missing")
+        assert status == 1 and "not a folder" in err
