@@ -14,6 +14,9 @@ from psmini.integrate import METHODS as INTEGRATION_METHODS
 from psmini.integrate import FrankotChellappa, frankot_chellappa
 from psmini.evaluation import evaluate_sample, score_reconstruction
 from psmini.flatfield import FlatField, FlatFieldResult, flatfield
+from psmini.autofocus import AutofocusController, AutofocusResult, autofocus_sweep, best_of_scores, refine_peak
+from psmini.focus import (FOCUS_MEASURES, FocusMeasure, brenner, focus_measure, gaussian_derivative, image_contrast,
+                          normalized_variance, tenengrad, variance_of_laplacian, wavelet_sum)
 from psmini.geometry import depth_to_points, pixel_grid_mm, point_cloud
 from psmini.lights import DirectionalLights, LEDLights, PointLights, as_batched_lights, check_spans_3d, ring_lights
 from psmini.metrics import angular_error_deg, depth_error, mean_angular_error, median_angular_error
@@ -83,4 +86,20 @@ __all__ = [
     "INTEGRATION_METHODS",
     "frankot_chellappa",
     "FrankotChellappa",
+    # focus and autofocus
+    "focus_measure",
+    "FOCUS_MEASURES",
+    "FocusMeasure",
+    "brenner",
+    "image_contrast",
+    "wavelet_sum",
+    "gaussian_derivative",
+    "tenengrad",
+    "variance_of_laplacian",
+    "normalized_variance",
+    "AutofocusController",
+    "AutofocusResult",
+    "autofocus_sweep",
+    "best_of_scores",
+    "refine_peak",
 ]
