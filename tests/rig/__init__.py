@@ -1,0 +1,1 @@
+"""Tests of psmini.rig: firmware, protocol, controller, camera, sessions and the simulated rig."""

@@ -1,0 +1,184 @@
+"""The LED controller over real pseudo-terminals, the psminisim:// URL and pyserial's loop://."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+import serial
+
+from psmini.errors import RigError
+from psmini.rig.controller import LEDController
+from psmini.rig.protocol import Identity
+from psmini.rig.simulator import PtyLink, SimulatedDevice, serve_url
+
+FAST = {"handshake_timeout_s": 0.5, "command_timeout_s": 0.2}
+
+
+@pytest.fixture
+def pty_device():
+    device = SimulatedDevice(boot_s=0.02)
+    with PtyLink(device) as link:
+        yield device, link.path
+
+
+def test_handshake_and_commands_over_a_pty(pty_device):
+    device, path = pty_device
+    with LEDController(path, **FAST) as leds:
+        assert leds.identity == Identity("psmini-leds", "1.0.0", 8, 2000)
+        assert leds.led_count == 8
+        leds.on(7)
+        assert device.lit == 7 and leds.state().lit == 7
+        leds.all_on()
+        assert device.lit == "all"
+        leds.off()
+        assert device.lit is None
+        assert leds.identify().name == "psmini-leds"
+        leds.ping()
+    assert not leds.is_open
+    assert device.history[-1] == "OFF"
+
+
+def test_leds_off_on_exit_error_and_ctrl_c(pty_device):
+    device, path = pty_device
+    with pytest.raises(ZeroDivisionError):
+        with LEDController(path, **FAST) as leds:
+            leds.on(3)
+            1 / 0
+    assert device.lit is None
+    with pytest.raises(KeyboardInterrupt):
+        with LEDController(path, **FAST) as leds:
+            leds.on(4)
+            raise KeyboardInterrupt
+    assert device.lit is None
+
+
+def test_board_without_reset_is_asked_id(pty_device):
+    device, path = pty_device
+    device.fault = None
+    device.boot_s = 60.0  # the banner never comes in time: as if DTR did not reset the board
+    with LEDController(path, handshake_timeout_s=0.1, command_timeout_s=0.2) as leds:
+        assert leds.identity.led_count == 8
+
+
+def test_watchdog_set_on_open_and_trips_when_the_host_is_silent(pty_device):
+    device, path = pty_device
+    with LEDController(path, watchdog_ms=150, **FAST) as leds:
+        leds.on(2)
+        time.sleep(0.25)
+        assert device.lit is None
+        state = leds.state()
+        assert (state.lit, state.watchdog_ms, state.trips) == (None, 150, 1)
+
+
+def test_keepalive_keeps_an_led_lit(pty_device):
+    device, path = pty_device
+    with LEDController(path, watchdog_ms=300, **FAST) as leds:
+        leds.on(1)
+        for _ in range(8):
+            time.sleep(0.05)
+            leds.keepalive()
+        assert device.lit == 1
+
+
+def test_refused_commands_name_the_firmware_message(pty_device):
+    _, path = pty_device
+    with LEDController(path, **FAST) as leds:
+        with pytest.raises(RigError, match="0..7"):
+            leds.on(8)  # checked on the host
+        with pytest.raises(RigError, match="refused 'ON 8': ERR 2 led index out of range"):
+            leds.command("ON", 8)  # and by the firmware
+        with pytest.raises(RigError, match="watchdog timeout must be an integer in 100..60000"):
+            leds.set_watchdog(10)
+        with pytest.raises(RigError, match="refused 'WDT 50': ERR 2 watchdog ms out of range"):
+            leds.command("WDT", 50)
+        with pytest.raises(RigError, match="refused 'BLINK': ERR 1 unknown command"):
+            leds.command("BLINK")
+
+
+def test_one_retry_recovers_from_one_lost_reply():
+    device = SimulatedDevice(boot_s=0.0)
+    with LEDController(serve_url(device), **FAST) as leds:
+        sent = device._send
+
+        def lose_once(reply, lost=[True]):
+            if lost and reply == "OK ON 3":
+                lost.clear()
+                return
+            sent(reply)
+
+        device._send = lose_once
+        leds.on(3)
+        assert device.history.count("ON 3") == 2 and device.lit == 3
+
+
+def test_stale_late_replies_are_skipped():
+    device = SimulatedDevice(boot_s=0.0, fault="timeout", fault_after=1, slow_s=0.05)
+    with LEDController(serve_url(device), handshake_timeout_s=0.5, command_timeout_s=0.5) as leds:
+        leds.ping()
+        leds.on(2)  # its reply comes late but within the timeout
+        time.sleep(0.1)
+        leds.state()  # a late reply to nothing pending is skipped, STATE's own is taken
+
+
+@pytest.mark.parametrize("fault, cause", [
+    ("no-banner", "no READY banner within 0.2 s and no answer to ID"),
+    ("timeout", "failed after 2 tries: no reply within 0.2 s"),
+    ("garbage", "failed after 2 tries: garbled reply"),
+    ("disconnect", "disconnected"),
+])
+def test_faults_over_a_pty_end_in_a_rig_error_with_leds_off(fault, cause):
+    device = SimulatedDevice(boot_s=0.02, fault=fault, fault_after=1)
+    with PtyLink(device) as link:
+        start = time.monotonic()
+        with pytest.raises(RigError, match=cause):
+            with LEDController(link.path, handshake_timeout_s=0.2, command_timeout_s=0.2) as leds:
+                leds.on(0)
+                leds.on(1)
+        assert time.monotonic() - start < 2.0
+    assert device.lit is None
+
+
+def test_board_reset_mid_session_is_named():
+    device = SimulatedDevice(boot_s=0.0)
+    with LEDController(serve_url(device), **FAST) as leds:
+        device.reset()
+        with pytest.raises(RigError, match="board reset during the session"):
+            leds.ping()
+
+
+def test_loop_url_handshake_and_echo():
+    port = serial.serial_for_url("loop://", timeout=0.01)
+    port.write(b"bootloader noise\xfe\nREADY psmini-leds 1.0.0 leds=8 wdt=2000\r\n")
+    leds = LEDController(port, **FAST)
+    assert leds.open().led_count == 8
+    with pytest.raises(RigError, match="echoed 'PING' back"):
+        leds.ping()
+    leds.close()
+    assert not port.is_open
+
+
+def test_foreign_firmware_is_refused():
+    port = serial.serial_for_url("loop://", timeout=0.01)
+    port.write(b"READY blinky 2.0.0 leds=8 wdt=2000\n")
+    with pytest.raises(RigError, match="runs 'blinky'"):
+        LEDController(port, **FAST).open()
+
+
+def test_port_that_cannot_be_opened():
+    with pytest.raises(RigError, match="cannot open the LED controller port"):
+        LEDController("/dev/psmini-no-such-port", **FAST).open()
+    with pytest.raises(RigError, match="cannot open"):
+        LEDController("nosuchscheme://x", **FAST).open()
+
+
+@pytest.mark.parametrize("kwargs", [{"handshake_timeout_s": 0}, {"command_timeout_s": -1}, {"retries": -1},
+                                    {"watchdog_ms": 50}])
+def test_bad_arguments(kwargs):
+    with pytest.raises(RigError):
+        LEDController("loop://", **kwargs)
+
+
+def test_commands_need_an_open_controller():
+    with pytest.raises(RigError, match="not open"):
+        LEDController("loop://").on(1)
