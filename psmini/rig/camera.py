@@ -256,7 +256,7 @@ class RigCamera:
         self._capture: Any = None
         self.report: dict[str, Any] = {}
         self.crop: list[int] | None = None
-        self.frames_read = 0
+        self.frames_read = 0  # every frame taken from the camera, discarded ones included
 
     # ---------------------------------------------------------------------------------------- life cycle
 
@@ -383,6 +383,7 @@ class RigCamera:
         for _ in range(self.flush_frames):
             if not self._cap().grab():
                 raise RigError(f"camera {self.source!r} returned no frame while discarding buffered frames")
+            self.frames_read += 1
 
     def read_fresh(self, reason: Callable[[np.ndarray], str | None], what: str,
                    keepalive: Callable[[], None] | None = None) -> tuple[np.ndarray, float]:

@@ -47,6 +47,13 @@ if "psmini.rig.urlhandler" not in serial.protocol_handler_packages:
 #: Read slice, s: how long one read of the port may block while a deadline is watched.
 _POLL_S = 0.01
 
+try:  # pyserial's POSIX ports let termios errors through from tcdrain and tcflush on a vanished device
+    import termios
+
+    _PORT_ERRORS: tuple[type[BaseException], ...] = (serial.SerialException, OSError, termios.error)
+except ImportError:  # Windows
+    _PORT_ERRORS = (serial.SerialException, OSError)
+
 
 def open_port(url: str, baudrate: int = BAUDRATE, write_timeout_s: float = 1.0) -> serial.SerialBase:
     """Open ``url`` with :func:`serial.serial_for_url` (short read timeout: the controller keeps deadlines).
@@ -181,7 +188,7 @@ class LEDController:
         port, self._serial = self._serial, None
         try:
             port.close()
-        except (serial.SerialException, OSError) as error:  # a vanished device: nothing left to close
+        except _PORT_ERRORS as error:  # a vanished device: nothing left to close
             logger.debug("closing %s: %s", self.name, error)
 
     def _identity(self) -> Identity:
@@ -353,7 +360,7 @@ class LEDController:
     def _read(self, port: serial.SerialBase) -> bytes:
         try:
             return port.read(max(1, port.in_waiting))
-        except (serial.SerialException, OSError) as error:
+        except _PORT_ERRORS as error:
             raise RigError(f"LED controller on {self.name} disconnected: {error}") from error
 
     def _write(self, port: serial.SerialBase, line: bytes) -> None:
@@ -362,7 +369,7 @@ class LEDController:
             port.flush()
         except serial.SerialTimeoutException as error:
             raise RigError(f"LED controller on {self.name}: writing {line!r} timed out ({error})") from error
-        except (serial.SerialException, OSError) as error:
+        except _PORT_ERRORS as error:
             raise RigError(f"LED controller on {self.name} disconnected: {error}") from error
         self._last_sent = time.monotonic()
 
@@ -370,7 +377,7 @@ class LEDController:
         self._buffer.clear()
         try:
             port.reset_input_buffer()
-        except (serial.SerialException, OSError) as error:
+        except _PORT_ERRORS as error:
             raise RigError(f"LED controller on {self.name} disconnected: {error}") from error
 
     def __repr__(self) -> str:

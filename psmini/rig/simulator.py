@@ -386,8 +386,10 @@ class SimulatedScene:
         self.fabric_name, self.seed = fabric, int(seed)
         self.config = (config or RigConfig()).replace(bit_depth=8)
         self.target = target
+        self.stage_z = 0.0  # lift of the cloth by the robot's stage, mm (focus sweeps)
         self._renders: dict[str, dict[str, Any]] = {}
-        self._lock = threading.Lock()
+        self._focus_frames: dict[float, np.ndarray] = {}
+        self._lock = threading.RLock()
 
     @property
     def target(self) -> str:
@@ -428,6 +430,7 @@ class SimulatedScene:
             result["gt"] = {"normals": capture.normals, "depth": capture.depth_mm, "albedo": capture.albedo,
                             "mask": capture.mask, "lights": capture.lights}
             result["fabric"] = {"name": fabric.name, "params": fabric.params}
+            result["fabric_object"] = fabric
         elif target == "card":
             capture = render_card(self.config, CARD_ALBEDO, self.seed + 1)
             result["card_albedo"] = CARD_ALBEDO
@@ -444,10 +447,27 @@ class SimulatedScene:
         render = self.render()
         if lit is None:
             return render["dark"]
+        if lit == "all" and self.target == "sample":
+            return self._focus_frame()
         if lit == "all":  # light adds up: the sum of each LED's contribution above the dark frame
             total = render["codes"].astype(np.int32).sum(0) - (len(render["codes"]) - 1) * render["dark"].astype(np.int32)
             return np.clip(total, 0, 255).astype(np.uint8)
         return render["codes"][int(lit)]
+
+
+    def _focus_frame(self) -> np.ndarray:
+        """The cloth under all LEDs at the stage's height, blurred away from the focal plane
+        (:func:`data_synth.rig.focus_stack`; depth of field 2 mm unless the config sets one)."""
+        from data_synth.rig import focus_stack
+
+        z = round(float(self.stage_z), 6)
+        with self._lock:
+            if z not in self._focus_frames:
+                fabric = self.render("sample")["fabric_object"]
+                frames = focus_stack(fabric, [z], self.config.focal_plane_mm, self.config.depth_of_field_mm or 2.0,
+                                     seed=self.seed, config=self.config)
+                self._focus_frames[z] = _codes(frames)[0]
+            return self._focus_frames[z]
 
 
 def _codes(images: torch.Tensor) -> np.ndarray:
@@ -583,6 +603,16 @@ class SimulatedRig:
     def lights(self) -> torch.nn.Module:
         """The rig's LED model (what a calibration would give)."""
         return self.scene.lights
+
+    @property
+    def stage_z(self) -> float:
+        """The stage's position, mm (the cloth's lift toward the camera)."""
+        return self.scene.stage_z
+
+    def move_to(self, z: float) -> None:
+        """The robot's ``move_to(z)``: lift the cloth to ``z`` mm (what the camera sees under all LEDs changes
+        focus; the per-LED renders stay those at the reference height)."""
+        self.scene.stage_z = float(z)
 
     def place(self, target: str) -> None:
         """Put ``"sample"``, ``"card"`` or ``"sphere"`` under the camera."""
