@@ -13,7 +13,7 @@
 from __future__ import annotations
 
 from psmini.calibration.highlights import Highlights, locate_highlights
-from psmini.calibration.lightsfile import LightsFile, read_lights_file, write_lights_file
+from psmini.calibration.lightsfile import LightsFile, read_lights_file, with_lights_file, write_lights_file
 from psmini.calibration.mirror import SphereCalibration, calibrate_sphere, card_distance_from_spheres, triangulate_leds
 from psmini.calibration.reference import CardReference, card_reference, polynomial_surface, write_flatfield_capture
 from psmini.calibration.sphere import (
@@ -53,4 +53,5 @@ __all__ = [
     "LightsFile",
     "read_lights_file",
     "write_lights_file",
+    "with_lights_file",
 ]

@@ -6,6 +6,7 @@ and ``psmini evaluate --lights`` use it in place of a folder's own lights.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import json
 import os
@@ -19,7 +20,7 @@ from torch import nn
 
 from psmini.errors import DataFormatError, InputError, PsminiError
 
-__all__ = ["LIGHTS_FORMAT", "LIGHTS_VERSION", "LightsFile", "write_lights_file", "read_lights_file"]
+__all__ = ["LIGHTS_FORMAT", "LIGHTS_VERSION", "LightsFile", "write_lights_file", "read_lights_file", "with_lights_file"]
 
 LIGHTS_FORMAT = "psmini-lights"
 LIGHTS_VERSION = 1
@@ -163,3 +164,29 @@ def read_lights_file(path: str | Path) -> LightsFile:
     if not isinstance(provenance, dict):
         raise DataFormatError(f"lights file {path}: provenance must be a JSON object")
     return LightsFile(lights, leds, provenance, path)
+
+
+def with_lights_file(sample: Any, path: str | Path) -> Any:
+    """A copy of a loaded sample (:class:`psmini.io.Sample`) whose lights are those of a lights file.
+
+    Args:
+        sample: the sample.
+        path: the lights file.
+
+    Returns:
+        the sample with ``lights`` replaced (``meta["lights_file"]`` records the file).
+
+    Raises:
+        DataFormatError: as :func:`read_lights_file`, and when the file's LED count differs from the sample's
+            image count.
+
+    Example:
+        >>> sample = with_lights_file(load_sample("captures/denim"), "lights.json")  # doctest: +SKIP
+    """
+    lights = read_lights_file(path)
+    if lights.count != sample.count:
+        raise DataFormatError(
+            f"lights file {path} has {lights.count} LEDs but sample {sample.name} has {sample.count} images; "
+            "they must be equal"
+        )
+    return dataclasses.replace(sample, lights=lights.lights, meta={**sample.meta, "lights_file": str(path)})

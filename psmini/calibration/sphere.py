@@ -170,7 +170,7 @@ def silhouette_edges(mask: Tensor, image: Tensor | None = None) -> Tensor:
     the midpoint for a bare mask (the unbiased place for a region whose pixels are inside when their centres
     are), or, with ``image``, where the gray level crosses halfway between the local inside and outside
     levels (read two pixels beyond the pair on either side), which follows a soft (anti-aliased or
-    defocused) outline. Edges on the image border are skipped.
+    slightly defocused, up to ~3 pixels wide) outline. Edges on the image border are skipped.
 
     Args:
         mask: the region, shape :math:`(H, W)` bool.
@@ -229,7 +229,7 @@ def _crossing(image: Tensor, mask: Tensor, rows: Tensor, cols: Tensor, axis: int
     contrast = (inside - outside).abs()
     fraction = (half - first) / torch.where(step.abs() > 0, step, torch.ones_like(step))
     # a crossing is trusted only where the pair itself spans the half level of a real step
-    good = (contrast > 0) & (fraction >= 0) & (fraction <= 1) & (step.abs() >= 0.5 * contrast)
+    good = (contrast > 0) & (fraction >= 0) & (fraction <= 1)
     return torch.where(good, fraction, fallback)
 
 

@@ -19,6 +19,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("folder", type=Path, metavar="DIR")
     parser.add_argument("--integrator", default="fc", help="integration method (default: fc)")
+    parser.add_argument("--lights", type=Path, metavar="FILE",
+                        help="lights file (docs/lights-file.md, from 'psmini calibrate sphere') to use instead of "
+                        "the folder's own lights")
     add_device_flag(parser)
     add_json_flag(parser)
     parser.set_defaults(run=run)
@@ -32,6 +35,10 @@ def run(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     start = time.perf_counter()
     sample = load_sample(args.folder)
+    if args.lights is not None:
+        from psmini.calibration import with_lights_file
+
+        sample = with_lights_file(sample, args.lights)
     if sample.normals_gt is None:
         raise DataFormatError(f"{args.folder} has no ground-truth normals (Normal_gt.mat or gt/normals.npy) to evaluate against")
     scores = evaluate_sample(sample, device=device, integrator=args.integrator)

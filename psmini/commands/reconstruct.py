@@ -20,6 +20,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", type=Path, required=True, metavar="OUT", help="output folder (created)")
     parser.add_argument("--integrator", default="fc", help="integration method (default: fc, Frankot-Chellappa)")
     parser.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
+    parser.add_argument("--lights", type=Path, metavar="FILE",
+                        help="lights file (docs/lights-file.md, from 'psmini calibrate sphere') to use instead of "
+                        "the folder's own lights")
     add_device_flag(parser)
     add_json_flag(parser)
     parser.set_defaults(run=run)
@@ -32,6 +35,10 @@ def run(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     start = time.perf_counter()
     sample = load_sample(args.folder)
+    if args.lights is not None:
+        from psmini.calibration import with_lights_file
+
+        sample = with_lights_file(sample, args.lights)
     result = reconstruct(sample, device=device, integrator=args.integrator)
     elapsed = time.perf_counter() - start
     written = write_outputs(args.out, result, pixel_pitch_mm=sample.pixel_pitch_mm, overwrite=args.overwrite)
