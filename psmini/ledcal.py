@@ -1,0 +1,692 @@
+r"""Calibration of the LED model by gradient descent from images of a matte card at known heights.
+
+A flat Lambertian card of albedo :math:`\rho_n` at height :math:`h_n` (normal :math:`e_z`, toward the camera) lit
+by LED ``k`` reads at pixel ``x``
+
+.. math::
+    R_k(x, h_n) = g(x)\, \rho_n\, M_k(x, h_n), \qquad M_k(x, h) = E_k(x, h)\, \max(e_z \cdot l_k(x, h), 0),
+
+with the LED model of :class:`psmini.lights.LEDLights` (Quéau et al., "LED-based photometric stereo: modeling,
+calibration and numerical solution", JMIV 2018) giving the irradiance :math:`E_k` and the unit light vector
+:math:`l_k`, and :math:`g(x)` the camera's gain times its vignetting, unknown and common to every LED and
+height. For a given model the best :math:`g` has a closed form per pixel (variable projection, Golub and
+Pereyra, "The differentiation of pseudo-inverses and nonlinear least squares problems whose variables
+separate", SIAM J. Numer. Anal. 1973):
+
+.. math::
+    g(x) = \frac{\sum_{k,n} R_k(x, h_n)\, \rho_n M_k(x, h_n)}{\sum_{k,n} \rho_n^2 M_k(x, h_n)^2},
+
+so the fit minimises a robust (Huber) loss of :math:`R - g\,\rho M` over the LED parameters alone and does not
+depend on the vignetting. What is left observable is the *shape* of each LED's light over the field and across
+heights: positions (mm), principal directions, anisotropies :math:`\mu`, and intensities :math:`\phi` up to one
+common scale (``g`` absorbs it); :func:`fit_leds` fixes that scale so that the intensities average 1.
+
+The fit runs coarse to fine (as in the near-light literature, e.g. Santo et al., "Light structure from pin
+motion", ECCV 2020): first positions and intensities with the beams (principal directions and :math:`\mu`) held
+at the start's, then every parameter, each stage started from the previous one; after every optimiser step the
+parameters are projected back onto their constraints (unit principal directions, :math:`\mu \ge 0`,
+:math:`\phi > 0`). Cards are smooth, so the images are averaged down to a few thousand pixels first.
+
+Frames: psmini's camera frame (x right, y up, z toward the camera), millimetres, origin on the optical axis at the
+reference (card) plane ``z = 0``; card heights are measured along +z from that plane.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from psmini._checks import check_finite, check_positive, check_shape, check_tensor
+from psmini.errors import CalibrationError, InputError, ShapeError
+from psmini.geometry import pixel_grid_mm
+from psmini.lights import DirectionalLights, LEDLights, PointLights
+
+__all__ = [
+    "LEDFit",
+    "fit_leds",
+    "nominal_leds",
+    "card_shading",
+    "eliminate_gain",
+    "card_loss",
+    "load_rig_calibration_mat",
+]
+
+logger = logging.getLogger(__name__)
+
+# Nominal geometry of the psmini rig (DESIGN.md): 8 LEDs on a 31.6 mm ring 10 mm above the card.
+NOMINAL_RING_DIAMETER_MM = 31.6
+NOMINAL_LED_HEIGHT_MM = 10.0
+
+# A card image whose mean signal is below this fraction of the median image's is taken as an LED that did not
+# light (or a missing card): it would pull the shared gain toward zero and the LED's parameters anywhere.
+_MIN_SIGNAL_FRACTION = 0.05
+
+# DiLiGenT / MATLAB rgb2gray weights (the same as psmini.io's), for the RGB intensities of a MAT calibration.
+_GRAY_WEIGHTS = (0.2989, 0.5870, 0.1140)
+
+STAGES = ("point", "led")
+
+# L-BFGS iterations between projections (and between convergence checks).
+_LBFGS_ITERATIONS_PER_STEP = 20
+
+
+def nominal_leds(
+    count: int = 8,
+    ring_diameter_mm: float = NOMINAL_RING_DIAMETER_MM,
+    led_height_mm: float = NOMINAL_LED_HEIGHT_MM,
+    azimuth_offset_deg: float = 0.0,
+    mu: float = 1.0,
+    *,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype | None = None,
+) -> LEDLights:
+    """LEDs evenly spaced on a ring above the card, pointing at the field centre, unit intensities.
+
+    Args:
+        count: number of LEDs K (LED 0 at ``azimuth_offset_deg``, counter-clockwise from +x).
+        ring_diameter_mm: diameter of the ring, mm.
+        led_height_mm: height of the ring above the card plane, mm.
+        azimuth_offset_deg: azimuth of LED 0, degrees.
+        mu: anisotropy of every LED (1: Lambertian LED).
+        device: device of the parameters.
+        dtype: floating dtype (default: torch's default dtype).
+
+    Returns:
+        an :class:`~psmini.lights.LEDLights` of K LEDs.
+
+    Raises:
+        InputError: a count below 1, a non-positive diameter or height, a negative ``mu``.
+
+    Example:
+        >>> nominal_leds().positions_mm[0].tolist()
+        [15.800000190734863, 0.0, 10.0]
+    """
+    if not isinstance(count, int) or count < 1:
+        raise InputError(f"count must be an integer >= 1, got {count!r}")
+    radius = check_positive(ring_diameter_mm, "ring_diameter_mm") / 2
+    height = check_positive(led_height_mm, "led_height_mm")
+    if not (isinstance(mu, (int, float)) and 0 <= mu < math.inf):
+        raise InputError(f"mu must be a finite number >= 0, got {mu!r}")
+    azimuth = torch.arange(count, dtype=torch.float64) * (2 * math.pi / count) + math.radians(azimuth_offset_deg)
+    positions = torch.stack([radius * azimuth.cos(), radius * azimuth.sin(), torch.full_like(azimuth, height)], -1)
+    directions = -positions / positions.norm(dim=-1, keepdim=True)
+    dtype = dtype or torch.get_default_dtype()
+
+    def cast(x: Tensor) -> Tensor:
+        return x.to(device=device, dtype=dtype)
+
+    return LEDLights(cast(positions), cast(directions), cast(torch.ones(count, dtype=torch.float64)),
+                     cast(torch.full((count,), float(mu), dtype=torch.float64)))
+
+
+def card_shading(lights: nn.Module, points: Tensor) -> Tensor:
+    r"""Shading of a flat card facing the camera: :math:`M_k = E_k \max(e_z \cdot l_k, 0)` per pixel.
+
+    Args:
+        lights: a light model of :mod:`psmini.lights` (K lights).
+        points: card points, shape :math:`(N, 3, H, W)`, mm, camera frame (one card height per batch entry).
+
+    Returns:
+        shading, shape :math:`(N, K, H, W)`: what a card of albedo 1 reads under each light with unit camera
+        gain.
+
+    Example:
+        >>> points = torch.zeros(1, 3, 2, 2)
+        >>> card_shading(nominal_leds(4), points).shape
+        torch.Size([1, 4, 2, 2])
+    """
+    directions, irradiance = lights(points)
+    return irradiance[:, :, 0] * directions[:, :, 2].clamp_min(0)
+
+
+def eliminate_gain(images: Tensor, shading: Tensor, weights: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    r"""Residuals of the card images once the per-pixel gain is solved in closed form (variable projection).
+
+    For each pixel, :math:`g = \sum w R M / \sum w M^2` over lights and heights (the weighted least-squares
+    gain common to all of them), and the residual is :math:`R - g M`.
+
+    Args:
+        images: card readings R, shape :math:`(N, K, H, W)` (dark-subtracted, divided by the card's albedo).
+        shading: model shading M, shape :math:`(N, K, H, W)` (see :func:`card_shading`).
+        weights: optional observation weights, shape :math:`(N, K, H, W)` (0 drops an observation).
+
+    Returns:
+        residuals :math:`(N, K, H, W)` and gain :math:`(1, 1, H, W)` (0 where no weighted shading is left).
+
+    Raises:
+        ShapeError: when the shapes differ.
+
+    Example:
+        >>> shading = torch.rand(2, 3, 4, 4) + 0.5
+        >>> residuals, gain = eliminate_gain(0.7 * shading, shading)
+        >>> bool(residuals.abs().max() < 1e-6), bool(torch.allclose(gain, torch.full_like(gain, 0.7)))
+        (True, True)
+    """
+    check_shape(images, ["N", "K", "H", "W"], "images")
+    if shading.shape != images.shape:
+        raise ShapeError(f"shading must have the images' shape {tuple(images.shape)}, got {tuple(shading.shape)}")
+    weighted = shading if weights is None else shading * weights
+    numerator = (weighted * images).sum(dim=(0, 1), keepdim=True)
+    denominator = (weighted * shading).sum(dim=(0, 1), keepdim=True)
+    tiny = torch.finfo(images.dtype).tiny
+    gain = torch.where(denominator > tiny, numerator / denominator.clamp_min(tiny), torch.zeros_like(numerator))
+    return images - gain * shading, gain
+
+
+def card_loss(
+    lights: nn.Module,
+    images: Tensor,
+    points: Tensor,
+    weights: Tensor | None = None,
+    huber_delta: float = 0.05,
+) -> Tensor:
+    r"""The calibration objective: mean Huber loss of the card residuals after eliminating the gain.
+
+    Args:
+        lights: a light model of :mod:`psmini.lights` (K lights).
+        images: card readings, shape :math:`(N, K, H, W)`, scaled so that their mean is about 1 (the Huber
+            threshold is in that scale).
+        points: card points, shape :math:`(N, 3, H, W)`, mm.
+        weights: optional observation weights, shape :math:`(N, K, H, W)`.
+        huber_delta: residual (in the images' scale) where the loss turns from quadratic to linear.
+
+    Returns:
+        a scalar, differentiable with respect to the light model's parameters.
+
+    Example:
+        >>> points = torch.zeros(1, 3, 3, 3)
+        >>> images = card_shading(nominal_leds(4), points)
+        >>> float(card_loss(nominal_leds(4), images / images.mean(), points)) < 1e-12
+        True
+    """
+    residuals, _ = eliminate_gain(images, card_shading(lights, points), weights)
+    loss = F.huber_loss(residuals, torch.zeros_like(residuals), reduction="none", delta=huber_delta)
+    if weights is None:
+        return loss.mean()
+    return (loss * weights).sum() / weights.sum().clamp_min(1)
+
+
+@dataclass
+class LEDFit:
+    """What :func:`fit_leds` returns.
+
+    Attributes:
+        lights: the fitted :class:`~psmini.lights.LEDLights` (plain tensors, detached), in the images' dtype and
+            device; intensities relative, averaging 1.
+        residual_rms: root mean square residual over every used observation, as a fraction of the mean card
+            reading (dimensionless).
+        residual_rms_per_led: the same per LED, shape :math:`(K,)`.
+        residual_rms_per_height: the same per card height, shape :math:`(N,)`.
+        gain: the per-pixel camera gain times vignetting found with the fit, shape :math:`(1, 1, h, w)` at the
+            fit's resolution, in image units per unit of (card albedo × shading), scaled like the intensities.
+        heights_mm: the card heights, shape :math:`(N,)`.
+        stages: one record per stage: name, optimiser steps, final loss, seconds.
+        start: the start model, as an :class:`~psmini.lights.LEDLights`.
+    """
+
+    lights: LEDLights
+    residual_rms: float
+    residual_rms_per_led: Tensor
+    residual_rms_per_height: Tensor
+    gain: Tensor
+    heights_mm: Tensor
+    stages: list[dict[str, Any]] = field(default_factory=list)
+    start: LEDLights | None = None
+
+    @property
+    def positions_mm(self) -> Tensor:
+        """Fitted LED positions, :math:`(K, 3)`, mm."""
+        return self.lights.positions_mm
+
+    @property
+    def principal_directions(self) -> Tensor:
+        """Fitted unit principal directions, :math:`(K, 3)`."""
+        return self.lights.principal_directions
+
+    @property
+    def intensities(self) -> Tensor:
+        """Fitted relative intensities, :math:`(K,)`, mean 1."""
+        return self.lights.intensities
+
+    @property
+    def mu(self) -> Tensor:
+        """Fitted anisotropies, :math:`(K,)`."""
+        return self.lights.mu
+
+    def to_dict(self) -> dict[str, Any]:
+        """The fitted model as a light object of ``docs/capture-format.md`` (``"model": "led"``), plus residuals.
+
+        The extra keys (``residuals``, ``intensity_scale``, ``calibration``) are ignored by
+        :func:`psmini.io.lights_from_dict`, so the object can be written as a lights file and read back.
+        """
+        from psmini.io.capture import lights_to_dict  # io sits around the core; imported where it is needed
+
+        data = lights_to_dict(self.lights)
+        data["intensity_scale"] = "relative: mean 1 (a card calibration leaves the overall scale to the camera gain)"
+        data["residuals"] = {
+            "rms": self.residual_rms,
+            "per_led": self.residual_rms_per_led.detach().cpu().double().tolist(),
+            "per_height": self.residual_rms_per_height.detach().cpu().double().tolist(),
+            "unit": "fraction of the mean card reading",
+        }
+        data["calibration"] = {
+            "method": "card images, variable projection of the gain, Huber loss",
+            "heights_mm": self.heights_mm.detach().cpu().double().tolist(),
+            "stages": self.stages,
+        }
+        return data
+
+
+# ------------------------------------------------------------------------------------------------ the fit
+
+
+def _stack_images(card_images: Tensor | Sequence[Tensor]) -> Tensor:
+    """Card images as one (N, K, H, W) tensor."""
+    if isinstance(card_images, Tensor):
+        check_shape(card_images, ["N", "K", "H", "W"], "card_images")
+        stack = card_images
+    else:
+        if not isinstance(card_images, Sequence) or len(card_images) == 0:
+            raise InputError("card_images must hold the images of at least one card height, got none")
+        for index, images in enumerate(card_images):
+            check_shape(images, ["K", "H", "W"], f"card_images[{index}]")
+        shapes = {tuple(images.shape) for images in card_images}
+        if len(shapes) > 1:
+            raise ShapeError(f"card images of every height must have one shape (K, H, W), got {sorted(shapes)}")
+        stack = torch.stack(list(card_images))
+    if stack.shape[0] < 1:
+        raise InputError("card_images must hold the images of at least one card height, got none")
+    return stack
+
+
+def _stack_dark(dark: Tensor | Sequence[Tensor | None] | None, like: Tensor) -> Tensor | None:
+    """Dark frames as an (N or 1, 1, H, W) tensor, or None."""
+    if dark is None:
+        return None
+    count, _, height, width = like.shape
+    if not isinstance(dark, Tensor):
+        if len(dark) != count:
+            raise ShapeError(f"dark must hold one frame per card height ({count}), got {len(dark)}")
+        dark = torch.stack([torch.zeros(1, height, width, dtype=like.dtype, device=like.device) if d is None
+                            else d.to(like) for d in dark])
+    check_tensor(dark, "dark")
+    if dark.ndim != 4 or dark.shape[1] != 1 or dark.shape[0] not in (1, count) or tuple(dark.shape[2:]) != (height, width):
+        raise ShapeError(f"dark must have shape ({count}, 1, {height}, {width}) or (1, 1, {height}, {width}), "
+                         f"got {tuple(dark.shape)}")
+    return check_finite(dark, "dark").to(like)
+
+
+def _per_height(values: float | Sequence[float] | Tensor, count: int, name: str, positive: bool) -> Tensor:
+    """A float or one value per card height, as a float64 (N,) tensor on the CPU."""
+    tensor = torch.as_tensor(values, dtype=torch.float64).detach().cpu().flatten()
+    if tensor.numel() == 1:
+        tensor = tensor.expand(count)
+    if tensor.numel() != count:
+        raise ShapeError(f"{name} must hold one value per card height ({count}), got {tensor.numel()}")
+    if not bool(torch.isfinite(tensor).all()) or (positive and bool((tensor <= 0).any())):
+        raise InputError(f"{name} must be finite{' and positive' if positive else ''}, got {tensor.tolist()}")
+    return tensor
+
+
+def _start_lights(init: Any, count: int, nominal_distance_mm: float, mu_init: float) -> LEDLights:
+    """The start of the fit as float64 LEDs on the CPU (see :func:`fit_leds` for what ``init`` may be)."""
+    if isinstance(init, Mapping):
+        from psmini.io.capture import lights_from_dict  # the light-file format lives in io
+
+        init = lights_from_dict(init, dtype=torch.float64)
+    if isinstance(init, Tensor):
+        check_shape(init, ["K", "3"], "init (directions)")
+        init = DirectionalLights(init.detach().to(torch.float64))
+    if init is None or (isinstance(init, str) and init == "nominal"):
+        init = nominal_leds(count, dtype=torch.float64)
+    elif hasattr(init, "ring_diameter_mm") and hasattr(init, "led_height_mm"):  # a rig description (RigConfig)
+        init = nominal_leds(int(getattr(init, "led_count", count)), float(init.ring_diameter_mm),
+                            float(init.led_height_mm), float(getattr(init, "azimuth_offset_deg", 0.0)),
+                            float(getattr(init, "mu", mu_init)), dtype=torch.float64)
+    if not isinstance(init, (DirectionalLights, PointLights)):
+        raise InputError(
+            "init must be 'nominal', a rig description (ring_diameter_mm, led_height_mm), a light model of "
+            f"psmini.lights, a light-model dict or a (K, 3) tensor of directions; got {type(init).__name__}"
+        )
+    if init.count != count:
+        raise ShapeError(f"the start model has {init.count} lights but the card images have K={count}")
+
+    def cpu64(x: Tensor) -> Tensor:
+        return x.detach().to(device="cpu", dtype=torch.float64).clone()
+
+    intensities = cpu64(init.intensities)
+    if isinstance(init, DirectionalLights):
+        unit = cpu64(init.directions)
+        unit = unit / unit.norm(dim=-1, keepdim=True)
+        positions = unit * nominal_distance_mm
+    else:
+        positions = cpu64(init.positions_mm)
+    if isinstance(init, LEDLights):
+        directions, mu = cpu64(init.principal_directions), cpu64(init.mu)
+    else:
+        directions = -positions / positions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        mu = torch.full((count,), float(mu_init), dtype=torch.float64)
+    if bool((positions[:, 2] <= 0).any()):
+        raise CalibrationError(
+            f"every LED of the start must lie above the card plane (z > 0), got z = {positions[:, 2].tolist()}"
+        )
+    return LEDLights(positions, directions, intensities / intensities.mean(), mu, learnable=True)
+
+
+def _downsample(images: Tensor, valid: Tensor, pixel_pitch_mm: float, max_size: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Block averages of the images, the blocks' validity (every pixel valid) and their centres (x, y) in mm."""
+    height, width = images.shape[-2:]
+    factor = max(1, math.ceil(max(height, width) / max_size))
+    x, y = pixel_grid_mm(height, width, pixel_pitch_mm, device=images.device, dtype=images.dtype)
+    if factor == 1:
+        return images, valid, torch.stack([x, y])[None]
+    pooled = F.avg_pool2d(images, factor)
+    pooled_valid = F.avg_pool2d(valid.to(images.dtype), factor) > 1 - 1e-6
+    centres = F.avg_pool2d(torch.stack([x, y])[None], factor)
+    return pooled, pooled_valid, centres
+
+
+class _Unknowns(nn.Module):
+    r"""The optimiser's variables, scaled so that unit steps in each change the card images comparably.
+
+    Positions in units of 10 mm; the intensity as the log of :math:`\phi / \lVert s \rVert^2` (the LED's
+    irradiance level at the field centre, nearly independent of its distance: without it, moving an LED and
+    changing its intensity are strongly coupled, and it keeps :math:`\phi > 0`); :math:`\mu` in units of 10.
+    """
+
+    POSITION_SCALE_MM = 10.0
+    MU_SCALE = 10.0
+
+    def __init__(self, leds: LEDLights) -> None:
+        super().__init__()
+        positions = leds.positions_mm.detach()
+        self.position = nn.Parameter(positions / self.POSITION_SCALE_MM)
+        self.log_level = nn.Parameter((leds.intensities.detach() / positions.square().sum(-1)).log())
+        self.direction = nn.Parameter(leds.principal_directions.detach().clone())
+        self.mu = nn.Parameter(leds.mu.detach() / self.MU_SCALE)
+
+    def lights(self) -> LEDLights:
+        positions = self.position * self.POSITION_SCALE_MM
+        intensities = self.log_level.exp() * positions.square().sum(-1)
+        return LEDLights(positions, self.direction, intensities, self.mu * self.MU_SCALE)
+
+    def stage_parameters(self, stage: str) -> list[Tensor]:
+        if stage == "point":
+            return [self.position, self.log_level]
+        return [self.position, self.log_level, self.direction, self.mu]
+
+    def project(self) -> None:
+        """Constraints after a step: unit principal directions, mu >= 0 (intensities are positive by design)."""
+        with torch.no_grad():
+            self.direction /= self.direction.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            self.mu.clamp_(min=0.0)
+
+
+def _run_stage(stage: str, unknowns: _Unknowns, data: tuple[Tensor, Tensor, Tensor], huber_delta: float,
+               max_steps: int, optimizer: str, learning_rate: float, tolerance: float) -> dict[str, Any]:
+    """Run one stage; return its record (stage, optimiser iterations, final mean loss, seconds)."""
+    images, points, weights = data
+    params = unknowns.stage_parameters(stage)
+    for parameter in unknowns.parameters():
+        parameter.requires_grad_(any(parameter is p for p in params))
+    # The optimiser sees the summed loss in units of the Huber threshold: L-BFGS skips curvature pairs with
+    # s·y < 1e-10, which a mean loss near convergence on noise-free cards falls below.
+    loss_scale = float(weights.sum()) / huber_delta**2
+    if optimizer == "lbfgs":
+        chunk = _LBFGS_ITERATIONS_PER_STEP
+        opt: torch.optim.Optimizer = torch.optim.LBFGS(
+            params, lr=1.0, max_iter=chunk, history_size=30, line_search_fn="strong_wolfe",
+            tolerance_grad=0.0, tolerance_change=0.0,
+        )
+    else:
+        chunk = 1
+        opt = torch.optim.Adam(params, lr=learning_rate)
+
+    def closure() -> Tensor:
+        opt.zero_grad()
+        loss = card_loss(unknowns.lights(), images, points, weights, huber_delta) * loss_scale
+        loss.backward()
+        return loss
+
+    start = time.perf_counter()
+    previous = math.inf
+    iterations = 0
+    while iterations < max_steps:
+        loss = float(opt.step(closure).detach())  # one sync per step, to stop at convergence
+        unknowns.project()
+        iterations += chunk
+        if optimizer == "lbfgs" and abs(previous - loss) <= tolerance * abs(loss):
+            break
+        previous = loss
+    with torch.no_grad():
+        final = float(card_loss(unknowns.lights(), images, points, weights, huber_delta))
+    record = {"stage": stage, "iterations": iterations, "loss": final, "seconds": time.perf_counter() - start}
+    logger.info("LED fit stage %s: %d iterations, loss %.3e, %.2f s", stage, iterations, final, record["seconds"])
+    return record
+
+
+def fit_leds(
+    card_images: Tensor | Sequence[Tensor],
+    heights_mm: float | Sequence[float] | Tensor,
+    pixel_pitch_mm: float,
+    init: Any = "nominal",
+    *,
+    card_albedo: float | Sequence[float] = 1.0,
+    dark: Tensor | Sequence[Tensor | None] | None = None,
+    saturation_level: float | None = None,
+    nominal_distance_mm: float | None = None,
+    mu_init: float = 1.0,
+    max_size: int = 32,
+    huber_delta: float = 0.05,
+    optimizer: str = "lbfgs",
+    iterations: tuple[int, int] = (200, 400),
+    learning_rate: float = 0.01,
+    tolerance: float = 1e-10,
+) -> LEDFit:
+    r"""Fit LED positions, principal directions, intensities and :math:`\mu` to images of a matte card.
+
+    The camera's per-pixel gain × vignetting is eliminated in closed form (see the module's docstring), so the
+    result does not depend on it, and intensities are relative: they are scaled to average 1. Two stages, each
+    started from the previous: ``point`` (positions and intensities, the beams held at the start's) and ``led``
+    (every parameter). Each stage runs up to ``steps`` optimiser steps, each followed by the projection onto the
+    constraints. The fit runs in float64 on the images' device, on images averaged down to at most
+    ``max_size`` pixels a side.
+
+    Args:
+        card_images: the card under each LED at N heights: shape :math:`(N, K, H, W)` or a list of N
+            :math:`(K, H, W)` tensors; linear readings, dark-subtracted unless ``dark`` is given.
+        heights_mm: card height(s) above the reference plane, mm, one per N (toward the camera).
+        pixel_pitch_mm: size of one pixel on the card, mm (orthographic camera).
+        init: the start. ``"nominal"`` (the psmini rig: K LEDs on a 31.6 mm ring, 10 mm up, pointing at the
+            field centre, :math:`\mu = 1`); an object with ``ring_diameter_mm`` and ``led_height_mm`` (such as
+            ``data_synth.rig.RigConfig``); an ``LEDLights`` or ``PointLights`` (positions; point lights get beams
+            toward the field centre and ``mu_init``); a ``DirectionalLights`` or a :math:`(K, 3)` tensor of
+            directions (a mirror-sphere calibration: positions along them at ``nominal_distance_mm``); or a light
+            object of ``docs/capture-format.md``.
+        card_albedo: the card's albedo, or one per height when different cards were used (only ratios between
+            heights matter: one overall scale goes into the gain).
+        dark: dark frames to subtract, shape :math:`(N, 1, H, W)` or :math:`(1, 1, H, W)` or a list of N
+            :math:`(1, H, W)` tensors (``None`` entries: none).
+        saturation_level: raw readings at or above it are dropped (with the pixel blocks that hold them).
+        nominal_distance_mm: distance from the field centre at which directional starts place the LEDs
+            (default: the nominal rig's, 18.7 mm).
+        mu_init: :math:`\mu` of starts that have none (point or directional lights).
+        max_size: the images are averaged over square blocks down to at most this many pixels a side.
+        huber_delta: Huber threshold, as a fraction of the mean card reading.
+        optimizer: ``"lbfgs"`` (strong Wolfe line search; default) or ``"adam"``.
+        iterations: maximum optimiser iterations (L-BFGS iterations or Adam steps) of the ``point`` and ``led``
+            stages.
+        learning_rate: Adam's step size (unused by L-BFGS).
+        tolerance: L-BFGS stops a stage when the loss changes by less than this relative amount in one step.
+
+    Returns:
+        an :class:`LEDFit`.
+
+    Raises:
+        ShapeError: images not :math:`(N, K, H, W)`, a start with another K, heights, albedos or dark frames
+            that do not match N.
+        InputError: no images, NaN or infinite values, bad options.
+        CalibrationError: a card image without signal (an LED that did not light), a start with LEDs at or
+            below the card plane, fewer than two images in all.
+
+    Example:
+        >>> from data_synth.rig import RigConfig, render_card
+        >>> config = RigConfig(size=40, pixel_pitch_mm=0.25, noise=False, bit_depth=16)
+        >>> cards = [render_card(config, height_mm=h) for h in (0.0, 1.0)]
+        >>> fit = fit_leds(torch.stack([c.images - c.dark for c in cards]), [0.0, 1.0], 0.25)
+        >>> fit.positions_mm.shape, fit.residual_rms < 1e-3
+        (torch.Size([8, 3]), True)
+    """
+    images = _stack_images(card_images)
+    count, leds, height, width = images.shape
+    pitch = check_positive(pixel_pitch_mm, "pixel_pitch_mm")
+    heights = _per_height(heights_mm, count, "heights_mm", positive=False)
+    albedo = _per_height(card_albedo, count, "card_albedo", positive=True)
+    if optimizer not in ("lbfgs", "adam"):
+        raise InputError(f"optimizer must be 'lbfgs' or 'adam', got {optimizer!r}")
+    if not isinstance(max_size, int) or max_size < 2:
+        raise InputError(f"max_size must be an integer >= 2, got {max_size!r}")
+    check_positive(huber_delta, "huber_delta")
+    if len(iterations) != len(STAGES) or any(not isinstance(s, int) or s < 0 for s in iterations):
+        raise InputError(f"iterations must hold {len(STAGES)} counts >= 0 (stages {STAGES}), got {iterations!r}")
+    if count * leds < 2:
+        raise CalibrationError(f"the fit needs at least two card images in all (the gain absorbs one), got {count * leds}")
+    check_finite(images, "card_images")
+    dark_frames = _stack_dark(dark, images)
+    distance = nominal_distance_mm if nominal_distance_mm is not None else math.hypot(
+        NOMINAL_RING_DIAMETER_MM / 2, NOMINAL_LED_HEIGHT_MM)
+    lights = _start_lights(init, leds, check_positive(distance, "nominal_distance_mm"), mu_init)
+    start = LEDLights(*(t.detach().clone() for t in (lights.positions_mm, lights.principal_directions,
+                                                     lights.intensities, lights.mu)))
+
+    device = images.device
+    work = images.to(torch.float64)
+    valid = torch.ones_like(work, dtype=torch.bool)
+    if saturation_level is not None:
+        valid = work < check_positive(saturation_level, "saturation_level")
+    if dark_frames is not None:
+        work = work - dark_frames.to(torch.float64)
+    work = work / albedo.to(device)[:, None, None, None]
+    _check_signal(work, valid)
+
+    pooled, pooled_valid, centres = _downsample(work, valid, pitch, max_size)
+    scale = pooled[pooled_valid].mean()
+    pooled = pooled / scale
+    size = pooled.shape[-2:]
+    z = heights.to(device)[:, None, None, None].expand(count, 1, *size)
+    points = torch.cat([centres.expand(count, -1, -1, -1), z], dim=1)
+    weights = pooled_valid.to(torch.float64)
+    unknowns = _Unknowns(lights).to(device)
+    data = (pooled, points, weights)
+    records = [_run_stage(stage, unknowns, data, huber_delta, max_steps, optimizer, learning_rate, tolerance)
+               for stage, max_steps in zip(STAGES, iterations)]
+    with torch.no_grad():
+        lights = unknowns.lights()
+    return _result(lights, data, float(scale), heights, start, records, images.dtype)
+
+
+def _check_signal(work: Tensor, valid: Tensor) -> None:
+    """Raise CalibrationError for a card image without signal (an LED off, a lens cap, a missing card)."""
+    means = (work * valid).sum(dim=(2, 3)) / valid.sum(dim=(2, 3)).clamp_min(1)  # (N, K)
+    reference = means.flatten().median()
+    dark = (means <= _MIN_SIGNAL_FRACTION * reference) | (means <= 0)
+    if bool(dark.any()):
+        height, led = (int(i) for i in dark.nonzero()[0])
+        raise CalibrationError(
+            f"the card image of LED {led} at height index {height} has no signal (mean {float(means[height, led]):.3g} "
+            f"after dark subtraction, median image {float(reference):.3g}): did the LED light?"
+        )
+
+
+def _result(lights: LEDLights, data: tuple[Tensor, Tensor, Tensor], image_scale: float, heights: Tensor,
+            start: LEDLights, records: list[dict[str, Any]], dtype: torch.dtype) -> LEDFit:
+    """Residuals, the gain map and the fitted model in the caller's dtype, intensities averaging 1."""
+    images, points, weights = data
+    with torch.no_grad():
+        scale = lights.intensities.mean()
+        residuals, gain = eliminate_gain(images, card_shading(lights, points), weights)
+        gain = gain * scale * image_scale  # back to image units per unit shading of the mean-1 intensities
+
+        def rms(dims: tuple[int, ...]) -> Tensor:
+            return ((residuals.square() * weights).sum(dims) / weights.sum(dims).clamp_min(1)).sqrt()
+
+        fitted = LEDLights(*(t.detach().to(dtype).clone() for t in (
+            lights.positions_mm, lights.principal_directions, lights.intensities / scale, lights.mu)))
+    return LEDFit(
+        lights=fitted,
+        residual_rms=float(rms((0, 1, 2, 3))),
+        residual_rms_per_led=rms((0, 2, 3)).to(dtype),
+        residual_rms_per_height=rms((1, 2, 3)).to(dtype),
+        gain=gain.to(dtype),
+        heights_mm=heights.to(device=images.device, dtype=dtype),
+        stages=records,
+        start=LEDLights(*(t.to(device=images.device, dtype=dtype) for t in (
+            start.positions_mm, start.principal_directions, start.intensities, start.mu))),
+    )
+
+
+def load_rig_calibration_mat(path: str | Path, reference_depth_mm: float = 0.0) -> LEDLights:
+    r"""Read an LED calibration saved as a MAT-file (``S``, ``Dir``, ``Phi``, ``mu``) into psmini's frame.
+
+    The layout is the one of the near-light rig in ``../shared/data/near_ps_rig/light.mat`` (Quéau et al. 2018's
+    calibration format): ``S`` (K × 3) LED positions in mm, ``Dir`` (K × 3) principal directions, ``Phi``
+    (K × 3) RGB intensities, ``mu`` (K × 1) anisotropies, in the camera frame of computer vision (origin at the
+    centre of projection, x right, y down, z along the optical axis toward the scene). psmini's frame has y up and
+    z toward the camera, so positions and directions become :math:`(x, -y, -z)` (a rotation by 180° about x,
+    which keeps the frame right-handed) and, with ``reference_depth_mm`` = d, positions are shifted so that the
+    plane at depth d (e.g. the card) becomes psmini's reference plane z = 0: :math:`z' = d - z`. Intensities
+    become gray with the DiLiGenT weights 0.2989/0.5870/0.1140 and keep the file's (absolute) scale.
+
+    Args:
+        path: the ``.mat`` file (MATLAB level 5, read by :func:`psmini.io.read_mat`).
+        reference_depth_mm: depth along the file's optical axis of the plane that becomes z = 0, mm (default 0:
+            the origin stays at the centre of projection, and the scene lies at negative z).
+
+    Returns:
+        an :class:`~psmini.lights.LEDLights` (float32).
+
+    Raises:
+        DataFormatError: a missing or unreadable file, missing variables or shapes other than K × 3 / K.
+        CalibrationError: values the LED model refuses (zero directions, intensities <= 0, mu < 0).
+
+    Example:
+        >>> leds = load_rig_calibration_mat("../shared/data/near_ps_rig/light.mat")  # doctest: +SKIP
+        >>> leds.count  # doctest: +SKIP
+        8
+    """
+    import numpy as np
+
+    from psmini.errors import DataFormatError
+    from psmini.io.matfile import read_mat  # the file reader lives in io
+
+    variables = read_mat(path)
+    missing = [name for name in ("S", "Dir", "Phi", "mu") if name not in variables]
+    if missing:
+        raise DataFormatError(f"{path}: an LED calibration needs variables S, Dir, Phi and mu; missing {missing}")
+    positions = np.asarray(variables["S"], dtype=np.float64)
+    directions = np.asarray(variables["Dir"], dtype=np.float64)
+    phi = np.asarray(variables["Phi"], dtype=np.float64)
+    mu = np.asarray(variables["mu"], dtype=np.float64).reshape(-1)
+    count = positions.shape[0]
+    if positions.shape != (count, 3) or directions.shape != (count, 3) or mu.shape != (count,) \
+            or phi.shape[0] != count or phi.ndim != 2 or phi.shape[1] not in (1, 3):
+        raise DataFormatError(
+            f"{path}: expected S and Dir K x 3, Phi K x 3 (RGB) or K x 1, mu K x 1; got S {positions.shape}, "
+            f"Dir {directions.shape}, Phi {phi.shape}, mu {variables['mu'].shape}"
+        )
+    if not all(np.isfinite(a).all() for a in (positions, directions, phi, mu)):
+        raise DataFormatError(f"{path}: the LED calibration holds NaN or infinite values")
+    flip = np.array([1.0, -1.0, -1.0])
+    positions = positions * flip + np.array([0.0, 0.0, float(reference_depth_mm)])
+    directions = directions * flip
+    gray = phi @ np.asarray(_GRAY_WEIGHTS) if phi.shape[1] == 3 else phi[:, 0]
+    return LEDLights(*(torch.as_tensor(a, dtype=torch.float32) for a in (positions, directions, gray, mu)))
