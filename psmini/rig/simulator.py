@@ -153,7 +153,8 @@ class SimulatedDevice:
         return f"{FIRMWARE_NAME} {FIRMWARE_VERSION} leds={self.led_count} wdt={self.watchdog_ms}"
 
     def _watchdog(self) -> None:
-        if self._lit is not None and (self.clock() - self._last_line) * 1000 >= self.watchdog_ms:
+        # whole milliseconds, as millis() counts them
+        if self._lit is not None and round((self.clock() - self._last_line) * 1000, 6) >= self.watchdog_ms:
             logger.info("simulated device: watchdog switched the LEDs off after %d ms of silence", self.watchdog_ms)
             self._lit = None
             self.watchdog_trips += 1
@@ -220,12 +221,12 @@ class SimulatedDevice:
         self._pending.append((self.clock() + delay, data))
 
     def _execute(self, line: str) -> str:
-        verb, _, argument = line.partition(" ")
+        argument = line.partition(" ")[2]
         if line == "PING":
             return "OK PING"
         if line == "ID?":
             return f"OK ID {self._identity()}"
-        if verb == "ON" and argument:
+        if line.startswith("ON "):
             if not (argument.isdigit() and len(argument) <= 5 and int(argument) < self.led_count):
                 return "ERR 2 led index out of range"
             self._lit = int(argument)
@@ -239,7 +240,7 @@ class SimulatedDevice:
         if line == "STATE?":
             on = "-" if self._lit is None else str(self._lit)
             return f"OK STATE on={on} wdt={self.watchdog_ms} trips={self.watchdog_trips}"
-        if verb == "WDT" and argument:
+        if line.startswith("WDT "):
             low, high = WATCHDOG_RANGE_MS
             if not (argument.isdigit() and len(argument) <= 5 and low <= int(argument) <= high):
                 return "ERR 2 watchdog ms out of range 100..60000"
