@@ -73,7 +73,7 @@ def _simulated(args: argparse.Namespace) -> dict:
 
     from psmini.rig import CaptureSession, LEDController, RigCamera, SimulatedRig, write_with_card
 
-    with SimulatedRig(args.fabric, args.seed, args.size, fault=args.fault) as rig, \
+    with SimulatedRig(args.fabric, args.seed, args.size, fault=args.fault, pixel_pitch_mm=args.pixel_pitch) as rig, \
             LEDController(rig.port, handshake_timeout_s=args.handshake_timeout,
                           command_timeout_s=args.command_timeout) as leds, \
             RigCamera(0, open_capture=rig.open_capture, frame_size=rig.frame_size, crop_size=rig.size) as camera:
