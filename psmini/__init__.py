@@ -25,6 +25,7 @@ from psmini.pipeline import PhotometricStereo, Reconstruction, distant_light_mat
 # psmini.render is the function once the package is imported; reach the module by `from psmini.render import ...`
 from psmini.render import Renderer, cast_shadows, normals_from_height, render, render_lambertian
 from psmini.io import Sample, load_sample, read_capture, read_diligent, read_image, save_ply, write_capture, write_outputs
+from psmini.ledcal import LEDFit, fit_leds, load_rig_calibration_mat
 
 __all__ = [
     "__version__",
@@ -81,6 +82,10 @@ __all__ = [
     "Sample",
     "write_outputs",
     "save_ply",
+    # LED calibration from card images
+    "fit_leds",
+    "LEDFit",
+    "load_rig_calibration_mat",
     # integration
     "integrate",
     "INTEGRATION_METHODS",

@@ -229,7 +229,7 @@ class LEDFit:
         gain: the per-pixel camera gain times vignetting found with the fit, shape :math:`(1, 1, h, w)` at the
             fit's resolution, in image units per unit of (card albedo × shading), scaled like the intensities.
         heights_mm: the card heights, shape :math:`(N,)`.
-        stages: one record per stage: name, optimiser steps, final loss, seconds.
+        stages: one record per stage: name, optimiser iterations, final mean loss, seconds.
         start: the start model, as an :class:`~psmini.lights.LEDLights`.
     """
 
@@ -417,7 +417,8 @@ class _Unknowns(nn.Module):
     def lights(self) -> LEDLights:
         positions = self.position * self.POSITION_SCALE_MM
         intensities = self.log_level.exp() * positions.square().sum(-1)
-        return LEDLights(positions, self.direction, intensities, self.mu * self.MU_SCALE)
+        # the line search may try mu < 0 between projections: such trial points see mu = 0
+        return LEDLights(positions, self.direction, intensities, (self.mu * self.MU_SCALE).clamp_min(0.0))
 
     def stage_parameters(self, stage: str) -> list[Tensor]:
         if stage == "point":
@@ -497,8 +498,8 @@ def fit_leds(
     The camera's per-pixel gain × vignetting is eliminated in closed form (see the module's docstring), so the
     result does not depend on it, and intensities are relative: they are scaled to average 1. Two stages, each
     started from the previous: ``point`` (positions and intensities, the beams held at the start's) and ``led``
-    (every parameter). Each stage runs up to ``steps`` optimiser steps, each followed by the projection onto the
-    constraints. The fit runs in float64 on the images' device, on images averaged down to at most
+    (every parameter). Each stage runs up to ``iterations`` optimiser iterations; L-BFGS (the default) projects onto
+    the constraints every 20 iterations and stops when the loss no longer changes, Adam projects after every step. The fit runs in float64 on the images' device, on images averaged down to at most
     ``max_size`` pixels a side.
 
     Args:
@@ -542,7 +543,8 @@ def fit_leds(
         >>> from data_synth.rig import RigConfig, render_card
         >>> config = RigConfig(size=40, pixel_pitch_mm=0.25, noise=False, bit_depth=16)
         >>> cards = [render_card(config, height_mm=h) for h in (0.0, 1.0)]
-        >>> fit = fit_leds(torch.stack([c.images - c.dark for c in cards]), [0.0, 1.0], 0.25)
+        >>> images, dark = torch.stack([c.images for c in cards]), torch.stack([c.dark for c in cards])
+        >>> fit = fit_leds(images, [0.0, 1.0], 0.25, dark=dark, saturation_level=1.0, iterations=(50, 50))
         >>> fit.positions_mm.shape, fit.residual_rms < 1e-3
         (torch.Size([8, 3]), True)
     """

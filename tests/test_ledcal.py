@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from data_synth.rig import RigConfig, render_card, rig_lights
+from psmini.calibration.lightsfile import read_lights_file
 from psmini.commands._calibrate_leds import register_leds
 from psmini.errors import CalibrationError, DataFormatError, InputError, ShapeError
 from psmini.io import lights_from_dict, read_mat, write_capture
@@ -283,9 +284,11 @@ class TestCommand:
         assert args.run(args) == 0
         summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
         assert set(summary) >= {"positions_mm", "principal_directions", "intensities", "mu", "residual_rms"}
-        fitted = lights_from_dict(json.loads(out.read_text()), dtype=torch.float64)
+        lights_file = read_lights_file(out)
+        assert len(lights_file.leds) == 8 and "residuals" in lights_file.provenance
+        fitted = lights_file.lights
         truth = rig_lights(config, dtype=torch.float64)
-        assert float((fitted.positions_mm - truth.positions_mm).norm(dim=-1).max()) < 0.1
+        assert float((fitted.positions_mm.double() - truth.positions_mm).norm(dim=-1).max()) < 0.1
         np.testing.assert_allclose(summary["positions_mm"], fitted.positions_mm.numpy(), atol=1e-6)
 
     def test_refuses_sample_captures_and_bad_heights(self, tmp_path):

@@ -3,15 +3,14 @@
 ``register_leds(calibrate_subparsers)`` adds the ``leds`` parser under ``psmini calibrate``; the calibrate
 command wires it in. Each DIR is a capture folder of kind ``flatfield`` (the matte card under each LED, with its
 dark frame); its card height comes from ``metadata.card_height_mm`` in the manifest (0 when absent) or from
-``--heights-mm``. The fitted model is written as a light object of ``docs/capture-format.md`` (plus residuals).
+``--heights-mm``. The fitted model is written as a lights file (``docs/lights-file.md``: the light object of
+``docs/capture-format.md``, per-LED residuals, provenance) that ``reconstruct --lights`` reads.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -30,7 +29,7 @@ def register_leds(calibrate_subparsers: argparse._SubParsersAction) -> argparse.
         "with the camera's vignetting eliminated per pixel. Two heights or more pin the LEDs' distance best.",
     )
     parser.add_argument("dirs", nargs="+", type=Path, metavar="DIR", help="flat-field capture folders (kind flatfield)")
-    parser.add_argument("--out", type=Path, required=True, metavar="FILE", help="lights file to write (JSON)")
+    parser.add_argument("--out", type=Path, required=True, metavar="FILE", help="lights file to write (JSON, docs/lights-file.md)")
     parser.add_argument("--heights-mm", type=float, nargs="+", metavar="H",
                         help="card height of each DIR, mm (default: metadata.card_height_mm of each, else 0)")
     parser.add_argument("--init", default="nominal", metavar="nominal|FILE",
@@ -89,25 +88,10 @@ def _load_cards(dirs: list[Path], heights: list[float] | None) -> tuple[list, li
     return captures, heights
 
 
-def _write_json(path: Path, data: dict[str, Any], overwrite: bool) -> None:
-    """Write atomically (temporary file in the same folder, then rename)."""
-    if path.exists() and not overwrite:
-        raise DataFormatError(f"{path} exists; pass --overwrite to replace it")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(handle, "w") as stream:
-            json.dump(data, stream, indent=2)
-            stream.write("\n")
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
-
-
 def run_leds(args: argparse.Namespace) -> int:
     import torch
 
+    from psmini.calibration.lightsfile import write_lights_file
     from psmini.ledcal import fit_leds, nominal_leds
 
     device = resolve_device(args.device)
@@ -123,7 +107,11 @@ def run_leds(args: argparse.Namespace) -> int:
                    dark=dark, saturation_level=1.0, nominal_distance_mm=args.nominal_distance_mm,
                    max_size=args.max_size, optimizer=args.optimizer)
     elapsed = time.perf_counter() - start
-    _write_json(args.out, fit.to_dict(), args.overwrite)
+    record = fit.to_dict()
+    leds = [{"name": f"led_{k}", "residual_rms": record["residuals"]["per_led"][k]} for k in range(count)]
+    provenance = {**record["calibration"], "residuals": record["residuals"], "sources": [str(d) for d in args.dirs],
+                  "intensity_scale": record["intensity_scale"], "init": args.init}
+    write_lights_file(args.out, fit.lights, leds=leds, provenance=provenance, overwrite=args.overwrite)
     print(f"fitted {count} LEDs to {len(captures)} card height(s) {heights} mm in {elapsed:.1f} s; "
           f"residual RMS {100 * fit.residual_rms:.3f}% of the mean card reading")
     print(f"{'LED':>3}  {'x mm':>8} {'y mm':>8} {'z mm':>8}  {'intensity':>9}  {'mu':>6}  {'residual %':>10}")
