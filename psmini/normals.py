@@ -13,13 +13,14 @@ import torch
 from torch import Tensor, nn
 
 from psmini._checks import check_finite, check_mask, check_same_size, check_shape, check_tensor
-from psmini.errors import InputError, ShapeError
+from psmini.errors import CalibrationError, InputError, ShapeError
 from psmini.lights import as_batched_lights, check_spans_3d
 
 __all__ = ["albedo_normals", "LeastSquaresNormals", "normals_to_gradients"]
 
-# Per-pixel normal matrices whose smallest eigenvalue falls below this fraction of the largest are taken as
-# rank-deficient (fewer than three usable lights): the pixel is then left out.
+# Per-pixel normal matrices whose determinant falls below this fraction of (trace / 3)^3 are taken as
+# rank-deficient (fewer than three usable lights, or coplanar ones): the pixel is then left out. The ratio is at
+# most the ratio of the smallest to the largest eigenvalue.
 _RANK_RATIO = 1e-6
 
 
@@ -49,19 +50,55 @@ def _check_weights(weights: Tensor | None, shape: torch.Size) -> Tensor | None:
     return weights
 
 
-def _weighted_solve(intensities: Tensor, lights: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
-    """Per-pixel weighted least squares; returns m (B, 3, H, W) and where it is well posed (B, 1, H, W)."""
-    weights = weights.to(intensities)
-    gram = torch.einsum("bkhw,bki,bkj->bhwij", weights, lights, lights)  # (B, H, W, 3, 3)
-    rhs = torch.einsum("bkhw,bkhw,bki->bhwi", weights, intensities, lights)
-    eigenvalues = torch.linalg.eigvalsh(gram.detach())
-    well_posed = eigenvalues[..., 0] > _RANK_RATIO * eigenvalues[..., -1].clamp_min(torch.finfo(gram.dtype).tiny)
-    identity = torch.eye(3, device=gram.device, dtype=gram.dtype)
-    # rank-deficient pixels get an identity system (solution 0) so that the batched solve never fails
-    gram = torch.where(well_posed[..., None, None], gram, identity)
-    rhs = torch.where(well_posed[..., None], rhs, torch.zeros_like(rhs))
-    m = torch.linalg.solve(gram, rhs.unsqueeze(-1)).squeeze(-1)
-    return m.permute(0, 3, 1, 2), well_posed.unsqueeze(1)
+def _weighted_solve(intensities: Tensor, lights: Tensor, weights: Tensor | None) -> tuple[Tensor, Tensor]:
+    """Per-pixel weighted least squares with lights (B, K, 3) or per-pixel (B, K, 3, H, W).
+
+    The 3×3 normal equations are solved in closed form (adjugate over determinant), element-wise over the
+    pixels: batched LAPACK calls on millions of 3×3 systems cost far more than these few products.
+
+    Returns m (B, 3, H, W) and where the system is well posed (B, 1, H, W).
+    """
+    if lights.ndim == 3:
+        lights = lights[..., None, None]
+    weighted = lights if weights is None else lights * weights.to(intensities).unsqueeze(2)
+    gram = torch.einsum("bkihw,bkjhw->bijhw", weighted, lights.expand_as(weighted))  # (B, 3, 3, H, W)
+    rhs = torch.einsum("bkihw,bkhw->bihw", weighted, intensities)  # (B, 3, H, W)
+    a, b, c = gram[:, 0, 0], gram[:, 0, 1], gram[:, 0, 2]
+    d, e, f = gram[:, 1, 1], gram[:, 1, 2], gram[:, 2, 2]
+    # cofactors of the symmetric matrix [[a, b, c], [b, d, e], [c, e, f]]
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * c00 + b * c01 + c * c02
+    trace = a + d + f
+    # det / (trace / 3)^3 is 1 for a multiple of the identity and 0 for a singular matrix; below the ratio the
+    # pixel has fewer than three usable, non-coplanar lights
+    tiny = torch.finfo(gram.dtype).tiny
+    well_posed = det.detach() > _RANK_RATIO * (trace.detach() / 3).pow(3).clamp_min(tiny)
+    safe_det = torch.where(well_posed, det, torch.ones_like(det))
+    r0, r1, r2 = rhs[:, 0], rhs[:, 1], rhs[:, 2]
+    m = torch.stack(
+        [c00 * r0 + c01 * r1 + c02 * r2, c01 * r0 + c11 * r1 + c12 * r2, c02 * r0 + c12 * r1 + c22 * r2], dim=1
+    ) / safe_det.unsqueeze(1)
+    return torch.where(well_posed.unsqueeze(1), m, torch.zeros_like(m)), well_posed.unsqueeze(1)
+
+
+def _check_lights(lights: Tensor, sizes: dict[str, int]) -> Tensor:
+    """Lights (K, 3), (B, K, 3) or per-pixel (B, K, 3, H, W), matching the intensities; returned batched."""
+    if isinstance(lights, Tensor) and lights.ndim == 5:
+        check_shape(lights, ["B", "K", "3", "H", "W"], "lights")
+        check_finite(lights, "lights")
+        if lights.shape[0] not in (1, sizes["B"]) or tuple(lights.shape[3:]) != (sizes["H"], sizes["W"]):
+            raise ShapeError(
+                f"per-pixel lights must have shape ({sizes['B']}, K, 3, {sizes['H']}, {sizes['W']}), "
+                f"got {tuple(lights.shape)}"
+            )
+        check_same_size(lights.shape[1], sizes["K"], "the number of lights", "lights", "intensities")
+        if sizes["K"] < 3:
+            raise CalibrationError(f"photometric stereo needs at least 3 lights spanning 3D, got {sizes['K']}")
+        return lights.expand(sizes["B"], -1, -1, -1, -1)
+    check_spans_3d(lights)
+    check_same_size(lights.shape[-2], sizes["K"], "the number of lights", "lights", "intensities")
+    return lights
 
 
 def albedo_normals(
@@ -75,7 +112,8 @@ def albedo_normals(
     Args:
         intensities: flat-fielded images, shape :math:`(B, K, H, W)`.
         lights: light directions scaled by their intensities, shape :math:`(B, K, 3)` or :math:`(K, 3)`, camera
-            frame (x right, y up, z toward the camera).
+            frame (x right, y up, z toward the camera); or per-pixel light vectors :math:`(B, K, 3, H, W)` (near
+            lights), solved pixel by pixel.
         mask: optional pixels to solve, shape :math:`(B, 1, H, W)` (bool); others get albedo 0 and normal
             (0, 0, 1).
         weights: optional per-observation weights, shape :math:`(B, K, H, W)`, bool or non-negative float.
@@ -97,18 +135,19 @@ def albedo_normals(
     """
     sizes = check_shape(intensities, ["B", "K", "H", "W"], "intensities")
     check_finite(intensities, "intensities")
-    check_spans_3d(lights)
-    check_same_size(lights.shape[-2], sizes["K"], "the number of lights", "lights", "intensities")
+    lights = _check_lights(lights, sizes)
     mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
     weights = _check_weights(weights, intensities.shape)
-    lights = as_batched_lights(lights, sizes["B"], intensities)
 
-    if weights is None:
+    if lights.ndim == 5:
+        m, solved = _weighted_solve(intensities, lights.to(intensities), weights)
+    elif weights is None:
+        lights = as_batched_lights(lights, sizes["B"], intensities)
         pinv = torch.linalg.pinv(lights)  # (B, 3, K)
         m = torch.matmul(pinv, intensities.flatten(2)).view(sizes["B"], 3, sizes["H"], sizes["W"])
         solved = None
     else:
-        m, solved = _weighted_solve(intensities, lights, weights)
+        m, solved = _weighted_solve(intensities, as_batched_lights(lights, sizes["B"], intensities), weights)
     if mask is not None:
         solved = mask.bool() if solved is None else solved & mask.bool()
     return _unit_and_length(m, solved)
