@@ -14,6 +14,13 @@ variance divides by the mean, so inverting an image changes its score unless the
 
 Float input is differentiable with respect to the frames (the measures are piecewise smooth).
 
+Implementation: every filter is a sum of shifted slices of the frame (3-tap Sobel and Laplacian factors, the
+Gaussian-derivative taps), evaluated on the valid region only. On one gray channel on the CPU this measured 3–5×
+faster than ``torch.nn.functional.conv2d`` or ``kornia.filters.filter2d``/``filter2d_separable``, which pad and
+are tuned for many channels; on CUDA both are fast. uint8 Brenner stays in integers until the final sum
+(see :func:`brenner`). Torch on the CPU does not gain from large batches here: intermediates of a 16-frame batch
+no longer fit in the cache; call the measures frame by frame (or a few at a time) on the CPU, batched on the GPU.
+
 References:
     J. F. Brenner et al., "An automated microscope for cytologic research", J. Histochem. Cytochem. 24 (1976).
     E. Krotkov, "Focusing", Int. J. Computer Vision 1 (1987).
@@ -34,9 +41,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 
-import kornia.filters as kf
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from psmini.errors import InputError, ShapeError
@@ -307,22 +312,42 @@ def gaussian_derivative(frames: Tensor, roi: Roi | str | None = None, sigma: flo
 
     Example:
         >>> ramp = torch.arange(16.0).repeat(1, 16, 1)  # g = column index
-        >>> gaussian_derivative(ramp)
-        tensor([1.])
+        >>> round(float(gaussian_derivative(ramp)), 5)
+        1.0
     """
     if not (isinstance(sigma, (int, float)) and math.isfinite(sigma) and sigma > 0):
         raise InputError(f"gaussian_derivative: sigma must be a positive number of pixels, got {sigma!r}")
+    smooth, slope = _gaussian_taps(float(sigma))
+    g = _as_float(_region(frames, roi, len(smooth), "gaussian_derivative"))[:, 0]
+    gx = _correlate_valid(_correlate_valid(g, smooth, -2), slope, -1)
+    gy = _correlate_valid(_correlate_valid(g, slope, -2), smooth, -1)
+    return (gx.square() + gy.square()).mean(dim=(-2, -1))
+
+
+def _gaussian_taps(sigma: float) -> tuple[list[float], list[float]]:
+    """Smoothing taps (sum 1) and derivative taps (unit response to a unit ramp), radius ceil(3 sigma)."""
     radius = max(1, math.ceil(3.0 * sigma))
-    g = _as_float(_region(frames, roi, 2 * radius + 1, "gaussian_derivative"))
-    x = torch.arange(-radius, radius + 1, device=g.device, dtype=g.dtype)
-    smooth = kf.get_gaussian_kernel1d(2 * radius + 1, sigma, device=g.device, dtype=g.dtype)[0]  # sums to 1
-    slope = x * smooth
-    slope = slope / (x * slope).sum()  # correlating a unit ramp gives exactly 1
-    # One convolution with two output channels (d/dx, d/dy): a 2-D (2, 1, k, k) kernel beat separable 1-D passes
-    # (kornia.filters.filter2d_separable, conv2d with k × 1 kernels) several-fold on CPU for one gray channel.
-    kernel = torch.stack([smooth[:, None] * slope[None, :], slope[:, None] * smooth[None, :]])[:, None]
-    grad = F.conv2d(g, kernel)
-    return grad.square().sum(dim=1).mean(dim=(-2, -1))
+    offsets = range(-radius, radius + 1)
+    smooth = [math.exp(-0.5 * (x / sigma) ** 2) for x in offsets]
+    total = sum(smooth)
+    smooth = [v / total for v in smooth]
+    slope = [x * v for x, v in zip(offsets, smooth)]
+    ramp_response = sum(x * v for x, v in zip(offsets, slope))
+    return smooth, [v / ramp_response for v in slope]
+
+
+def _correlate_valid(x: Tensor, taps: list[float], dim: int) -> Tensor:
+    """1-D correlation along ``dim``, valid part only, as a sum of shifted slices.
+
+    Taps are Python numbers derived from the measure's parameters (never from the data). On one gray channel
+    this is ~4× faster on CPU than ``conv2d`` with a 2-D kernel and faster than ``kornia.filters.filter2d``.
+    """
+    n = x.shape[dim] - len(taps) + 1
+    out = x.narrow(dim, 0, n) * taps[0]
+    for k in range(1, len(taps)):
+        if taps[k] != 0.0:
+            out.add_(x.narrow(dim, k, n), alpha=taps[k])
+    return out
 
 
 def tenengrad(frames: Tensor, roi: Roi | str | None = None, threshold: float = 0.0) -> Tensor:
