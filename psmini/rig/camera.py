@@ -83,27 +83,34 @@ class CameraSettings:
 class FrameCheck:
     """Is a frame the one taken under the LED just switched on? New, and brighter where that LED shines.
 
-    The brightness test uses the first moment of ``frame - dark`` about the image centre (a unit vector times
-    the fraction of light off-centre): a near LED lights the side of the field facing it more, so the moment
-    points toward the LED's azimuth. A frame under LED ``i`` must (1) carry light (mean above the dark frame's
-    by ``min_signal``), (2) have a moment along LED ``i``'s azimuth larger than the previous frame's by
-    ``margin`` times the previous moment's length (the previous LED is another azimuth, or the dark frame), and
-    (3) differ from the previous frame (a frozen camera repeats the very same pixels). A dark frame taken
-    after lit ones must be darker than the last lit frame by ``min_signal`` (:meth:`dark_reason`).
+    A near LED lights the side of the field facing it more. So when the light moves from LED ``j`` to LED ``i``,
+    the change ``frame - previous`` is positive toward LED ``i`` and negative toward LED ``j``: its first moment
+    along ``u_i - u_j`` (the azimuth unit vectors), normalised by its total absolute change, is positive; the
+    cloth's own texture, common to both frames, cancels in the difference. From the dark frame, the moment of
+    ``frame - dark`` along ``u_i`` is positive the same way. A frame under LED ``i`` must (1) differ from the
+    previous frame (a frozen camera repeats the very same pixels), (2) carry light (mean above the dark
+    frame's by ``min_signal``), and (3) have that normalised moment above ``margin`` (above 0 after the dark
+    frame, where (2) already separates lit from stale frames); a stale frame, the
+    previous LED's again, changes only by noise and scores about 0. A dark frame taken after lit ones must be
+    darker than the last lit frame by ``min_signal`` (:meth:`dark_reason`).
 
     Args:
         azimuths_rad: LED azimuths, counter-clockwise from +x (image right), y up, length K.
         min_signal: minimum mean of ``frame - dark`` for a lit frame, fraction of full scale.
-        margin: fraction of the previous moment by which the new one must exceed it along the LED.
+        margin: smallest normalised moment of the change toward the new LED (half-width units; a full-field
+            brightness ramp gives about 0.3, noise about 0).
 
     Example:
         >>> check = FrameCheck([0.0, math.pi])
         >>> ramp = np.tile(np.linspace(0.1, 0.9, 16, dtype=np.float32), (16, 1))  # brighter to the right
-        >>> check.accepts(ramp, led=0, previous=ramp[:, ::-1].copy(), dark=np.zeros_like(ramp))
+        >>> check.accepts(ramp, led=0, previous=ramp[:, ::-1].copy(), dark=np.zeros_like(ramp), previous_led=1)
         True
+        >>> check.reason(ramp[:, ::-1] + 0.001, led=0, previous=ramp[:, ::-1].copy(), dark=np.zeros_like(ramp),
+        ...              previous_led=1)[:34]
+        'not brighter toward LED 0 than LED'
     """
 
-    def __init__(self, azimuths_rad: list[float] | np.ndarray, min_signal: float = 0.01, margin: float = 0.1) -> None:
+    def __init__(self, azimuths_rad: list[float] | np.ndarray, min_signal: float = 0.01, margin: float = 0.05) -> None:
         azimuths = np.asarray(azimuths_rad, dtype=np.float64).ravel()
         if azimuths.size == 0 or not np.isfinite(azimuths).all():
             raise RigError(f"FrameCheck needs finite LED azimuths, got {azimuths_rad!r}")
@@ -111,33 +118,46 @@ class FrameCheck:
         self.min_signal, self.margin = float(min_signal), float(margin)
 
     @staticmethod
-    def moment(frame: np.ndarray, dark: np.ndarray | None = None) -> np.ndarray:
-        """The light's first moment ``(mx, my)`` about the centre (x right, y up, half-width units)."""
-        signal = frame.astype(np.float64) - (0.0 if dark is None else dark)
-        signal = np.clip(signal, 0.0, None)
-        height, width = signal.shape
+    def moment(change: np.ndarray, direction: np.ndarray) -> float:
+        """First moment of ``change`` along ``direction`` (x right, y up, half-width units) over its total
+        absolute value: in about [-1, 1], 0 for a change without a side."""
+        change = change.astype(np.float64)
+        height, width = change.shape
         x = (np.arange(width) - (width - 1) / 2) / (width / 2)
         y = -(np.arange(height) - (height - 1) / 2) / (height / 2)
-        total = signal.sum()
+        total = np.abs(change).sum()
         if total <= 0:
-            return np.zeros(2)
-        return np.array([(signal.sum(0) * x).sum() / total, (signal.sum(1) * y).sum() / total])
+            return 0.0
+        return float(((change.sum(0) * x).sum() * direction[0] + (change.sum(1) * y).sum() * direction[1]) / total)
 
-    def reason(self, frame: np.ndarray, led: int, previous: np.ndarray, dark: np.ndarray) -> str | None:
-        """Why ``frame`` is not LED ``led``'s fresh frame (None when it is)."""
+    def reason(self, frame: np.ndarray, led: int, previous: np.ndarray, dark: np.ndarray,
+               previous_led: int | None = None) -> str | None:
+        """Why ``frame`` is not LED ``led``'s fresh frame after ``previous`` (None when it is).
+
+        Args:
+            frame: the candidate, :math:`(H, W)`.
+            led: the LED just switched on.
+            previous: the frame before the switch: the previous LED's, or the dark frame.
+            dark: the dark frame.
+            previous_led: the LED lit in ``previous``, or None when ``previous`` is the dark frame.
+        """
         if np.array_equal(frame, previous):
             return "the frame repeats the previous one exactly"
         level = float((frame.astype(np.float64) - dark).mean())
         if level < self.min_signal:
             return f"too dark (mean {level:.4f} above the dark frame, expected >= {self.min_signal:g})"
-        direction = self.directions[led]
-        now = float(self.moment(frame, dark) @ direction)
-        before_moment = self.moment(previous, dark)
-        before = float(before_moment @ direction)
-        needed = before + self.margin * float(np.linalg.norm(before_moment))
-        if now <= needed:
-            return (f"not brighter toward LED {led} than the previous frame (moment {now:.4f} along it, previous "
-                    f"{before:.4f}, needed > {needed:.4f})")
+        toward = self.directions[led].copy()
+        if previous_led is not None and previous_led != led:
+            toward -= self.directions[previous_led]
+        toward /= np.linalg.norm(toward)
+        score = self.moment(frame.astype(np.float64) - previous, toward)
+        # From the dark frame the level test already tells lit from stale; the side only has to be right (a
+        # small field sees little of the LED's fall-off). Between LEDs the side is the test.
+        needed = self.margin if previous_led is not None else 0.0
+        if score <= needed:
+            source = "the dark frame" if previous_led is None else f"LED {previous_led}"
+            return (f"not brighter toward LED {led} than {source} (normalised moment of the change {score:.4f}, "
+                    f"expected > {needed:g})")
         return None
 
     def dark_reason(self, frame: np.ndarray, lit: np.ndarray) -> str | None:
@@ -149,9 +169,10 @@ class FrameCheck:
                     f"{self.min_signal:g}): the LEDs still seem on")
         return None
 
-    def accepts(self, frame: np.ndarray, led: int, previous: np.ndarray, dark: np.ndarray) -> bool:
+    def accepts(self, frame: np.ndarray, led: int, previous: np.ndarray, dark: np.ndarray,
+                previous_led: int | None = None) -> bool:
         """True when ``frame`` passes (see :meth:`reason`)."""
-        return self.reason(frame, led, previous, dark) is None
+        return self.reason(frame, led, previous, dark, previous_led) is None
 
 
 def to_gray(frame: np.ndarray) -> np.ndarray:
@@ -161,7 +182,7 @@ def to_gray(frame: np.ndarray) -> np.ndarray:
         RigError: for an empty frame, an unexpected shape or dtype.
 
     Example:
-        >>> to_gray(np.full((2, 2, 3), 255, np.uint8)).round(3).max()
+        >>> round(float(to_gray(np.full((2, 2, 3), 255, np.uint8)).max()), 3)
         1.0
     """
     if frame is None or not isinstance(frame, np.ndarray) or frame.size == 0:

@@ -139,7 +139,7 @@ class CaptureSession:
 
     Example:
         >>> from psmini.rig.simulator import SimulatedRig
-        >>> with SimulatedRig(size=32) as rig, LEDController(rig.port, handshake_timeout_s=1) as leds, \\
+        >>> with SimulatedRig(size=32, pixel_pitch_mm=0.1) as rig, LEDController(rig.port, handshake_timeout_s=1) as leds, \\
         ...         RigCamera(0, open_capture=rig.open_capture, frame_size=rig.frame_size, crop_size=32) as camera:
         ...     CaptureSession(leds, camera, rig.lights, pixel_pitch_mm=0.025).acquire().images.shape
         (8, 32, 32)
@@ -200,21 +200,22 @@ class CaptureSession:
         dark = self._mean_frames(first, times, start)
         timing.append({"led": None, "switched_s": 0.0, "frames_s": times,
                        "discarded": self.camera.frames_read - read_before - self.frames_per_led})
-        previous, images = first, []
+        previous, previous_led, images = first, None, []
         for led in range(self.leds.led_count):
             self.leds.on(led)
             switched = round(time.time() - start, 4)
             read_before = self.camera.frames_read
 
-            def reason(frame: np.ndarray, led: int = led, previous: np.ndarray = previous) -> str | None:
-                return self.check.reason(frame, led, previous, first)
+            def reason(frame: np.ndarray, led: int = led, previous: np.ndarray = previous,
+                       previous_led: int | None = previous_led) -> str | None:
+                return self.check.reason(frame, led, previous, first, previous_led)
 
             frame, when = self.camera.read_fresh(reason, f"LED {led}", self.leds.keepalive)
             times = [round(when - start, 4)]
             images.append(self._mean_frames(frame, times, start))
             timing.append({"led": led, "switched_s": switched, "frames_s": times,
                            "discarded": self.camera.frames_read - read_before - self.frames_per_led})
-            previous = frame
+            previous, previous_led = frame, led
         self.leds.off()
         self._last_lit = previous
         logger.info("acquired %s: %d LEDs x %d frames in %.2f s", kind, len(images), self.frames_per_led,

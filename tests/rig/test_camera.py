@@ -160,14 +160,19 @@ def test_frame_check_moments_and_decisions():
     azimuths = np.arange(8) * math.pi / 4
     check = FrameCheck(azimuths)
     dark = np.full((32, 32), 0.02, np.float32)
-    moment = check.moment(side_lit(math.pi / 2), dark)
-    assert moment[1] > 0.05 and abs(moment[0]) < 1e-6  # points up, toward LED 2
-    led1, led2 = side_lit(azimuths[1]), side_lit(azimuths[2])
-    assert check.reason(led2, 2, led1, dark) is None  # adjacent LEDs are told apart
-    assert "not brighter toward LED 2" in check.reason(led1, 2, led1 + 1e-3, dark)
-    assert "repeats the previous one" in check.reason(led1, 2, led1, dark)
+    up = side_lit(math.pi / 2) - dark
+    assert check.moment(up, np.array([0.0, 1.0])) > 0.05  # lit from above: the moment points up
+    assert abs(check.moment(up, np.array([1.0, 0.0]))) < 1e-6
+    # a cloth whose texture is much brighter on its left than the LEDs' fall-off: it cancels in the change
+    texture = np.where(np.arange(32) < 10, 1.0, 0.3)[None, :].astype(np.float32)
+    led1, led2 = side_lit(azimuths[1]) * texture, side_lit(azimuths[2]) * texture
+    assert check.reason(led2, 2, led1, dark, previous_led=1) is None  # adjacent LEDs are told apart
+    noisy = led1 + np.random.default_rng(0).normal(0, 0.004, led1.shape).astype(np.float32)
+    assert "not brighter toward LED 2 than LED 1" in check.reason(noisy, 2, led1, dark, previous_led=1)
+    assert "repeats the previous one" in check.reason(led1, 2, led1, dark, previous_led=1)
     assert "too dark" in check.reason(dark + 0.001, 0, dark, dark)
-    assert check.accepts(led2, 2, dark, dark)  # first LED after the dark frame
+    assert check.accepts(led2, 2, dark, dark)  # the first LED after the dark frame
+    assert "than the dark frame" in check.reason(side_lit(azimuths[6]), 2, dark, dark)  # the wrong side
     assert check.dark_reason(dark, led2) is None
     assert "LEDs still seem on" in check.dark_reason(led2, led2)
     with pytest.raises(RigError):
