@@ -25,6 +25,14 @@ from psmini.pipeline import PhotometricStereo, Reconstruction, distant_light_mat
 # psmini.render is the function once the package is imported; reach the module by `from psmini.render import ...`
 from psmini.render import Renderer, cast_shadows, normals_from_height, render, render_lambertian
 from psmini.io import Sample, load_sample, read_capture, read_diligent, read_image, save_ply, write_capture, write_outputs
+from psmini.calibration import (
+    calibrate_sphere,
+    card_reference,
+    read_lights_file,
+    triangulate_leds,
+    with_lights_file,
+    write_lights_file,
+)
 from psmini.ledcal import LEDFit, fit_leds, load_rig_calibration_mat
 
 __all__ = [
@@ -86,6 +94,13 @@ __all__ = [
     "fit_leds",
     "LEDFit",
     "load_rig_calibration_mat",
+    # calibration
+    "calibrate_sphere",
+    "triangulate_leds",
+    "card_reference",
+    "read_lights_file",
+    "write_lights_file",
+    "with_lights_file",
     # integration
     "integrate",
     "INTEGRATION_METHODS",
