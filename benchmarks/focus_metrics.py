@@ -8,8 +8,8 @@
    Gaussian derivative. Frames per second on the GPU (batches of 64) when CUDA is present. Times are the best of
    7 runs (the machine is shared; the minimum is the least disturbed estimate).
 2. Autofocus. For every fabric of ``data_synth.FABRICS``: one focus stack from ``data_synth.rig.focus_stack``
-   (``--size`` pixels, default 200, i.e. 5 mm at 0.025 mm/px, depth of field 2 mm, positions -4…4 mm every 0.25 mm, rendered without
-   noise), then, per noise level, Gaussian read noise of that standard deviation (fraction of full scale, the
+   (``--size`` pixels, default 200, i.e. 5 mm at 0.025 mm/px; depth of field 2 mm; positions -4…4 mm every
+   0.25 mm; rendered without noise), then, per noise level, Gaussian read noise of that standard deviation (fraction of full scale, the
    model of ``focus_stack``, drawn here so that one render serves many noisy sweeps), clipping and 8-bit
    quantisation, as a webcam delivers. Sweeps are windows of 21 consecutive positions (5 mm) placed so the
    true plane (``focal_plane - mean cloth height``, the frame ``focus_stack`` documents as sharpest) falls at
@@ -223,7 +223,8 @@ def speed_section() -> tuple[str, dict]:
                 baselines["OpenCV norm"] = per_call(lambda: opencv_brenner_norm(frames[0]), calls)
             fastest = min(baselines, key=baselines.get)
             rows.append([
-                name, SEED_SECONDS.get(name, "–"), 1e3 * t_single, 1e3 * t_one_thread, 1e3 * t_batch, 1e3 * t_numpy, 1e3 * t_opencv,
+                name, SEED_SECONDS.get(name, "–"), 1e3 * t_single, 1e3 * t_one_thread, 1e3 * t_batch,
+                1e3 * t_numpy, 1e3 * t_opencv,
                 1e3 * baselines["OpenCV norm"] if name == "brenner" else "–", fastest,
                 baselines[fastest] / min(t_single, t_one_thread), baselines[fastest] / t_batch, f"{agree:.1e}",
             ])
