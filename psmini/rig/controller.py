@@ -79,7 +79,8 @@ class LEDController:
     happened inside (an error, Ctrl-C).
 
     Args:
-        port: a port name or URL for :func:`serial.serial_for_url`, or an open pyserial object.
+        port: a port name or URL for :func:`serial.serial_for_url`, or an open pyserial object (closed with the
+            controller).
         baudrate: serial speed (the firmware's is 115200).
         handshake_timeout_s: how long to wait for the READY banner after opening, s (a Nano's bootloader
             takes about 1.6 s after the reset that opening the port causes).

@@ -254,7 +254,9 @@ class PtyLink:
 
     A thread moves bytes between the pty's master side and the device. Opening the slave side (seen as the
     end of the master's hang-up) resets the device, as DTR resets a Nano; an unplugged device closes the
-    master, so the host's next read or write fails as with a pulled cable.
+    master, so the host's next read or write fails as with a pulled cable. The thread polls every ``poll_s``:
+    a port closed and reopened faster than that may not reset the device (the host's ``ID?`` fallback still
+    finds it).
 
     Example:
         >>> with PtyLink(SimulatedDevice()) as link:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import time
 
 import numpy as np
 import pytest
@@ -127,6 +128,7 @@ def test_pty_link_is_a_serial_port():
             port.write(b"ON 6\n")
             assert port.readline() == b"OK ON 6\r\n"
         assert device.resets == 1
+        time.sleep(0.05)  # the link sees the hang-up between the two opens
         with serial.serial_for_url(link.path, 115200, timeout=1.0) as port:  # reopening resets the board (DTR)
             assert port.readline().startswith(b"READY ")
         assert device.resets == 2 and device.lit is None
