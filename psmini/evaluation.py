@@ -46,10 +46,12 @@ def score_reconstruction(result: Reconstruction, sample) -> dict[str, float | in
     return scores
 
 
-def evaluate_sample(sample, *, device: torch.device | str = "cpu", integrator: str = "fc") -> dict[str, float | int | str]:
-    """Reconstruct ``sample`` with the classical pipeline and score it; see :func:`score_reconstruction`.
+def evaluate_sample(
+    sample, *, device: torch.device | str = "cpu", integrator: str = "fc", light_model: str = "distant"
+) -> dict[str, float | int | str]:
+    """Reconstruct ``sample`` (:func:`psmini.pipeline.reconstruct`) and score it; see :func:`score_reconstruction`.
 
     Example:
         >>> # evaluate_sample(psmini.io.load_sample("../shared/data/DiLiGenT/cat"))["mean_angular_error_deg"]
     """
-    return score_reconstruction(reconstruct(sample, device=device, integrator=integrator), sample)
+    return score_reconstruction(reconstruct(sample, device=device, integrator=integrator, light_model=light_model), sample)

@@ -38,7 +38,7 @@ from psmini.flatfield import flatfield
 from psmini.geometry import depth_to_points
 from psmini.integrate import integrate
 from psmini.normals import albedo_normals, normals_to_gradients
-from psmini.pipeline import Reconstruction
+from psmini.result import Reconstruction
 
 __all__ = [
     "near_light_vectors",

@@ -8,8 +8,6 @@ near-light solver lives beside it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
-
 import torch
 from torch import Tensor, nn
 
@@ -18,34 +16,11 @@ from psmini.errors import InputError
 from psmini.flatfield import flatfield
 from psmini.integrate import integrate
 from psmini.lights import DirectionalLights, check_spans_3d
+from psmini.nearlight import near_light_photometric_stereo
 from psmini.normals import albedo_normals, normals_to_gradients
+from psmini.result import Reconstruction
 
 __all__ = ["Reconstruction", "PhotometricStereo", "distant_light_matrix", "reconstruct"]
-
-
-@dataclass
-class Reconstruction:
-    """What :class:`PhotometricStereo` returns; every field is batched.
-
-    Attributes:
-        albedo: :math:`(B, 1, H, W)`, relative to the card's albedo scale when flat-fielded.
-        normals: unit normals :math:`(B, 3, H, W)`, camera frame.
-        p: :math:`\\partial z / \\partial x`, :math:`(B, 1, H, W)`.
-        q: :math:`\\partial z / \\partial y` (y up), :math:`(B, 1, H, W)`.
-        depth: height toward the camera :math:`(B, 1, H, W)`, mm (pixel units when no pitch is known).
-        mask: where a normal was solved, :math:`(B, 1, H, W)` bool.
-    """
-
-    albedo: Tensor
-    normals: Tensor
-    p: Tensor
-    q: Tensor
-    depth: Tensor
-    mask: Tensor
-
-    def to(self, device: torch.device | str) -> Reconstruction:
-        """A copy with every field on ``device``."""
-        return Reconstruction(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
 
 
 def distant_light_matrix(lights: nn.Module, flatfielded: bool, reference: Tensor) -> Tensor:
@@ -152,36 +127,62 @@ def reconstruct(
     device: torch.device | str = "cpu",
     dtype: torch.dtype = torch.float32,
     integrator: str = "fc",
+    light_model: str = "distant",
     min_reference: float = 0.02,
 ) -> Reconstruction:
-    """Reconstruct one loaded sample (:func:`psmini.io.load_sample`) with the classical pipeline.
+    """Reconstruct one loaded sample (:func:`psmini.io.load_sample`).
 
     Args:
         sample: a :class:`psmini.io.Sample` (DiLiGenT or capture folder).
         device: where to compute.
         dtype: floating dtype of the computation.
         integrator: integration method.
+        light_model: ``"distant"``: the classical pipeline (:class:`PhotometricStereo`, lights seen from the field
+            centre); ``"near"``: near-light photometric stereo with the sample's point or LED model
+            (:func:`psmini.nearlight.near_light_photometric_stereo`; needs a pixel pitch).
         min_reference: see :func:`psmini.flatfield.flatfield`.
 
     Returns:
         :class:`Reconstruction` with batch size 1, on ``device``.
 
+    Raises:
+        InputError: for an unknown ``light_model``, or ``"near"`` without positions or pixel pitch.
+
     Example:
-        >>> # sample = psmini.io.load_sample("capture_folder"); result = reconstruct(sample)
+        >>> import dataclasses
+        >>> from psmini.io import Sample
+        >>> from psmini.lights import DirectionalLights, ring_lights
+        >>> sample = Sample(name="random", images=torch.rand(8, 16, 16) + 0.1, lights=DirectionalLights(ring_lights(8, 55.0)))
+        >>> reconstruct(sample).normals.shape
+        torch.Size([1, 3, 16, 16])
     """
     check_tensor(sample.images, "sample.images")
+    if light_model not in ("distant", "near"):
+        raise InputError(f"light_model must be 'distant' or 'near', got {light_model!r}")
 
     def batch(x: Tensor | None) -> Tensor | None:
         return None if x is None else x.to(device=device, dtype=dtype).unsqueeze(0)
 
+    lights = sample.lights.to(device=device, dtype=dtype)
+    mask = None if sample.mask is None else sample.mask.to(device).unsqueeze(0)
+    if light_model == "near":
+        if not hasattr(lights, "positions_mm") or sample.pixel_pitch_mm is None:
+            raise InputError(
+                f"--light-model near needs LED or point-light positions and a pixel pitch; {sample.name} has "
+                f"{type(lights).__name__} lights and pixel pitch {sample.pixel_pitch_mm}"
+            )
+        return near_light_photometric_stereo(
+            batch(sample.images), lights, sample.pixel_pitch_mm, reference=batch(sample.reference),
+            dark=batch(sample.dark), reference_dark=batch(sample.reference_dark), card_albedo=sample.card_albedo or 1.0,
+            mask=mask, saturation_level=sample.saturation_level, integrator=integrator,
+        )
     model = PhotometricStereo(
-        sample.lights.to(device=device, dtype=dtype),
+        lights,
         integrator=integrator,
         pixel_pitch_mm=sample.pixel_pitch_mm,
         min_reference=min_reference,
         saturation_level=sample.saturation_level,
     )
-    mask = None if sample.mask is None else sample.mask.to(device).unsqueeze(0)
     return model(
         batch(sample.images),
         reference=batch(sample.reference),

@@ -1,4 +1,4 @@
-"""``psmini calibrate sphere|flatfield``: light directions and positions from a mirror sphere; the card reference."""
+"""``psmini calibrate sphere|flatfield|leds``: lights from a mirror sphere; the card reference; LEDs fitted to cards."""
 
 from __future__ import annotations
 
@@ -10,7 +10,9 @@ from typing import Any
 
 import numpy as np
 
+from psmini.commands._calibrate_leds import register_leds
 from psmini.commands._common import add_json_flag, emit_json
+
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -18,9 +20,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "calibrate",
         help="calibrate the lights (mirror sphere) or the flat-field reference (matte card)",
         description="Calibrate the rig: 'sphere' finds light directions (and, from two or more placements, LED "
-        "positions) from images of a mirror sphere; 'flatfield' builds the card reference.",
+        "positions) from images of a mirror sphere; 'flatfield' builds the card reference; 'leds' fits the near-light "
+        "LED model to card captures by gradient descent.",
     )
     kinds = parser.add_subparsers(dest="target", metavar="TARGET", required=True)
+    register_leds(kinds)
 
     sphere = kinds.add_parser(
         "sphere",

@@ -22,6 +22,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--lights", type=Path, metavar="FILE",
                         help="lights file (docs/lights-file.md, from 'psmini calibrate sphere') to use instead of "
                         "the folder's own lights")
+    parser.add_argument("--light-model", choices=["distant", "near"], default="distant",
+                        help="distant: classical least squares with the lights seen from the field centre (default); "
+                        "near: near-light photometric stereo with the folder's LED or point-light positions")
     add_device_flag(parser)
     add_json_flag(parser)
     parser.set_defaults(run=run)
@@ -41,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         sample = with_lights_file(sample, args.lights)
     if sample.normals_gt is None:
         raise DataFormatError(f"{args.folder} has no ground-truth normals (Normal_gt.mat or gt/normals.npy) to evaluate against")
-    scores = evaluate_sample(sample, device=device, integrator=args.integrator)
+    scores = evaluate_sample(sample, device=device, integrator=args.integrator, light_model=args.light_model)
     scores["time_s"] = time.perf_counter() - start
     print(f"{sample.name}: mean angular error {scores['mean_angular_error_deg']:.3f} deg, "
           f"median {scores['median_angular_error_deg']:.3f} deg over {scores['pixels']} pixels")

@@ -23,6 +23,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--lights", type=Path, metavar="FILE",
                         help="lights file (docs/lights-file.md, from 'psmini calibrate sphere') to use instead of "
                         "the folder's own lights")
+    parser.add_argument("--light-model", choices=["distant", "near"], default="distant",
+                        help="distant: classical least squares with the lights seen from the field centre (default); "
+                        "near: near-light photometric stereo with the folder's LED or point-light positions")
     add_device_flag(parser)
     add_json_flag(parser)
     parser.set_defaults(run=run)
@@ -39,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
         from psmini.calibration import with_lights_file
 
         sample = with_lights_file(sample, args.lights)
-    result = reconstruct(sample, device=device, integrator=args.integrator)
+    result = reconstruct(sample, device=device, integrator=args.integrator, light_model=args.light_model)
     elapsed = time.perf_counter() - start
     written = write_outputs(args.out, result, pixel_pitch_mm=sample.pixel_pitch_mm, overwrite=args.overwrite)
     print(f"reconstructed {sample.name} ({sample.images.shape[0]} images, {sample.images.shape[-1]}x"
