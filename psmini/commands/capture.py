@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -33,8 +32,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="what lies under the camera (hardware only; default: sample)")
     parser.add_argument("--flatfield", type=Path, metavar="CARD", help="the card capture to flat-field by (hardware)")
     parser.add_argument("--card-albedo", type=float, default=None, help="albedo of the card (--kind flatfield)")
-    parser.add_argument("--lights", type=Path, metavar="JSON", help="light model (a capture.json 'lights' object) "
-                        "from a calibration; default: the nominal ring (31.6 mm, 10 mm high)")
+    parser.add_argument("--lights", type=Path, metavar="FILE", help="a lights file from `psmini calibrate` "
+                        "(docs/lights-file.md) for the manifest; default: the nominal ring (31.6 mm, 10 mm high)")
     parser.add_argument("--frames", type=int, default=1, help="frames averaged per LED (default: 1)")
     parser.add_argument("--exposure", type=float, help="camera exposure, the backend's unit")
     parser.add_argument("--gain", type=float, help="camera gain")
@@ -92,19 +91,14 @@ def _simulated(args: argparse.Namespace) -> dict:
 
 def _hardware(args: argparse.Namespace) -> dict:
     from psmini.errors import InputError
-    from psmini.io import lights_from_dict
+    from psmini.calibration import read_lights_file
     from psmini.rig import CameraSettings, CaptureSession, LEDController, RigCamera, nominal_ring_lights
 
     if args.camera is None:
         raise InputError("--port needs --camera ID (the webcam's index or device path)")
     if args.kind == "flatfield" and not (args.card_albedo and args.card_albedo > 0):
         raise InputError("--kind flatfield needs --card-albedo, the card's albedo (a positive number)")
-    lights = None
-    if args.lights is not None:
-        try:
-            lights = lights_from_dict(json.loads(args.lights.read_text(encoding="utf-8")))
-        except (OSError, json.JSONDecodeError) as error:
-            raise InputError(f"cannot read the light model {args.lights}: {error}") from error
+    lights = read_lights_file(args.lights).lights if args.lights is not None else None
     source: int | str = int(args.camera) if args.camera.isdigit() else args.camera
     settings = CameraSettings(exposure=args.exposure, gain=args.gain, white_balance=args.white_balance)
     with LEDController(args.port, handshake_timeout_s=args.handshake_timeout,

@@ -49,6 +49,14 @@ def test_capture_argument_errors(tmp_path, capsys):
     assert not (tmp_path / "x").exists()
 
 
+def test_capture_reads_a_lights_file_before_touching_the_rig(tmp_path, capsys):
+    bad = tmp_path / "lights.json"
+    bad.write_text('{"format": "something-else"}')
+    assert main(["capture", "--port", "psminisim://", "--camera", "0", "--lights", str(bad),
+                 "--out", str(tmp_path / "x")]) == 1
+    assert "format must be 'psmini-lights'" in capsys.readouterr().err
+
+
 def test_capture_on_hardware_port_without_firmware(tmp_path, capsys):
     assert main(["capture", "--port", "psminisim://?fault=no-banner", "--camera", "0", "--out", str(tmp_path / "x"),
                  "--handshake-timeout", "0.2", "--command-timeout", "0.2"]) == 1
