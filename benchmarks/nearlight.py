@@ -1,0 +1,154 @@
+"""Near-light photometric stereo against the distant-light pipeline on simulated rig captures.
+
+For each fabric of data_synth, the cloth lying 0, 0.5 and 1 mm above the card plane (the card used for
+flat-fielding stays at 0), rendered noise-free (16-bit) and with the simulator's default noise at 8 bits:
+
+1. ``far_raw``: distant lights seen from the field centre, dark-subtracted images, no card;
+2. ``far_flatfield``: the same after division by the card (the seed paper's method);
+3. ``near_true``: near-light photometric stereo with the true LEDs and the card;
+4. ``near_calibrated``: the same with LEDs fitted by gradient descent (:func:`psmini.fit_leds`) to the simulator's
+   noisy 8-bit card images at 0 and 1 mm, started from the nominal rig geometry.
+
+Mean angular error over cloth pixels that at least three LEDs light without saturating the sensor (shadows and
+saturation are handled by the solvers, not skipped; the fraction of pixels with fewer is reported), and the
+depth error: RMSE after removing the mean offset (the dome of the distant-light methods shows here), in µm.
+
+    python benchmarks/nearlight.py [--quick] [--json] [--size N] [--device cpu|cuda] [--no-record]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks._ledger import append_results, table  # noqa: E402
+from data_synth import make_fabric  # noqa: E402
+from data_synth.rig import RigConfig, render_capture, render_card  # noqa: E402
+from psmini import PhotometricStereo, angular_error_deg, fit_leds  # noqa: E402
+from psmini.nearlight import near_light_photometric_stereo  # noqa: E402
+
+CARD_ALBEDO = 0.8
+METHODS = ("far_raw", "far_flatfield", "near_true", "near_calibrated")
+FULL_FABRICS = ("cotton", "jute", "silk", "twill", "satin", "knit", "purl", "net", "lurex", "taffeta", "print")
+QUICK_FABRICS = ("cotton", "taffeta")
+
+
+def calibrate(config: RigConfig, device: torch.device) -> tuple[torch.nn.Module, dict[str, float]]:
+    """LEDs fitted to the simulator's noisy card images at 0 and 1 mm; errors against the truth."""
+    cards = [render_card(config, CARD_ALBEDO, seed=10 + i, height_mm=h, device=device) for i, h in enumerate((0.0, 1.0))]
+    start = time.perf_counter()
+    fit = fit_leds(torch.stack([c.images for c in cards]), [0.0, 1.0], config.pixel_pitch_mm, "nominal",
+                   card_albedo=CARD_ALBEDO, dark=torch.stack([c.dark for c in cards]), saturation_level=1.0)
+    seconds = time.perf_counter() - start
+    truth = cards[0].lights
+    position_error = (fit.lights.positions_mm - truth.positions_mm.to(fit.lights.positions_mm)).norm(dim=-1).max()
+    relative = truth.intensities / truth.intensities.mean()
+    intensity_error = ((fit.lights.intensities - relative.to(fit.lights.intensities)) / relative).abs().max()
+    return fit.lights, {"position_error_mm": float(position_error), "intensity_error": float(intensity_error),
+                        "seconds": seconds}
+
+
+def evaluate_case(fabric, config, offset_mm, calibrated, card, device) -> dict[str, dict[str, float]]:
+    """All four methods on one rendered capture."""
+    capture = render_capture(fabric, config, height_offset_mm=offset_mm, device=device)
+    images, dark = capture.images[None], capture.dark[None]
+    usable = capture.lit & (capture.images < capture.saturation_level)
+    region = (usable.sum(0, keepdim=True) >= 3) & capture.mask.bool()
+    cloth = capture.mask.bool()
+    truth_normals, truth_depth = capture.normals[None], capture.depth_mm[None]
+    pitch = config.pixel_pitch_mm
+    runs = {
+        "far_raw": lambda: PhotometricStereo(capture.lights, pixel_pitch_mm=pitch, saturation_level=1.0)(images, dark=dark),
+        "far_flatfield": lambda: PhotometricStereo(capture.lights, pixel_pitch_mm=pitch, saturation_level=1.0)(
+            images, card.images[None], dark, card.dark[None], card_albedo=CARD_ALBEDO),
+        "near_true": lambda: near_light_photometric_stereo(
+            images, capture.lights, pitch, reference=card.images[None], dark=dark, reference_dark=card.dark[None],
+            card_albedo=CARD_ALBEDO, saturation_level=1.0),
+        "near_calibrated": lambda: near_light_photometric_stereo(
+            images, calibrated, pitch, reference=card.images[None], dark=dark, reference_dark=card.dark[None],
+            card_albedo=CARD_ALBEDO, saturation_level=1.0),
+    }
+    results = {}
+    for method, run in runs.items():
+        start = time.perf_counter()
+        result = run()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        seconds = time.perf_counter() - start
+        error = angular_error_deg(result.normals, truth_normals)[0, 0][region[0]]
+        difference = (result.depth - truth_depth)[0, 0][region[0]]
+        results[method] = {
+            "angle_deg": float(error.mean()),
+            "depth_rmse_um": float((difference - difference.mean()).square().mean().sqrt()) * 1000,
+            "seconds": seconds,
+        }
+    results["coverage"] = {"fewer_than_3": 1 - float(region.sum()) / float(cloth.sum())}
+    return results
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="two fabrics, 128 px, one offset: under a minute on a CPU")
+    parser.add_argument("--json", action="store_true", help="last line: one JSON object of mean errors")
+    parser.add_argument("--size", type=int, default=None, help="image side in pixels (default 400, quick 128)")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--no-record", action="store_true")
+    args = parser.parse_args(argv)
+    device = torch.device(args.device)
+    size = args.size or (128 if args.quick else 400)
+    fabrics = QUICK_FABRICS if args.quick else FULL_FABRICS
+    offsets = (1.0,) if args.quick else (0.0, 0.5, 1.0)
+    pitch = 10.0 / size  # the rig's 10 mm field at any resolution
+
+    rows, summary = [], {}
+    noisy_config = RigConfig(size=size, pixel_pitch_mm=pitch, noise=True, bit_depth=8, intensity_spread=0.05)
+    calibrated, fit = calibrate(noisy_config, device)
+    for noisy in (False, True):
+        config = noisy_config if noisy else noisy_config.replace(noise=False, bit_depth=16)
+        card = render_card(config, CARD_ALBEDO, device=device)
+        collected = {method: [] for method in METHODS}
+        for name in fabrics:
+            fabric = make_fabric(name, size=size, pixel_pitch_mm=pitch, seed=0)
+            for offset in offsets:
+                case = evaluate_case(fabric, config, offset, calibrated, card, device)
+                for method in METHODS:
+                    collected[method].append(case[method])
+                rows.append([name, f"{offset:g}", "8-bit noisy" if noisy else "noise-free"]
+                            + [f"{case[m]['angle_deg']:.3f} / {case[m]['depth_rmse_um']:.0f}" for m in METHODS]
+                            + [f"{100 * case['coverage']['fewer_than_3']:.1f}%", f"{case['near_true']['seconds']:.1f}"])
+                print(" | ".join(rows[-1]), flush=True)
+        for method in METHODS:
+            mean = sum(c["angle_deg"] for c in collected[method]) / len(collected[method])
+            summary[method if noisy else f"{method}_noisefree"] = mean
+    header = ["fabric", "offset (mm)", "render"] + [f"{m}: ° / µm" for m in METHODS] + ["lit by < 3", "near s"]
+    report = table(header, rows)
+    means = table(["method", "mean error noise-free (°)", "mean error 8-bit noisy (°)"],
+                  [[m, f"{summary[m + '_noisefree']:.3f}", f"{summary[m]:.3f}"] for m in METHODS])
+    note = (f"{len(fabrics)} fabrics × offsets {offsets} mm, {size}×{size} px at {pitch:.4f} mm/px, on {device}. "
+            f"Cells: mean angular error over cloth pixels lit (unsaturated) by ≥ 3 LEDs / depth RMSE after removing "
+            f"the mean offset. LEDs calibrated from noisy 8-bit cards at 0 and 1 mm in {fit['seconds']:.1f} s: "
+            f"largest position error {fit['position_error_mm']:.3f} mm, intensity error {100 * fit['intensity_error']:.2f}%.")
+    print(report)
+    print(means)
+    print(note)
+    if not args.no_record:
+        title = "Near-light photometric stereo (benchmarks/nearlight.py" + (" --quick)" if args.quick else ")")
+        append_results(title, report + "\n\n" + means + "\n\n" + note, device)
+    if args.json:
+        payload = {m: summary[m] for m in METHODS}
+        payload["near_true_noisefree"] = summary["near_true_noisefree"]
+        payload["far_flatfield_noisefree"] = summary["far_flatfield_noisefree"]
+        payload["calibration"] = fit
+        print(json.dumps(payload, sort_keys=True))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
