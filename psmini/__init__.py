@@ -11,7 +11,15 @@ __version__ = "0.1.0"
 from psmini.errors import CalibrationError, DataFormatError, InputError, PsminiError, RigError, ShapeError
 from psmini import integrate  # the package, callable as psmini.integrate.integrate
 from psmini.integrate import METHODS as INTEGRATION_METHODS
-from psmini.integrate import FrankotChellappa, frankot_chellappa
+from psmini.integrate import (
+    DCTPoisson,
+    FrankotChellappa,
+    MaskedLeastSquares,
+    dct_poisson,
+    frankot_chellappa,
+    integrate_normals,
+    masked_least_squares,
+)
 from psmini.evaluation import evaluate_sample, score_reconstruction
 from psmini.flatfield import FlatField, FlatFieldResult, flatfield
 from psmini.autofocus import AutofocusController, AutofocusResult, autofocus_sweep, best_of_scores, refine_peak
@@ -104,8 +112,13 @@ __all__ = [
     # integration
     "integrate",
     "INTEGRATION_METHODS",
+    "integrate_normals",
     "frankot_chellappa",
     "FrankotChellappa",
+    "dct_poisson",
+    "DCTPoisson",
+    "masked_least_squares",
+    "MaskedLeastSquares",
     # focus and autofocus
     "focus_measure",
     "FOCUS_MEASURES",

@@ -7,8 +7,18 @@ import math
 import pytest
 import torch
 
-from psmini.errors import InputError, ShapeError
-from psmini.integrate import FrankotChellappa, frankot_chellappa, integrate
+from psmini.errors import CalibrationError, InputError, ShapeError
+from psmini.integrate import (
+    DCTPoisson,
+    FrankotChellappa,
+    MaskedLeastSquares,
+    dct_poisson,
+    frankot_chellappa,
+    integrate,
+    integrate_normals,
+    masked_least_squares,
+    perspective_log_gradients,
+)
 from tests.conftest import BaseTester
 
 
@@ -106,3 +116,152 @@ class TestFrankotChellappa(BaseTester):
             integrate(p, p, method="poisson")
         with pytest.raises(InputError, match="unknown"):
             integrate(p, p, method="fc", tolerance=1.0)
+
+
+def smooth_surface(height, width, pitch, device, dtype):
+    """A smooth, non-periodic surface (no symmetry at the border) and its exact gradients, shape (1, 1, H, W)."""
+    row = torch.arange(height, device=device, dtype=dtype).view(-1, 1)
+    col = torch.arange(width, device=device, dtype=dtype).view(1, -1)
+    size = max(height, width) * pitch
+    x, y = (col - (width - 1) / 2) * pitch / size, -(row - (height - 1) / 2) * pitch / size  # in [-0.5, 0.5]
+    z = torch.sin(2 * x + 1) * torch.cos(3 * y) + 0.5 * x * y + x**2
+    p = 2 * torch.cos(2 * x + 1) * torch.cos(3 * y) + 0.5 * y + 2 * x
+    q = -3 * torch.sin(2 * x + 1) * torch.sin(3 * y) + 0.5 * x
+    return (size * z).expand(1, 1, height, width), p.expand(1, 1, height, width), q.expand(1, 1, height, width)
+
+
+def vase_mask(height, width, device):
+    """A vase-like outline: a width varying with the row, narrow neck, a hole-free non-rectangular domain."""
+    row = torch.arange(height, device=device, dtype=torch.float64).view(-1, 1) / (height - 1)
+    col = torch.arange(width, device=device, dtype=torch.float64).view(1, -1) / (width - 1) - 0.5
+    half = 0.18 + 0.2 * torch.sin(math.pi * row) ** 2 - 0.1 * torch.exp(-((row - 0.2) ** 2) / 0.005)
+    return ((col.abs() < half) & (row > 0.05) & (row < 0.95)).view(1, 1, height, width)
+
+
+class TestDCTPoisson(BaseTester):
+    def test_non_periodic_surface(self, device, dtype):
+        z, p, q = smooth_surface(96, 112, 0.05, device, dtype)
+        est = dct_poisson(p, q, pixel_pitch_mm=0.05)
+        assert est.dtype == dtype and est.device.type == device.type
+        assert relative_rmse(est, z) < 1e-4
+
+    def test_module_and_dispatch(self, device, dtype):
+        _, p, q = bumps_surface(16, 20, 0.5, device, dtype)
+        self.assert_close(DCTPoisson(0.5)(p, q), dct_poisson(p, q, 0.5))
+        self.assert_close(integrate(p, q, "dct", 0.5), dct_poisson(p, q, 0.5))
+
+    def test_gradcheck(self):
+        p = torch.rand(1, 1, 5, 6, dtype=torch.float64, requires_grad=True)
+        q = torch.rand(1, 1, 5, 6, dtype=torch.float64, requires_grad=True)
+        self.gradcheck(lambda a, b: dct_poisson(a, b, 0.3), (p, q))
+
+    def test_errors(self):
+        with pytest.raises(ShapeError, match="same shape"):
+            dct_poisson(torch.zeros(1, 1, 8, 8), torch.zeros(2, 1, 8, 8))
+        with pytest.raises(InputError, match="finite"):
+            dct_poisson(torch.full((1, 1, 8, 8), math.inf), torch.zeros(1, 1, 8, 8))
+
+
+class TestMaskedLeastSquares(BaseTester):
+    def test_vase_domain(self, device, dtype):
+        z, p, q = smooth_surface(96, 80, 0.1, device, dtype)
+        mask = vase_mask(96, 80, device)
+        # Gradients outside the domain are garbage; the solve must not see them.
+        p = torch.where(mask, p, torch.full_like(p, 50.0))
+        est = masked_least_squares(p, q, pixel_pitch_mm=0.1, mask=mask)
+        assert relative_rmse(est, z, mask) < 1e-3
+        assert float(est[~mask].abs().max()) == 0.0
+        assert abs(float(est[mask].mean())) < 1e-4 * float(z.abs().max())
+        # The rectangle solvers are far off on the same domain (the reason for this method).
+        assert relative_rmse(dct_poisson(p, q, 0.1, mask), z, mask) > 10 * relative_rmse(est, z, mask)
+
+    def test_batch_and_weights(self, device, dtype):
+        z, p, q = bumps_surface(40, 48, 0.1, device, dtype)
+        mask = torch.ones_like(z, dtype=torch.bool)
+        mask[0, :, :10, :10] = False
+        est = masked_least_squares(p, q, 0.1, mask, weights=torch.rand_like(z) + 0.5)
+        assert relative_rmse(est, z, mask) < 1e-3
+
+    def test_module_and_dispatch(self, device, dtype):
+        _, p, q = bumps_surface(16, 20, 0.5, device, dtype)
+        expected = masked_least_squares(p, q, 0.5)
+        self.assert_close(MaskedLeastSquares(0.5)(p, q), expected, rtol=1e-3, atol=1e-4)
+        self.assert_close(integrate(p, q, "masked", 0.5, tol=1e-6), expected, rtol=1e-3, atol=1e-4)
+
+    def test_gradcheck(self):
+        p = torch.rand(1, 1, 5, 6, dtype=torch.float64, requires_grad=True)
+        q = torch.rand(1, 1, 5, 6, dtype=torch.float64, requires_grad=True)
+        w = (torch.rand(1, 1, 5, 6, dtype=torch.float64) + 0.5).requires_grad_()
+        mask = torch.ones(1, 1, 5, 6, dtype=torch.bool)
+        mask[..., 0, :2] = False
+        self.gradcheck(lambda a, b, c: masked_least_squares(a, b, 0.3, mask, c, tol=1e-12), (p, q, w))
+
+    def test_errors(self):
+        p = torch.zeros(1, 1, 8, 8)
+        with pytest.raises(ShapeError, match="weights"):
+            masked_least_squares(p, p, weights=torch.ones(1, 1, 4, 4))
+        with pytest.raises(InputError, match="non-negative"):
+            masked_least_squares(p, p, weights=-torch.ones(1, 1, 8, 8))
+        with pytest.raises(ShapeError, match="empty"):
+            masked_least_squares(p, p, mask=torch.zeros(1, 1, 8, 8, dtype=torch.bool))
+
+
+def perspective_plane(height, width, device, dtype):
+    """A tilted plane seen by a pinhole camera: intrinsics, psmini normals and the true depth (mm)."""
+    k = torch.tensor([[300.0, 0, width / 2 - 3], [0, 320.0, height / 2 + 2], [0, 0, 1]], device=device, dtype=dtype)
+    m = torch.tensor([0.3, -0.2, -1.0], device=device, dtype=dtype)  # OpenCV-frame normal facing the camera
+    m = m / m.norm()
+    u = torch.arange(width, device=device, dtype=dtype).view(1, -1)
+    v = torch.arange(height, device=device, dtype=dtype).view(-1, 1)
+    ray_dot = m[0] * (u - k[0, 2]) / k[0, 0] + m[1] * (v - k[1, 2]) / k[1, 1] + m[2]
+    depth = -500.0 / ray_dot  # plane m . P = -500 mm
+    normals = torch.stack([m[0], -m[1], -m[2]]).view(1, 3, 1, 1).expand(1, 3, height, width)
+    return k, normals, depth.view(1, 1, height, width)
+
+
+class TestIntegrateNormals(BaseTester):
+    @pytest.mark.parametrize("method", ["masked", "dct", "fc"])
+    def test_perspective_plane(self, device, dtype, method):
+        k, normals, depth = perspective_plane(40, 50, device, dtype)
+        est = integrate_normals(normals, method, intrinsics=k)
+        assert bool((est > 0).all())
+        ratio = est / depth
+        assert float(ratio.std() / ratio.mean()) < 1e-3  # depth up to one global scale
+
+    def test_orthographic_matches_gradients(self, device, dtype):
+        z, p, q = bumps_surface(24, 28, 0.2, device, dtype)
+        normals = torch.cat([-p, -q, torch.ones_like(p)], dim=1)
+        normals = normals / normals.norm(dim=1, keepdim=True)
+        self.assert_close(integrate_normals(normals, "dct", pixel_pitch_mm=0.2), dct_poisson(p, q, 0.2))
+
+    def test_log_gradients_sign(self, device, dtype):
+        k, normals, depth = perspective_plane(20, 30, device, dtype)
+        gu, gv, scale = perspective_log_gradients(normals, k)
+        log_depth = depth.log()
+        self.assert_close((gu / scale)[..., 1:-1, 5], ((log_depth[..., 6] - log_depth[..., 4]) / 2)[..., 1:-1], rtol=1e-3, atol=1e-6)
+        self.assert_close((gv / scale)[..., 5, 1:-1], ((log_depth[..., 6, :] - log_depth[..., 4, :]) / 2)[..., 1:-1], rtol=1e-3, atol=1e-6)
+
+    def test_gradcheck(self):
+        k, normals, _ = perspective_plane(5, 6, "cpu", torch.float64)
+        normals = (normals + 0.05 * torch.rand_like(normals)).requires_grad_()
+        self.gradcheck(lambda n: integrate_normals(n, "dct", intrinsics=k), (normals,))
+
+    def test_errors(self):
+        n = torch.zeros(1, 3, 8, 8)
+        n[:, 2] = 1
+        with pytest.raises(ShapeError, match="normals"):
+            integrate_normals(torch.zeros(1, 2, 8, 8))
+        with pytest.raises(ShapeError, match="intrinsics"):
+            integrate_normals(n, intrinsics=torch.eye(2))
+        with pytest.raises(CalibrationError, match="focal"):
+            integrate_normals(n, intrinsics=torch.diag(torch.tensor([0.0, 1.0, 1.0])))
+        with pytest.raises(InputError, match="masked"):
+            integrate_normals(n, method="nope")
+
+
+def test_package_is_callable():
+    import psmini
+
+    p = torch.zeros(1, 1, 6, 6)
+    assert psmini.integrate(p, p).shape == p.shape
+    assert psmini.integrate.integrate is integrate

@@ -8,11 +8,16 @@ from typing import Any
 from torch import Tensor
 
 from psmini.errors import InputError
-from psmini.integrate.fourier import frankot_chellappa
+from psmini.integrate.fourier import dct_poisson, frankot_chellappa
+from psmini.integrate.least_squares import masked_least_squares
 
 __all__ = ["integrate", "METHODS"]
 
-METHODS = {"fc": frankot_chellappa}
+METHODS = {
+    "fc": frankot_chellappa,
+    "dct": dct_poisson,
+    "masked": masked_least_squares,
+}
 
 
 def integrate(
@@ -23,7 +28,9 @@ def integrate(
     Args:
         p: :math:`\partial z/\partial x`, shape :math:`(B, 1, H, W)` (x right).
         q: :math:`\partial z/\partial y`, shape :math:`(B, 1, H, W)` (y up).
-        method: one of :data:`METHODS`: ``"fc"`` (:func:`frankot_chellappa`).
+        method: one of :data:`METHODS`: ``"fc"`` (:func:`frankot_chellappa`), ``"dct"`` (:func:`dct_poisson`),
+            ``"masked"`` (:func:`masked_least_squares`).
+            For perspective integration from normals and intrinsics see :func:`integrate_normals`.
         pixel_pitch_mm: size of one pixel on the surface in mm.
         mask: optional pixels to integrate, shape :math:`(B, 1, H, W)`.
         **options: passed to the method (e.g. ``boundary="periodic"`` for ``"fc"``).
