@@ -363,7 +363,7 @@ def plot_curves(scores: dict, true_mm: float, fabric: str, path: Path) -> None:
         cv2.polylines(canvas, [points], False, colour, 2, cv2.LINE_AA)
         cv2.line(canvas, (x1 + 20, y1 + 20 + 26 * k), (x1 + 50, y1 + 20 + 26 * k), colour, 3, cv2.LINE_AA)
         cv2.putText(canvas, name, (x1 + 58, y1 + 25 + 26 * k), font, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.imwrite(str(path), canvas)
+    cv2.imwrite(str(path), canvas, [cv2.IMWRITE_PNG_COMPRESSION, 9])
 
 
 def main(argv: list[str] | None = None) -> int:
