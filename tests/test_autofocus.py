@@ -238,3 +238,11 @@ class TestBestOfScores:
             best_of_scores([1.0, 2.0], [0.0])
         with pytest.raises(InputError, match="non-empty"):
             best_of_scores([])
+
+
+def test_docstring_examples():
+    import doctest
+
+    import psmini.autofocus
+
+    assert doctest.testmod(psmini.autofocus, raise_on_error=False).failed == 0

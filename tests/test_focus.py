@@ -352,3 +352,11 @@ class TestFocusCommand:
         assert status == 1 and "outside the 40×40 frame" in err
         status, _, err = self.run(capsys, tmp_path / "missing")
         assert status == 1 and "not a folder" in err
+
+
+def test_docstring_examples():
+    import doctest
+
+    import psmini.focus
+
+    assert doctest.testmod(psmini.focus, raise_on_error=False).failed == 0
