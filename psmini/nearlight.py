@@ -120,7 +120,8 @@ def robust_near_light_normals(
     reads about zero once the dark frame is subtracted). After each solve, an observation is dropped when the light grazes or lies behind the estimated tangent plane
     (attached shadow: :math:`n \cdot L_k \le 0.02\,|L_k|`) or when its residual exceeds ``outlier_fraction`` of
     the pixel's scale :math:`\rho\,\overline{|L|}` (cast shadows, highlights); a pixel keeps its previous
-    observations rather than fall below three.
+    observations rather than fall below three. Pixels with fewer than three bright observations are left unsolved
+    (albedo 0, normal (0, 0, 1)) with no weights.
 
     Args:
         intensities: images, shape :math:`(B, K, H, W)` (flat-fielded or dark-subtracted).
@@ -148,8 +149,9 @@ def robust_near_light_normals(
             f"got {iterations}, {outlier_fraction}, {shadow_fraction}"
         )
     valid_observations = torch.ones_like(intensities, dtype=torch.bool) if valid is None else valid.bool()
-    bright = valid_observations & (intensities > shadow_fraction * intensities.amax(dim=1, keepdim=True))
-    candidates = torch.where(bright.sum(dim=1, keepdim=True) >= 3, bright, valid_observations)
+    # Only bright observations are candidates: a pixel that fewer than three LEDs light is left unsolved (albedo 0,
+    # normal (0, 0, 1), no weights) rather than fitted to its shadows.
+    candidates = valid_observations & (intensities > shadow_fraction * intensities.amax(dim=1, keepdim=True))
     weights = candidates
     albedo, normals = albedo_normals(intensities, light_vectors, mask, weights)
     length = light_vectors.norm(dim=2)
@@ -162,7 +164,7 @@ def robust_near_light_normals(
         enough = proposal.sum(dim=1, keepdim=True) >= 3
         weights = torch.where(enough, proposal, weights)
         albedo, normals = albedo_normals(intensities, light_vectors, mask, weights)
-    return albedo, normals, weights
+    return albedo, normals, weights & (albedo > 0)
 
 
 def _residual(intensities: Tensor, vectors: Tensor, weights: Tensor) -> Tensor:
