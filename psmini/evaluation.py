@@ -25,7 +25,14 @@ def score_reconstruction(result: Reconstruction, sample) -> dict[str, float | in
         sample has ground-truth depth, ``depth_rmse_mm`` and ``depth_mae_mm`` (after removing the mean offset).
 
     Example:
-        >>> # scores = score_reconstruction(reconstruct(sample), sample)
+        >>> from psmini.io import Sample
+        >>> from psmini.lights import DirectionalLights, ring_lights
+        >>> lights = ring_lights(8, 45.0)
+        >>> flat = torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).expand(3, 8, 8)
+        >>> images = (lights @ flat.reshape(3, -1)).reshape(8, 8, 8) * 0.5
+        >>> sample = Sample(name="plane", images=images, lights=DirectionalLights(lights), normals_gt=flat)
+        >>> round(score_reconstruction(reconstruct(sample), sample)["mean_angular_error_deg"], 3)
+        0.0
     """
     device, dtype = result.normals.device, result.normals.dtype
     normals_gt = sample.normals_gt.to(device=device, dtype=dtype).unsqueeze(0)
@@ -52,6 +59,13 @@ def evaluate_sample(
     """Reconstruct ``sample`` (:func:`psmini.pipeline.reconstruct`) and score it; see :func:`score_reconstruction`.
 
     Example:
-        >>> # evaluate_sample(psmini.io.load_sample("../shared/data/DiLiGenT/cat"))["mean_angular_error_deg"]
+        >>> from psmini.io import Sample
+        >>> from psmini.lights import DirectionalLights, ring_lights
+        >>> lights = ring_lights(8, 45.0)
+        >>> flat = torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).expand(3, 8, 8)
+        >>> images = (lights @ flat.reshape(3, -1)).reshape(8, 8, 8) * 0.5
+        >>> sample = Sample(name="plane", images=images, lights=DirectionalLights(lights), normals_gt=flat)
+        >>> evaluate_sample(sample)["pixels"]
+        64
     """
     return score_reconstruction(reconstruct(sample, device=device, integrator=integrator, light_model=light_model), sample)

@@ -45,8 +45,8 @@ def pixel_grid_mm(
     pitch = check_positive(pixel_pitch_mm, "pixel_pitch_mm")
     dtype = dtype or torch.get_default_dtype()
     cols = (torch.arange(width, device=device, dtype=dtype) - (width - 1) / 2) * pitch
-    rows = (torch.arange(height, device=device, dtype=dtype) - (height - 1) / 2) * pitch
-    y, x = torch.meshgrid(-rows, cols, indexing="ij")
+    up = ((height - 1) / 2 - torch.arange(height, device=device, dtype=dtype)) * pitch  # rows grow downward
+    y, x = torch.meshgrid(up, cols, indexing="ij")
     return x, y
 
 

@@ -204,7 +204,14 @@ def estimate_height_offset(
         offsets :math:`(B, 1, 1, 1)`, mm, such that ``relative_depth + offsets`` is the absolute height.
 
     Example:
-        >>> # offset = estimate_height_offset(images, leds, depth - depth.mean(), 0.025, weights, 0.0)
+        >>> from psmini.lights import PointLights, ring_lights
+        >>> lights = PointLights(ring_lights(8, 90.0) * 15.8 + torch.tensor([0.0, 0.0, 10.0]))  # the rig's ring
+        >>> flat = torch.zeros(1, 1, 32, 32)
+        >>> vectors = near_light_vectors(lights, flat + 0.7, 0.3, card_height_mm=0.0)  # a card 0.7 mm up
+        >>> images = vectors[:, :, 2]                                                 # its flat-fielded images
+        >>> offset = estimate_height_offset(images, lights, flat, 0.3, images > 0, card_height_mm=0.0)
+        >>> round(float(offset), 2)
+        0.7
     """
     low, high = search_mm
     if not low < high:
