@@ -117,24 +117,30 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-record", action="store_true")
     parser.add_argument("--child", choices=["numpy", "torch"], help=argparse.SUPPRESS)
     parser.add_argument("--device", default="cpu", help=argparse.SUPPRESS)
+    parser.add_argument("--threads", type=int, default=0, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
+        if args.threads:
+            torch.set_num_threads(args.threads)
         print(json.dumps(run_child(args.child, args.device, args.batch, args.size, args.repeat)))
         return 0
 
     difference = check_agreement(args.batch, args.size)
-    runs = [("numpy", "cpu"), ("torch", "cpu")] + ([("torch", "cuda")] if torch.cuda.is_available() else [])
+    threads = torch.get_num_threads()
+    # NumPy's maths here is single-threaded: torch is timed on one thread (like for like) and on all of them
+    runs = [("numpy", "cpu", 1), ("torch", "cpu", 1)] + ([("torch", "cpu", threads)] if threads > 1 else [])
+    runs += [("torch", "cuda", threads)] if torch.cuda.is_available() else []
     figures = {}
-    for impl, device in runs:
+    for impl, device, count in runs:
         command = [sys.executable, __file__, "--child", impl, "--device", device, "--batch", str(args.batch),
-                   "--size", str(args.size), "--repeat", str(args.repeat)]
+                   "--size", str(args.size), "--repeat", str(args.repeat), "--threads", str(count)]
         output = subprocess.run(command, capture_output=True, text=True, check=True).stdout
-        figures[(impl, device)] = json.loads(output.strip().splitlines()[-1])
-    baseline = figures[("numpy", "cpu")]["s_per_sample"]
+        figures[(impl, device, count)] = json.loads(output.strip().splitlines()[-1])
+    baseline = figures[("numpy", "cpu", 1)]["s_per_sample"]
     rows = [
-        [f"{impl} ({device})", f"{fig['s_per_sample'] * 1e3:.1f}", f"{baseline / fig['s_per_sample']:.2f}×",
-         f"{fig['peak_mb']:.0f}"]
-        for (impl, device), fig in figures.items()
+        [f"{impl} ({device}, {count} thread{'s' if count > 1 else ''})", f"{fig['s_per_sample'] * 1e3:.1f}",
+         f"{baseline / fig['s_per_sample']:.2f}×", f"{fig['peak_mb']:.0f}"]
+        for (impl, device, count), fig in figures.items()
     ]
     report = table(["implementation", "ms per sample", "speed-up vs NumPy", "peak memory (MB)"], rows)
     note = (f"Batch of {args.batch} samples × {LEDS} LEDs × {args.size}×{args.size}, float32: flat-field, "

@@ -121,9 +121,9 @@ def flatfield(
     if saturation_level is not None:
         trusted = trusted & (reference < saturation_level)
     # Everything that depends on the card alone is computed once, at the card's size, not per sample: the
-    # scale is card_albedo / card where trusted and 0 elsewhere (the 1 in the denominator keeps 0/0 out of
-    # the gradient).
-    scale = torch.where(trusted, card_albedo / torch.where(trusted, card, torch.ones_like(card)), torch.zeros_like(card))
+    # scale is card_albedo / card where trusted and 0 elsewhere (an infinite denominator gives the 0 with a zero
+    # gradient, where a 0/0 would send NaN back).
+    scale = card_albedo / torch.where(trusted, card, torch.inf)
     ratio = signal * scale
     valid = trusted.expand(shape)
     if saturated is not None:
