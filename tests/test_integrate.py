@@ -189,10 +189,10 @@ class TestMaskedLeastSquares(BaseTester):
         self.assert_close(integrate(p, q, "masked", 0.5, tol=1e-6), expected, rtol=1e-3, atol=1e-4)
 
     def test_gradcheck(self):
-        p = torch.rand(1, 1, 5, 6, dtype=torch.float64, requires_grad=True)
-        q = torch.rand(1, 1, 5, 6, dtype=torch.float64, requires_grad=True)
-        w = (torch.rand(1, 1, 5, 6, dtype=torch.float64) + 0.5).requires_grad_()
-        mask = torch.ones(1, 1, 5, 6, dtype=torch.bool)
+        p = torch.rand(1, 1, 4, 5, dtype=torch.float64, requires_grad=True)
+        q = torch.rand(1, 1, 4, 5, dtype=torch.float64, requires_grad=True)
+        w = (torch.rand(1, 1, 4, 5, dtype=torch.float64) + 0.5).requires_grad_()
+        mask = torch.ones(1, 1, 4, 5, dtype=torch.bool)
         mask[..., 0, :2] = False
         self.gradcheck(lambda a, b, c: masked_least_squares(a, b, 0.3, mask, c, tol=1e-12), (p, q, w))
 
