@@ -5,6 +5,7 @@ from __future__ import annotations
 import inspect
 from typing import Any
 
+import torch  # noqa: F401  (the docstring example uses it)
 from torch import Tensor
 
 from psmini.errors import InputError
