@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -33,3 +34,29 @@ def emit_json(payload: dict[str, Any]) -> None:
     """Print ``payload`` as one JSON line on stdout (the last line a ``--json`` run prints)."""
     sys.stdout.write(json.dumps(payload, sort_keys=True) + "\n")
     sys.stdout.flush()
+
+
+def add_reconstruction_flags(parser: argparse.ArgumentParser) -> None:
+    """The folder argument and the flags every reconstructing command shares (``reconstruct``, ``evaluate``)."""
+    parser.add_argument("folder", type=Path, metavar="DIR", help="DiLiGenT object folder or psmini capture folder")
+    parser.add_argument("--integrator", default="fc", help="integration method (default: fc, Frankot-Chellappa)")
+    parser.add_argument("--lights", type=Path, metavar="FILE",
+                        help="lights file (docs/lights-file.md, from 'psmini calibrate sphere') to use instead of "
+                        "the folder's own lights")
+    parser.add_argument("--light-model", choices=["distant", "near"], default="distant",
+                        help="distant: classical least squares with the lights seen from the field centre (default); "
+                        "near: near-light photometric stereo with the folder's LED or point-light positions")
+    add_device_flag(parser)
+    add_json_flag(parser)
+
+
+def load_sample_for(args: argparse.Namespace):
+    """The sample of ``args.folder``, with the lights of ``--lights`` when given."""
+    from psmini.io import load_sample
+
+    sample = load_sample(args.folder)
+    if args.lights is None:
+        return sample
+    from psmini.calibration import with_lights_file
+
+    return with_lights_file(sample, args.lights)

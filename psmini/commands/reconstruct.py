@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from psmini.commands._common import add_device_flag, add_json_flag, emit_json, resolve_device
+from psmini.commands._common import add_reconstruction_flags, emit_json, load_sample_for, resolve_device
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -16,32 +16,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Reconstruct albedo, normals, depth and a PLY point cloud from a DiLiGenT folder or a psmini "
         "capture folder, and write them into OUT (albedo.png, normals.png, depth.npy, depth.png, points.ply).",
     )
-    parser.add_argument("folder", type=Path, metavar="DIR", help="DiLiGenT object folder or psmini capture folder")
+    add_reconstruction_flags(parser)
     parser.add_argument("--out", type=Path, required=True, metavar="OUT", help="output folder (created)")
-    parser.add_argument("--integrator", default="fc", help="integration method (default: fc, Frankot-Chellappa)")
     parser.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
-    parser.add_argument("--lights", type=Path, metavar="FILE",
-                        help="lights file (docs/lights-file.md, from 'psmini calibrate sphere') to use instead of "
-                        "the folder's own lights")
-    parser.add_argument("--light-model", choices=["distant", "near"], default="distant",
-                        help="distant: classical least squares with the lights seen from the field centre (default); "
-                        "near: near-light photometric stereo with the folder's LED or point-light positions")
-    add_device_flag(parser)
-    add_json_flag(parser)
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from psmini.io import load_sample, write_outputs
+    from psmini.io import write_outputs
     from psmini.pipeline import reconstruct
 
     device = resolve_device(args.device)
     start = time.perf_counter()
-    sample = load_sample(args.folder)
-    if args.lights is not None:
-        from psmini.calibration import with_lights_file
-
-        sample = with_lights_file(sample, args.lights)
+    sample = load_sample_for(args)
     result = reconstruct(sample, device=device, integrator=args.integrator, light_model=args.light_model)
     elapsed = time.perf_counter() - start
     written = write_outputs(args.out, result, pixel_pitch_mm=sample.pixel_pitch_mm, overwrite=args.overwrite)

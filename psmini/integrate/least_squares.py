@@ -20,7 +20,7 @@ from torch import Tensor, nn
 from psmini._checks import check_finite
 from psmini.errors import InputError, ShapeError
 from psmini.integrate._common import check_gradients
-from psmini.integrate.poisson import edge_mask, grid_differences, solve_weighted_poisson
+from psmini.integrate.poisson import solve_weighted_poisson
 
 
 __all__ = ["masked_least_squares", "MaskedLeastSquares"]
