@@ -54,7 +54,7 @@ def score_reconstruction(result: Reconstruction, sample) -> dict[str, float | in
 
 
 def evaluate_sample(
-    sample, *, device: torch.device | str = "cpu", integrator: str = "fc", light_model: str = "distant"
+    sample, *, device: torch.device | str = "cpu", integrator: str | None = None, light_model: str = "distant"
 ) -> dict[str, float | int | str]:
     """Reconstruct ``sample`` (:func:`psmini.pipeline.reconstruct`) and score it; see :func:`score_reconstruction`.
 

@@ -292,7 +292,7 @@ def near_light_photometric_stereo(
     estimate_offset: bool = True,
     mask: Tensor | None = None,
     saturation_level: float | None = None,
-    integrator: str = "fc",
+    integrator: str = "masked",
     max_iterations: int = 10,
     tolerance_mm: float = 1e-3,
 ) -> NearLightResult:
@@ -318,7 +318,10 @@ def near_light_photometric_stereo(
             ``initial_depth``.
         mask: pixels to solve, :math:`(B, 1, H, W)`.
         saturation_level: raw level of saturation, or ``None``.
-        integrator: method of :func:`psmini.integrate.integrate`.
+        integrator: method of :func:`psmini.integrate.integrate`. The default, least squares on the solved pixels
+            (``"masked"``), keeps pixels left unsolved (lit by fewer than three LEDs: deep crevices of knits) from
+            pulling the whole surface, as a solve on the full rectangle (``"fc"``) would; their depth is the
+            solver's 0 plus the offset, and ``mask`` marks them.
         max_iterations: most alternations.
         tolerance_mm: stop when the largest depth change falls below it, mm.
 

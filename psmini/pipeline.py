@@ -126,7 +126,7 @@ def reconstruct(
     *,
     device: torch.device | str = "cpu",
     dtype: torch.dtype = torch.float32,
-    integrator: str = "fc",
+    integrator: str | None = None,
     light_model: str = "distant",
     min_reference: float = 0.02,
 ) -> Reconstruction:
@@ -136,7 +136,8 @@ def reconstruct(
         sample: a :class:`psmini.io.Sample` (DiLiGenT or capture folder).
         device: where to compute.
         dtype: floating dtype of the computation.
-        integrator: integration method.
+        integrator: integration method; ``None`` takes the model's default (``"fc"`` for distant lights,
+            ``"masked"`` for near lights).
         light_model: ``"distant"``: the classical pipeline (:class:`PhotometricStereo`, lights seen from the field
             centre); ``"near"``: near-light photometric stereo with the sample's point or LED model
             (:func:`psmini.nearlight.near_light_photometric_stereo`; needs a pixel pitch).
@@ -174,11 +175,11 @@ def reconstruct(
         return near_light_photometric_stereo(
             batch(sample.images), lights, sample.pixel_pitch_mm, reference=batch(sample.reference),
             dark=batch(sample.dark), reference_dark=batch(sample.reference_dark), card_albedo=sample.card_albedo or 1.0,
-            mask=mask, saturation_level=sample.saturation_level, integrator=integrator,
+            mask=mask, saturation_level=sample.saturation_level, integrator=integrator or "masked",
         )
     model = PhotometricStereo(
         lights,
-        integrator=integrator,
+        integrator=integrator or "fc",
         pixel_pitch_mm=sample.pixel_pitch_mm,
         min_reference=min_reference,
         saturation_level=sample.saturation_level,

@@ -39,7 +39,9 @@ def emit_json(payload: dict[str, Any]) -> None:
 def add_reconstruction_flags(parser: argparse.ArgumentParser) -> None:
     """The folder argument and the flags every reconstructing command shares (``reconstruct``, ``evaluate``)."""
     parser.add_argument("folder", type=Path, metavar="DIR", help="DiLiGenT object folder or psmini capture folder")
-    parser.add_argument("--integrator", default="fc", help="integration method (default: fc, Frankot-Chellappa)")
+    parser.add_argument("--integrator", default=None,
+                        help="integration method (default: fc, Frankot-Chellappa, for distant lights; masked least "
+                        "squares for near lights)")
     parser.add_argument("--lights", type=Path, metavar="FILE",
                         help="lights file (docs/lights-file.md, from 'psmini calibrate sphere') to use instead of "
                         "the folder's own lights")
