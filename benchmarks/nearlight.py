@@ -9,8 +9,9 @@ flat-fielding stays at 0), rendered noise-free (16-bit) and with the simulator's
 4. ``near_calibrated``: the same with LEDs fitted by gradient descent (:func:`psmini.fit_leds`) to the simulator's
    noisy 8-bit card images at 0 and 1 mm, started from the nominal rig geometry.
 
-Mean angular error over cloth pixels that at least three LEDs light without saturating the sensor (shadows and
-saturation are handled by the solvers, not skipped; the fraction of pixels with fewer is reported), and the
+Mean angular error over cloth pixels that at least three LEDs light with usable observations (not saturated, and
+under a card bright enough and not saturated, so that flat-fielding can divide by it; shadows and saturation are
+handled by the solvers, not skipped; the fraction of pixels with fewer is reported), and the
 depth error: RMSE after removing the mean offset (the dome of the distant-light methods shows here), in µm.
 
     python benchmarks/nearlight.py [--quick] [--json] [--size N] [--device cpu|cuda] [--no-record]
@@ -31,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._ledger import append_results, table  # noqa: E402
 from data_synth import make_fabric  # noqa: E402
 from data_synth.rig import RigConfig, render_capture, render_card  # noqa: E402
-from psmini import PhotometricStereo, angular_error_deg, fit_leds  # noqa: E402
+from psmini import PhotometricStereo, angular_error_deg, fit_leds, flatfield  # noqa: E402
 from psmini.nearlight import near_light_photometric_stereo  # noqa: E402
 
 CARD_ALBEDO = 0.8
@@ -59,7 +60,10 @@ def evaluate_case(fabric, config, offset_mm, calibrated, card, device) -> dict[s
     """All four methods on one rendered capture."""
     capture = render_capture(fabric, config, height_offset_mm=offset_mm, device=device)
     images, dark = capture.images[None], capture.dark[None]
-    usable = capture.lit & (capture.images < capture.saturation_level)
+    # usable: lit, not saturated, and under a card that is neither saturated nor too dark to divide by
+    valid = flatfield(images, card.images[None], dark, card.dark[None], CARD_ALBEDO,
+                      saturation_level=capture.saturation_level).valid[0]
+    usable = capture.lit & valid
     region = (usable.sum(0, keepdim=True) >= 3) & capture.mask.bool()
     cloth = capture.mask.bool()
     truth_normals, truth_depth = capture.normals[None], capture.depth_mm[None]
@@ -132,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     means = table(["method", "mean error noise-free (°)", "mean error 8-bit noisy (°)"],
                   [[m, f"{summary[m + '_noisefree']:.3f}", f"{summary[m]:.3f}"] for m in METHODS])
     note = (f"{len(fabrics)} fabrics × offsets {offsets} mm, {size}×{size} px at {pitch:.4f} mm/px, on {device}. "
-            f"Cells: mean angular error over cloth pixels lit (unsaturated) by ≥ 3 LEDs / depth RMSE after removing "
+            f"Cells: mean angular error over cloth pixels with ≥ 3 usable LEDs (lit, unsaturated, card usable) / depth RMSE after removing "
             f"the mean offset. LEDs calibrated from noisy 8-bit cards at 0 and 1 mm in {fit['seconds']:.1f} s: "
             f"largest position error {fit['position_error_mm']:.3f} mm, intensity error {100 * fit['intensity_error']:.2f}%.")
     print(report)
