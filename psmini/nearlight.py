@@ -105,6 +105,20 @@ def _predict(albedo: Tensor, normals: Tensor, vectors: Tensor) -> Tensor:
     return albedo * (vectors * normals[:, None]).sum(dim=2)
 
 
+def _candidates(intensities: Tensor, valid: Tensor, shadow_fraction: float) -> Tensor:
+    """Observations that may be lit: brighter than ``shadow_fraction`` of the pixel's brightest.
+
+    Where fewer than three pass, a grazing light may still be real (0.01 next to 0.8 is lit, not shadowed): such
+    pixels take their three brightest valid observations, provided the third is not zero. A pixel with fewer than
+    three non-zero observations cannot be solved and gets none (it is left unsolved rather than fitted to shadows).
+    """
+    bright = valid & (intensities > shadow_fraction * intensities.amax(dim=1, keepdim=True))
+    ranked = intensities.masked_fill(~valid, -torch.inf)
+    third = ranked.topk(min(3, intensities.shape[1]), dim=1).values[:, -1:]
+    brightest_three = valid & (intensities >= third) & (third > 0)
+    return torch.where(bright.sum(dim=1, keepdim=True) >= 3, bright, brightest_three)
+
+
 def robust_near_light_normals(
     intensities: Tensor,
     light_vectors: Tensor,
@@ -117,11 +131,12 @@ def robust_near_light_normals(
     r"""Per-pixel least squares with per-pixel lights, dropping shadowed and outlying observations.
 
     Observations darker than ``shadow_fraction`` of the pixel's brightest are left out throughout (a shadow
-    reads about zero once the dark frame is subtracted). After each solve, an observation is dropped when the light grazes or lies behind the estimated tangent plane
+    reads about zero once the dark frame is subtracted), unless that leaves fewer than three: then the three
+    brightest are used when none of them is zero. After each solve, an observation is dropped when the light grazes or lies behind the estimated tangent plane
     (attached shadow: :math:`n \cdot L_k \le 0.02\,|L_k|`) or when its residual exceeds ``outlier_fraction`` of
     the pixel's scale :math:`\rho\,\overline{|L|}` (cast shadows, highlights); a pixel keeps its previous
-    observations rather than fall below three. Pixels with fewer than three bright observations are left unsolved
-    (albedo 0, normal (0, 0, 1)) with no weights.
+    observations rather than fall below three. Pixels with fewer than three non-zero observations are left
+    unsolved (albedo 0, normal (0, 0, 1)) with no weights.
 
     Args:
         intensities: images, shape :math:`(B, K, H, W)` (flat-fielded or dark-subtracted).
@@ -149,9 +164,7 @@ def robust_near_light_normals(
             f"got {iterations}, {outlier_fraction}, {shadow_fraction}"
         )
     valid_observations = torch.ones_like(intensities, dtype=torch.bool) if valid is None else valid.bool()
-    # Only bright observations are candidates: a pixel that fewer than three LEDs light is left unsolved (albedo 0,
-    # normal (0, 0, 1), no weights) rather than fitted to its shadows.
-    candidates = valid_observations & (intensities > shadow_fraction * intensities.amax(dim=1, keepdim=True))
+    candidates = _candidates(intensities, valid_observations, shadow_fraction)
     weights = candidates
     albedo, normals = albedo_normals(intensities, light_vectors, mask, weights)
     length = light_vectors.norm(dim=2)
