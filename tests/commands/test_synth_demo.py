@@ -38,6 +38,9 @@ def test_demo_reconstructs_and_scores(tmp_path, capsys):
     assert (out / "capture" / "cotton" / "capture.json").is_file()
     assert np.load(out / "depth.npy").shape == (64, 64)
     assert 0.0 < report["mean_angular_error_deg"] < 10.0
+    # the written reconstruction is the near-light one, and it beats the distant-light pipeline
+    assert report["light_model"] == "near"
+    assert report["mean_angular_error_deg"] == report["errors_deg"]["near"] < report["errors_deg"]["distant"]
     # an earlier demo is replaced; any other folder is refused
     assert main(["demo", "--out", str(out), "--size", "32"]) == 0
     other = tmp_path / "mine"
