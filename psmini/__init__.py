@@ -2,6 +2,9 @@
 
 The public API. Every stage of the data flow is a functional on batched torch tensors with a thin
 ``nn.Module`` beside it where state belongs; see DESIGN.md for shapes, axes and units.
+
+``import psmini`` loads the core only (torch, numpy, kornia). Files live in :mod:`psmini.io` (OpenCV, plyfile),
+the rig in :mod:`psmini.rig` (pyserial, OpenCV), batch processing and the command line around them.
 """
 
 from __future__ import annotations
@@ -32,7 +35,6 @@ from psmini.normals import LeastSquaresNormals, albedo_normals, normals_to_gradi
 from psmini.pipeline import PhotometricStereo, Reconstruction, distant_light_matrix, reconstruct
 # psmini.render is the function once the package is imported; reach the module by `from psmini.render import ...`
 from psmini.render import Renderer, cast_shadows, normals_from_height, render, render_lambertian
-from psmini.io import Sample, load_sample, read_capture, read_diligent, read_image, save_ply, write_capture, write_outputs
 from psmini.calibration import (
     calibrate_sphere,
     card_reference,
@@ -89,15 +91,6 @@ __all__ = [
     "Renderer",
     "cast_shadows",
     "normals_from_height",
-    # io
-    "read_image",
-    "read_diligent",
-    "read_capture",
-    "write_capture",
-    "load_sample",
-    "Sample",
-    "write_outputs",
-    "save_ply",
     # LED calibration from card images
     "fit_leds",
     "LEDFit",
