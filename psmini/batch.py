@@ -1,0 +1,561 @@
+"""Offline reconstruction of whole folder trees of samples: decode in workers, solve in batches, write atomically.
+
+Every capture folder and DiLiGenT folder under a root (:func:`psmini.io.find_samples`) is decoded in
+``torch.utils.data.DataLoader`` worker processes, grouped into batches of samples that share a size, a light
+model and a flat-field card, solved on one device in one batched call of :class:`psmini.pipeline.PhotometricStereo`
+(or the near-light solver), and written into ``OUT/<path relative to the root>`` with the atomic folder writer
+of :mod:`psmini.io`. Each card is decoded once per run, not once per sample. A sample whose output folder holds
+``outputs.json`` is finished (the folder appears only complete) and is skipped by the next run, so a run
+killed half-way resumes where it stopped. A sample that fails (a corrupt file, a solver error) is reported
+in the summary and the others go on.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import re
+import shutil
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+from torch.utils.data import DataLoader, Dataset
+
+from psmini.errors import DataFormatError, InputError, PsminiError
+from psmini.result import Reconstruction
+
+__all__ = [
+    "OUTPUT_KINDS",
+    "SUMMARY_FIELDS",
+    "BatchRecord",
+    "reconstruct_dataset",
+    "iter_reconstructions",
+    "parse_outputs",
+]
+
+logger = logging.getLogger(__name__)
+
+#: What ``outputs`` may name: ``albedo.png``, ``normals.png``, ``depth.npy/.png/.json``, ``points.ply``.
+OUTPUT_KINDS = ("normals", "albedo", "depth", "ply")
+#: Columns of ``summary.csv`` (and keys of each entry of ``summary.json``'s ``samples``).
+SUMMARY_FIELDS = (
+    "sample", "status", "time_s", "decode_s", "compute_s", "write_s", "batch_size", "mean_angular_error_deg",
+    "median_angular_error_deg", "depth_rmse_mm", "depth_mae_mm", "error",
+)
+_MARKER = "outputs.json"
+
+
+@dataclass
+class BatchRecord:
+    """One sample's line of the summary.
+
+    Attributes:
+        sample: the sample folder relative to the root (its output folder relative to ``out``).
+        status: ``"done"`` (reconstructed in this run), ``"skipped"`` (finished by an earlier run) or ``"failed"``.
+        time_s: decode + its share of the batch computation + write, seconds.
+        decode_s, compute_s, write_s: the parts of ``time_s``.
+        batch_size: how many samples were solved together with it.
+        scores: errors against ground truth (:func:`psmini.evaluation.score_reconstruction`) when it has some.
+        error: the error message of a failed sample.
+    """
+
+    sample: str
+    status: str
+    time_s: float = 0.0
+    decode_s: float = 0.0
+    compute_s: float = 0.0
+    write_s: float = 0.0
+    batch_size: int = 0
+    scores: dict[str, float] = field(default_factory=dict)
+    error: str = ""
+
+    def row(self) -> dict[str, Any]:
+        """The summary row: ``SUMMARY_FIELDS`` with empty cells where a figure does not apply."""
+        values = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "scores"}
+        values.update(self.scores)
+        return {key: values.get(key, "") for key in SUMMARY_FIELDS}
+
+
+def parse_outputs(outputs: str | Sequence[str] | None) -> tuple[str, ...]:
+    """The output kinds of ``--outputs`` (``"normals,albedo,depth,ply"``), validated; None means all.
+
+    Raises:
+        InputError: an empty list or a name that is not one of :data:`OUTPUT_KINDS`.
+
+    Example:
+        >>> parse_outputs("depth, normals")
+        ('normals', 'depth')
+    """
+    if outputs is None:
+        return OUTPUT_KINDS
+    names = [n.strip() for n in (outputs.split(",") if isinstance(outputs, str) else outputs)]
+    names = [n for n in names if n]
+    unknown = sorted(set(names) - set(OUTPUT_KINDS))
+    if unknown or not names:
+        raise InputError(f"outputs must be a comma-separated subset of {','.join(OUTPUT_KINDS)}, got {outputs!r}")
+    return tuple(kind for kind in OUTPUT_KINDS if kind in names)
+
+
+# ------------------------------------------------------------------------------------------------ decoding
+
+
+@dataclass
+class _Decoded:
+    """What a worker sends back: the sample without its card (the main process adds it), or the error."""
+
+    rel: str
+    sample: Any = None
+    card: str | None = None
+    decode_s: float = 0.0
+    error: str = ""
+
+
+def _load_without_card(path: Path):
+    """The sample of ``path`` like :func:`psmini.io.load_sample`, but a capture's card is left to the caller."""
+    from psmini.io import Sample, load_sample, read_capture
+    from psmini.io.capture import MANIFEST_NAME
+
+    if not (path / MANIFEST_NAME).is_file():
+        return load_sample(path), None
+    capture = read_capture(path)
+    if capture.lights is None:
+        raise DataFormatError(f"capture {path} is a {capture.kind!r} capture without lights; it cannot be reconstructed")
+    gt, card = capture.gt, capture.flatfield_path
+    sample = Sample(
+        name=path.name, images=capture.images, lights=capture.lights, mask=capture.mask, dark=capture.dark,
+        card_albedo=capture.card_albedo if card is not None else 1.0, pixel_pitch_mm=capture.pixel_pitch_mm,
+        normals_gt=gt.get("normals"), depth_gt=gt.get("depth"), albedo_gt=gt.get("albedo"), saturation_level=1.0,
+        gt_mask=gt.get("mask"), meta={"source": "capture", "path": str(path), "kind": capture.kind},
+    )
+    return sample, None if card is None else str(Path(card).resolve())
+
+
+class _SampleFolders(Dataset):
+    """Decodes one sample folder per item; errors become records instead of exceptions (one bad file must not
+    end the DataLoader)."""
+
+    def __init__(self, root: Path, folders: Sequence[Path]) -> None:
+        self.root, self.folders = root, list(folders)
+
+    def __len__(self) -> int:
+        return len(self.folders)
+
+    def __getitem__(self, index: int) -> _Decoded:
+        folder = self.folders[index]
+        rel = _relative(self.root, folder)
+        start = time.perf_counter()
+        try:
+            sample, card = _load_without_card(folder)
+        except (PsminiError, OSError, ValueError) as error:
+            return _Decoded(rel, error=f"{type(error).__name__}: {error}", decode_s=time.perf_counter() - start)
+        return _Decoded(rel, sample, card, time.perf_counter() - start)
+
+
+def _collate(items: list[_Decoded]) -> list[_Decoded]:
+    """Keep the batch as a list: the main process groups it by size and calibration after adding the cards."""
+    return items
+
+
+def _relative(root: Path, folder: Path) -> str:
+    rel = folder.relative_to(root)
+    return root.name if rel == Path(".") else rel.as_posix()
+
+
+def _group_key(item: _Decoded) -> tuple:
+    """Samples solved together must share size, card, light model, pitch and the presence of optional frames."""
+    from psmini.io import lights_to_dict
+
+    sample = item.sample
+    try:
+        lights = json.dumps(lights_to_dict(sample.lights), sort_keys=True)
+    except InputError:  # a light model the capture format does not know: solve it alone
+        lights = f"object-{id(sample.lights)}"
+    return (tuple(sample.images.shape), item.card, lights, sample.pixel_pitch_mm, sample.card_albedo,
+            sample.saturation_level, sample.dark is not None, sample.mask is not None)
+
+
+class _Cards:
+    """Flat-field cards by resolved path, decoded once and kept on the device."""
+
+    def __init__(self, device: torch.device, dtype: torch.dtype) -> None:
+        self.device, self.dtype = device, dtype
+        self._cards: dict[str, tuple[Tensor, Tensor | None] | PsminiError] = {}
+
+    def get(self, path: str, shape: tuple[int, ...]) -> tuple[Tensor, Tensor | None]:
+        if path not in self._cards:
+            self._cards[path] = self._load(path)
+        card = self._cards[path]
+        if isinstance(card, PsminiError):
+            raise card
+        if tuple(card[0].shape[1:]) != shape:
+            raise DataFormatError(
+                f"flat-field capture {path} has images {tuple(card[0].shape[1:])} (K, H, W) but the sample has "
+                f"{shape}; the card must be imaged under the same LEDs"
+            )
+        return card
+
+    def _load(self, path: str) -> tuple[Tensor, Tensor | None] | PsminiError:
+        from psmini.io import read_capture
+
+        try:
+            card = read_capture(path)
+        except PsminiError as error:
+            return error
+        logger.info("decoded flat-field card %s once for every sample that references it", path)
+        on = dict(device=self.device, dtype=self.dtype)
+        return card.images.to(**on).unsqueeze(0), None if card.dark is None else card.dark.to(**on).unsqueeze(0)
+
+
+# ------------------------------------------------------------------------------------------------ solving
+
+
+@dataclass
+class _Solved:
+    """One sample out of the batched solver (or its error)."""
+
+    item: _Decoded
+    result: Reconstruction | None
+    compute_s: float
+    batch_size: int
+    error: str = ""
+
+
+def _stack(tensors: list[Tensor], device: torch.device, dtype: torch.dtype | None) -> Tensor:
+    stacked = torch.stack(tensors)
+    return stacked.to(device=device, dtype=dtype or stacked.dtype, non_blocking=True)
+
+
+def _solve_group(group: list[_Decoded], cards: _Cards, device: torch.device, dtype: torch.dtype,
+                 integrator: str | None, light_model: str, min_reference: float) -> list[_Solved]:
+    """Reconstruct samples that share a key in one batched call; the batch is ``(B, K, H, W)``."""
+    from psmini.nearlight import near_light_photometric_stereo
+    from psmini.pipeline import PhotometricStereo
+
+    first = group[0].sample
+    start = time.perf_counter()
+    reference = reference_dark = None
+    if group[0].card is not None:
+        reference, reference_dark = cards.get(group[0].card, tuple(first.images.shape))
+    images = _stack([item.sample.images for item in group], device, dtype)
+    dark = None if first.dark is None else _stack([item.sample.dark for item in group], device, dtype)
+    mask = None if first.mask is None else _stack([item.sample.mask.bool() for item in group], device, None)
+    lights = first.lights.to(device=device, dtype=dtype)
+    card_albedo = first.card_albedo or 1.0
+    with torch.no_grad():
+        if light_model == "near":
+            if not hasattr(lights, "positions_mm") or first.pixel_pitch_mm is None:
+                raise InputError(f"--light-model near needs LED or point-light positions and a pixel pitch; "
+                                 f"{first.name} has {type(lights).__name__} lights and pixel pitch {first.pixel_pitch_mm}")
+            result = near_light_photometric_stereo(
+                images, lights, first.pixel_pitch_mm, reference=reference, dark=dark, reference_dark=reference_dark,
+                card_albedo=card_albedo, mask=mask, saturation_level=first.saturation_level,
+                integrator=integrator or "masked",
+            )
+        else:
+            model = PhotometricStereo(lights, integrator=integrator or "fc", pixel_pitch_mm=first.pixel_pitch_mm,
+                                      min_reference=min_reference, saturation_level=first.saturation_level)
+            result = model(images, reference, dark, reference_dark, mask, card_albedo)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    share = (time.perf_counter() - start) / len(group)
+    names = [f.name for f in fields(Reconstruction)]
+    return [
+        _Solved(item, Reconstruction(**{n: getattr(result, n)[i : i + 1] for n in names}), share, len(group))
+        for i, item in enumerate(group)
+    ]
+
+
+def _solve(items: list[_Decoded], cards: _Cards, device: torch.device, dtype: torch.dtype,
+           integrator: str | None, light_model: str, min_reference: float) -> list[_Solved]:
+    """Group a loader batch by key and solve each group; a failing group is retried sample by sample so that
+    one bad sample does not fail its neighbours."""
+    solved: list[_Solved] = [_Solved(item, None, 0.0, 0, item.error) for item in items if item.error]
+    groups: dict[tuple, list[_Decoded]] = {}
+    for item in items:
+        if not item.error:
+            groups.setdefault(_group_key(item), []).append(item)
+    for group in groups.values():
+        try:
+            solved += _solve_group(group, cards, device, dtype, integrator, light_model, min_reference)
+            continue
+        except PsminiError as error:
+            if len(group) == 1:
+                solved.append(_Solved(group[0], None, 0.0, 1, f"{type(error).__name__}: {error}"))
+                continue
+        for item in group:
+            try:
+                solved += _solve_group([item], cards, device, dtype, integrator, light_model, min_reference)
+            except PsminiError as error:
+                solved.append(_Solved(item, None, 0.0, 1, f"{type(error).__name__}: {error}"))
+    return solved
+
+
+def _finished(out: Path, rel: str) -> bool:
+    return (out / rel / _MARKER).is_file()
+
+
+def _solved_stream(root: Path, folders: Sequence[Path], *, device: torch.device, dtype: torch.dtype,
+                   batch_size: int, workers: int, integrator: str | None, light_model: str,
+                   min_reference: float) -> Iterator[_Solved]:
+    """Decode ``folders`` with ``workers`` processes and yield every sample solved (or failed), in batches."""
+    loader = DataLoader(
+        _SampleFolders(root, folders), batch_size=batch_size, shuffle=False, num_workers=workers,
+        collate_fn=_collate, persistent_workers=False, prefetch_factor=2 if workers else None,
+    )
+    cards = _Cards(device, dtype)
+    for items in loader:
+        yield from _solve(items, cards, device, dtype, integrator, light_model, min_reference)
+
+
+def _check_arguments(root: str | Path, batch_size: int, workers: int, light_model: str,
+                     device: torch.device | str) -> tuple[Path, torch.device]:
+    root = Path(root)
+    if not root.is_dir():
+        raise InputError(f"ROOT {root} does not exist or is not a folder")
+    if not isinstance(batch_size, int) or batch_size < 1:
+        raise InputError(f"batch_size must be a positive integer, got {batch_size!r}")
+    if not isinstance(workers, int) or workers < 0:
+        raise InputError(f"workers must be an integer >= 0, got {workers!r}")
+    if light_model not in ("distant", "near"):
+        raise InputError(f"light_model must be 'distant' or 'near', got {light_model!r}")
+    device = torch.device(device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise InputError("device cuda was asked for, but torch sees no CUDA device on this machine")
+    return root, device
+
+
+def _samples_under(root: Path) -> list[Path]:
+    from psmini.io import find_samples
+
+    folders = find_samples(root)
+    if not folders:
+        raise InputError(f"no sample folders (capture.json, or DiLiGenT filenames.txt + light_directions.txt) under {root}")
+    return folders
+
+
+def iter_reconstructions(
+    root: str | Path,
+    *,
+    device: torch.device | str = "cpu",
+    dtype: torch.dtype = torch.float32,
+    batch_size: int = 8,
+    workers: int = 0,
+    integrator: str | None = None,
+    light_model: str = "distant",
+    min_reference: float = 0.02,
+) -> Iterator[tuple[str, Reconstruction]]:
+    """Reconstruct every sample under ``root`` in batches and yield them one by one (for notebooks).
+
+    Nothing is written. Samples that cannot be read or solved are logged (warning) and left out.
+
+    Args:
+        root: a folder holding capture folders and DiLiGenT folders at any depth (or one of them).
+        device: where to compute.
+        dtype: floating dtype of the computation.
+        batch_size: samples decoded per loader batch; those sharing a size, lights and card are solved together.
+        workers: decoding processes (0: decode in this process).
+        integrator: see :func:`psmini.pipeline.reconstruct`.
+        light_model: ``"distant"`` or ``"near"``, see :func:`psmini.pipeline.reconstruct`.
+        min_reference: see :func:`psmini.flatfield.flatfield`.
+
+    Yields:
+        ``(sample, reconstruction)``: the sample folder relative to ``root`` and a batch-1
+        :class:`~psmini.pipeline.Reconstruction` on ``device``, in the order of :func:`psmini.io.find_samples`
+        within each loader batch.
+
+    Raises:
+        InputError: ``root`` missing, no samples under it, bad ``batch_size``, ``workers`` or ``light_model``,
+            CUDA asked for and absent.
+
+    Example:
+        >>> for name, result in iter_reconstructions("captures", batch_size=16):  # doctest: +SKIP
+        ...     print(name, result.depth.std())
+    """
+    root, device = _check_arguments(root, batch_size, workers, light_model, device)
+    folders = _samples_under(root)
+    for solved in _solved_stream(root, folders, device=device, dtype=dtype, batch_size=batch_size, workers=workers,
+                                 integrator=integrator, light_model=light_model, min_reference=min_reference):
+        if solved.result is None:
+            logger.warning("sample %s failed: %s", solved.item.rel, solved.error)
+            continue
+        yield solved.item.rel, solved.result
+
+
+# ------------------------------------------------------------------------------------------------ writing
+
+
+def _write(out_dir: Path, result: Reconstruction, sample, outputs: tuple[str, ...], record: dict[str, Any]) -> None:
+    """Write the chosen outputs of one sample atomically; ``outputs.json`` carries its summary row."""
+    from psmini.geometry import depth_to_points
+    from psmini.io import save_albedo_png, save_depth, save_normal_png, save_ply, write_outputs
+    from psmini.io._atomic import atomic_folder
+
+    _remove_stale_temporaries(out_dir)
+    pitch = sample.pixel_pitch_mm
+    if outputs == OUTPUT_KINDS:
+        write_outputs(out_dir, result.to("cpu"), pixel_pitch_mm=pitch, metadata={"batch": record}, overwrite=True)
+        return
+    albedo, normals = result.albedo.detach().cpu(), result.normals.detach().cpu()
+    depth, mask = result.depth.detach().cpu(), result.mask.detach().cpu()
+    names: list[str] = []
+    with atomic_folder(out_dir, overwrite=True) as target:
+        if "albedo" in outputs:
+            save_albedo_png(target / "albedo.png", albedo, mask)
+            names.append("albedo.png")
+        if "normals" in outputs:
+            save_normal_png(target / "normals.png", normals, mask)
+            names.append("normals.png")
+        if "depth" in outputs:
+            units = "mm" if pitch is not None else "pixels"
+            names += [p.name for p in save_depth(target / "depth.npy", depth, mask, units=units)]
+        if "ply" in outputs:
+            points = depth_to_points(depth.double(), 1.0 if pitch is None else float(pitch))
+            save_ply(target / "points.ply", points, albedo, mask)
+            names.append("points.ply")
+        summary = {"files": names, "size": list(depth.shape[-1:-3:-1]), "pixel_pitch_mm": pitch,
+                   "metadata": {"batch": record}}
+        (target / _MARKER).write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+
+
+def _remove_stale_temporaries(out_dir: Path) -> None:
+    """Remove ``.NAME.tmp-*`` folders that a killed run left beside ``out_dir`` (the atomic writer's temporaries)."""
+    if not out_dir.parent.is_dir():
+        return
+    for stale in out_dir.parent.glob(f".{out_dir.name}.tmp-*"):
+        if re.fullmatch(rf"\.{re.escape(out_dir.name)}\.tmp-[0-9a-f]{{8}}", stale.name):
+            logger.info("removing %s, left by an interrupted run", stale)
+            shutil.rmtree(stale, ignore_errors=True)
+
+
+def _previous_record(out: Path, rel: str) -> BatchRecord:
+    """The summary row a finished sample's ``outputs.json`` kept, marked skipped."""
+    try:
+        kept = json.loads((out / rel / _MARKER).read_text(encoding="utf-8")).get("metadata", {}).get("batch", {})
+    except (OSError, ValueError):
+        kept = {}
+    scores = {k: kept[k] for k in SUMMARY_FIELDS if k.endswith(("_deg", "_mm")) and isinstance(kept.get(k), float)}
+    return BatchRecord(rel, "skipped", scores=scores)
+
+
+def _scores(result: Reconstruction, sample) -> dict[str, float]:
+    from psmini.evaluation import score_reconstruction
+
+    if sample.normals_gt is None:
+        return {}
+    scores = score_reconstruction(result, sample)
+    return {k: float(v) for k, v in scores.items() if k.endswith(("_deg", "_mm")) and math.isfinite(float(v))}
+
+
+def _write_summary(out: Path, records: list[BatchRecord], settings: dict[str, Any]) -> dict[str, Any]:
+    rows = [record.row() for record in records]
+    counts = {status: sum(r["status"] == status for r in rows) for status in ("done", "skipped", "failed")}
+    summary = {"settings": settings, "counts": counts, "samples": rows}
+    out.mkdir(parents=True, exist_ok=True)
+    with (out / "summary.csv").open("w", newline="", encoding="utf-8") as handle:
+        writer = csv.DictWriter(handle, fieldnames=SUMMARY_FIELDS)
+        writer.writeheader()
+        writer.writerows(rows)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+    return summary
+
+
+def reconstruct_dataset(
+    root: str | Path,
+    out: str | Path,
+    *,
+    device: torch.device | str = "cpu",
+    dtype: torch.dtype = torch.float32,
+    batch_size: int = 8,
+    workers: int = 0,
+    integrator: str | None = None,
+    light_model: str = "distant",
+    outputs: str | Sequence[str] | None = None,
+    min_reference: float = 0.02,
+    progress: Callable[[BatchRecord], None] | None = None,
+) -> dict[str, Any]:
+    """Reconstruct every sample under ``root`` into ``out/<relative path>``, resuming an earlier run.
+
+    Samples whose output folder already holds ``outputs.json`` are skipped (their earlier summary row is kept).
+    The rest are decoded in ``workers`` processes, solved in batches (see :func:`iter_reconstructions`) and
+    written atomically: ``albedo.png``, ``normals.png``, ``depth.npy``/``.png``/``.json``, ``points.ply`` (as
+    :func:`psmini.io.write_outputs`; only those chosen by ``outputs``) and ``outputs.json``, whose
+    ``metadata.batch`` holds the sample's summary row. ``out/summary.csv`` and ``out/summary.json`` list every
+    sample with its status, times and, when it has ground truth, errors
+    (:func:`psmini.evaluation.score_reconstruction`).
+
+    Args:
+        root: a folder holding capture folders and DiLiGenT folders at any depth (or one of them).
+        out: the output folder (created).
+        device, dtype, batch_size, workers, integrator, light_model, min_reference: see :func:`iter_reconstructions`.
+        outputs: which of :data:`OUTPUT_KINDS` to write (a list or ``"normals,albedo,depth,ply"``); None: all.
+        progress: called with each sample's :class:`BatchRecord` as soon as it is finished, skipped or failed.
+
+    Returns:
+        the summary: ``{"settings": ..., "counts": {"done", "skipped", "failed"}, "samples": [row, ...]}`` with
+        rows as in ``summary.csv`` (:data:`SUMMARY_FIELDS`), in the order of :func:`psmini.io.find_samples`.
+
+    Raises:
+        InputError: ``root`` missing, no samples under it, bad ``outputs``, ``batch_size``, ``workers`` or
+            ``light_model``, CUDA asked for and absent.
+        DataFormatError: ``out`` cannot be written.
+
+    Example:
+        >>> summary = reconstruct_dataset("captures", "reconstructions", batch_size=16, workers=2)  # doctest: +SKIP
+        >>> summary["counts"]  # doctest: +SKIP
+        {'done': 198, 'skipped': 0, 'failed': 2}
+    """
+    kinds = parse_outputs(outputs)
+    root, device = _check_arguments(root, batch_size, workers, light_model, device)
+    out = Path(out)
+    folders = _samples_under(root)
+    records: dict[str, BatchRecord] = {}
+    todo = []
+    for folder in folders:
+        rel = _relative(root, folder)
+        if _finished(out, rel):
+            records[rel] = _previous_record(out, rel)
+            if progress is not None:
+                progress(records[rel])
+        else:
+            todo.append(folder)
+    logger.info("%d samples under %s: %d finished earlier, %d to do", len(folders), root, len(records), len(todo))
+    stream = _solved_stream(root, todo, device=device, dtype=dtype, batch_size=batch_size, workers=workers,
+                            integrator=integrator, light_model=light_model, min_reference=min_reference) if todo else ()
+    for solved in stream:
+        records[solved.item.rel] = record = _finish(out, solved, kinds)
+        if progress is not None:
+            progress(record)
+    settings = {"root": str(root), "out": str(out), "device": str(device), "dtype": str(dtype).replace("torch.", ""),
+                "batch_size": batch_size, "workers": workers, "light_model": light_model,
+                "integrator": integrator, "outputs": list(kinds)}
+    return _write_summary(out, [records[_relative(root, f)] for f in folders], settings)
+
+
+def _finish(out: Path, solved: _Solved, kinds: tuple[str, ...]) -> BatchRecord:
+    """Score and write one solved sample; any error of its own becomes a failed record."""
+    item = solved.item
+    record = BatchRecord(item.rel, "failed", decode_s=item.decode_s, compute_s=solved.compute_s,
+                         batch_size=solved.batch_size, error=solved.error)
+    if solved.result is None:
+        record.time_s = record.decode_s + record.compute_s
+        logger.warning("sample %s failed: %s", item.rel, solved.error)
+        return record
+    start = time.perf_counter()
+    try:
+        record.scores = _scores(solved.result, item.sample)
+        record.status, record.error = "done", ""
+        record.time_s = item.decode_s + solved.compute_s
+        _write(out / item.rel, solved.result, item.sample, kinds, record.row())
+    except PsminiError as error:
+        record.status, record.error = "failed", f"{type(error).__name__}: {error}"
+        logger.warning("sample %s failed: %s", item.rel, record.error)
+    record.write_s = time.perf_counter() - start
+    record.time_s = record.decode_s + record.compute_s + record.write_s
+    return record

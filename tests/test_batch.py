@@ -1,0 +1,214 @@
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+import psmini.batch as batch
+import psmini.io
+from data_synth.rig import write_synthetic_capture
+from psmini.batch import iter_reconstructions, parse_outputs, reconstruct_dataset
+from psmini.cli import main
+from psmini.errors import InputError
+from psmini.io import load_sample
+from psmini.pipeline import reconstruct
+
+GOOD = ["lotA/jute", "lotA/twill", "lotB/cotton"]
+ALL = sorted(GOOD + ["lotC/broken"])
+
+
+@pytest.fixture(scope="module")
+def tree(tmp_path_factory):
+    """Two calibrations (lotA: two fabrics under one card, lotB: one) and a capture with a truncated image."""
+    root = tmp_path_factory.mktemp("captures")
+    for seed, fabric in enumerate(["jute", "twill"]):
+        write_synthetic_capture(root / "lotA", fabric, size=64, seed=seed, overwrite=True)
+    write_synthetic_capture(root / "lotB", "cotton", size=64, seed=5)
+    write_synthetic_capture(root / "lotC", "jute", size=64, seed=7)
+    (root / "lotC" / "jute").rename(root / "lotC" / "broken")
+    image = root / "lotC" / "broken" / "led_03.png"
+    image.write_bytes(image.read_bytes()[:100])
+    return root
+
+
+def _fresh(tree, tmp_path):
+    """A private copy of the tree (runs write nothing into it, but tests that break things need their own)."""
+    return shutil.copytree(tree, tmp_path / "captures")
+
+
+class TestReconstructDataset:
+    def test_statuses_and_summary_files(self, tree, tmp_path):
+        summary = reconstruct_dataset(tree, tmp_path / "out", batch_size=4)
+        statuses = {row["sample"]: row["status"] for row in summary["samples"]}
+        assert statuses == {**{name: "done" for name in GOOD}, "lotC/broken": "failed"}
+        assert summary["counts"] == {"done": 3, "skipped": 0, "failed": 1}
+        broken = next(row for row in summary["samples"] if row["sample"] == "lotC/broken")
+        assert "led_03.png" in broken["error"]
+        assert not (tmp_path / "out" / "lotC" / "broken").exists()
+        on_disk = json.loads((tmp_path / "out" / "summary.json").read_text())
+        assert on_disk["samples"] == json.loads(json.dumps(summary["samples"]))
+        csv_lines = (tmp_path / "out" / "summary.csv").read_text().splitlines()
+        assert csv_lines[0].split(",") == list(batch.SUMMARY_FIELDS)
+        assert [line.split(",")[0] for line in csv_lines[1:]] == ALL
+        for row in summary["samples"]:
+            if row["status"] == "done":
+                # synthetic fabrics under the near LEDs, solved as distant: a few degrees, not tens
+                assert 0.5 < row["mean_angular_error_deg"] < 8.0
+                assert row["time_s"] >= row["decode_s"] + row["write_s"]
+                assert row["batch_size"] == (2 if row["sample"].startswith("lotA") else 1)
+
+    def test_outputs_equal_single_sample_reconstruction(self, tree, tmp_path):
+        reconstruct_dataset(tree, tmp_path / "out", batch_size=8)
+        for name in GOOD:
+            expected = reconstruct(load_sample(tree / name))
+            depth = np.load(tmp_path / "out" / name / "depth.npy")
+            inside = expected.mask[0, 0].numpy()
+            np.testing.assert_allclose(depth[inside], expected.depth[0, 0].numpy()[inside], atol=1e-5)
+            assert np.isnan(depth[~inside]).all()
+            files = json.loads((tmp_path / "out" / name / "outputs.json").read_text())["files"]
+            assert set(files) == {"albedo.png", "normals.png", "depth.npy", "depth.png", "depth.json", "points.ply"}
+
+    def test_workers_give_the_same_outputs(self, tree, tmp_path):
+        reconstruct_dataset(tree, tmp_path / "serial", batch_size=3, workers=0)
+        summary = reconstruct_dataset(tree, tmp_path / "workers", batch_size=3, workers=2)
+        assert summary["counts"] == {"done": 3, "skipped": 0, "failed": 1}
+        for name in GOOD:
+            np.testing.assert_array_equal(np.load(tmp_path / "serial" / name / "depth.npy"),
+                                          np.load(tmp_path / "workers" / name / "depth.npy"))
+
+    def test_card_decoded_once_per_calibration(self, tree, tmp_path, monkeypatch):
+        decoded = []
+        read_capture = psmini.io.read_capture
+
+        def counting(folder):
+            capture = read_capture(folder)
+            decoded.append((capture.kind, str(folder)))
+            return capture
+
+        monkeypatch.setattr(psmini.io, "read_capture", counting)
+        reconstruct_dataset(tree, tmp_path / "out", batch_size=2)
+        cards = sorted(path for kind, path in decoded if kind == "flatfield")
+        assert [p.rsplit("/", 2)[-2] for p in cards] == ["lotA", "lotB"]
+
+    def test_resume_skips_finished_samples(self, tree, tmp_path):
+        first = reconstruct_dataset(tree, tmp_path / "out")
+        stamps = {name: (tmp_path / "out" / name / "outputs.json").stat().st_mtime_ns for name in GOOD}
+        second = reconstruct_dataset(tree, tmp_path / "out")
+        assert second["counts"] == {"done": 0, "skipped": 3, "failed": 1}
+        assert stamps == {name: (tmp_path / "out" / name / "outputs.json").stat().st_mtime_ns for name in GOOD}
+        # the skipped rows keep the errors the first run measured
+        before = {r["sample"]: r["mean_angular_error_deg"] for r in first["samples"]}
+        after = {r["sample"]: r["mean_angular_error_deg"] for r in second["samples"]}
+        assert before == after
+
+    def test_run_killed_half_way_then_restarted_writes_each_sample_once(self, tree, tmp_path, monkeypatch):
+        written = []
+        write = batch._write
+
+        def dying_after_one(out_dir, *args):
+            if len(written) == 1:
+                # the kill lands while the second sample is being written: its temporary folder is left behind
+                (out_dir.parent / f".{out_dir.name}.tmp-0123abcd").mkdir(parents=True)
+                raise KeyboardInterrupt
+            write(out_dir, *args)
+            written.append(out_dir.name)
+
+        monkeypatch.setattr(batch, "_write", dying_after_one)
+        with pytest.raises(KeyboardInterrupt):
+            reconstruct_dataset(tree, tmp_path / "out", batch_size=1)
+        assert written == ["jute"]
+
+        def counting(out_dir, *args):
+            write(out_dir, *args)
+            written.append(out_dir.name)
+
+        monkeypatch.setattr(batch, "_write", counting)
+        summary = reconstruct_dataset(tree, tmp_path / "out", batch_size=1)
+        assert sorted(written) == ["cotton", "jute", "twill"]  # every good sample written exactly once
+        assert {r["sample"]: r["status"] for r in summary["samples"]} == {
+            "lotA/jute": "skipped", "lotA/twill": "done", "lotB/cotton": "done", "lotC/broken": "failed"}
+        hidden = [p for p in (tmp_path / "out").rglob(".*")]
+        assert hidden == []  # the killed run's temporary folder was cleared
+        for name in GOOD:
+            assert np.isfinite(np.load(tmp_path / "out" / name / "depth.npy")).any()
+
+    def test_selected_outputs_only(self, tree, tmp_path):
+        reconstruct_dataset(tree, tmp_path / "out", outputs="depth,normals")
+        folder = tmp_path / "out" / "lotB" / "cotton"
+        assert {p.name for p in folder.iterdir()} == {"normals.png", "depth.npy", "depth.png", "depth.json",
+                                                      "outputs.json"}
+        meta = json.loads((folder / "outputs.json").read_text())
+        assert meta["files"] == ["normals.png", "depth.npy", "depth.png", "depth.json"]
+        assert meta["metadata"]["batch"]["status"] == "done"
+
+    def test_sample_whose_card_is_missing_fails_alone(self, tree, tmp_path):
+        root = _fresh(tree, tmp_path)
+        shutil.rmtree(root / "lotB" / "card")
+        summary = reconstruct_dataset(root, tmp_path / "out")
+        statuses = {row["sample"]: row["status"] for row in summary["samples"]}
+        assert statuses["lotB/cotton"] == "failed" and statuses["lotA/jute"] == "done"
+
+    def test_errors(self, tree, tmp_path):
+        with pytest.raises(InputError, match="does not exist"):
+            reconstruct_dataset(tmp_path / "missing", tmp_path / "out")
+        (tmp_path / "empty").mkdir()
+        with pytest.raises(InputError, match="no sample folders"):
+            reconstruct_dataset(tmp_path / "empty", tmp_path / "out")
+        with pytest.raises(InputError, match="subset of normals,albedo,depth,ply"):
+            reconstruct_dataset(tree, tmp_path / "out", outputs="normals,mesh")
+        with pytest.raises(InputError, match="batch_size"):
+            reconstruct_dataset(tree, tmp_path / "out", batch_size=0)
+        with pytest.raises(InputError, match="workers"):
+            reconstruct_dataset(tree, tmp_path / "out", workers=-1)
+        with pytest.raises(InputError, match="light_model"):
+            reconstruct_dataset(tree, tmp_path / "out", light_model="far")
+        assert not (tmp_path / "out").exists()
+
+
+class TestIterReconstructions:
+    def test_yields_each_readable_sample(self, tree):
+        results = dict(iter_reconstructions(tree, batch_size=4))
+        assert sorted(results) == GOOD
+        expected = reconstruct(load_sample(tree / "lotA" / "twill"))
+        torch.testing.assert_close(results["lotA/twill"].normals, expected.normals, atol=1e-5, rtol=1e-5)
+        assert results["lotA/twill"].depth.shape == (1, 1, 64, 64)
+
+    def test_near_light_model(self, tree):
+        results = dict(iter_reconstructions(tree / "lotB", light_model="near"))
+        expected = reconstruct(load_sample(tree / "lotB" / "cotton"), light_model="near")
+        torch.testing.assert_close(results["cotton"].depth, expected.depth, atol=1e-4, rtol=1e-4)
+
+    def test_errors(self, tmp_path):
+        with pytest.raises(InputError, match="does not exist"):
+            next(iter_reconstructions(tmp_path / "missing"))
+
+
+def test_parse_outputs():
+    assert parse_outputs(None) == ("normals", "albedo", "depth", "ply")
+    assert parse_outputs(["ply", "albedo"]) == ("albedo", "ply")
+    for bad in ("", "depth,mesh", ","):
+        with pytest.raises(InputError):
+            parse_outputs(bad)
+
+
+class TestCommand:
+    def test_batch_then_resume(self, tree, tmp_path, capsys):
+        out = tmp_path / "out"
+        assert main(["batch", str(tree), "--out", str(out), "--workers", "0", "--no-progress", "--json"]) == 1
+        report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert report["counts"] == {"done": 3, "skipped": 0, "failed": 1}
+        assert main(["batch", str(tree / "lotA"), "--out", str(out / "lotA"), "--workers", "0", "--json"]) == 0
+        captured = capsys.readouterr()
+        assert json.loads(captured.out.strip().splitlines()[-1])["counts"] == {"done": 0, "skipped": 2, "failed": 0}
+        assert "2sample" in captured.err.replace(" ", "")  # the progress bar (on stderr)
+
+    def test_error_paths(self, tree, tmp_path, capsys):
+        assert main(["batch", str(tmp_path / "missing"), "--out", str(tmp_path / "out")]) == 1
+        assert "does not exist" in capsys.readouterr().err
+        (tmp_path / "empty").mkdir()
+        assert main(["batch", str(tmp_path / "empty"), "--out", str(tmp_path / "out")]) == 1
+        assert "no sample folders" in capsys.readouterr().err
+        assert main(["batch", str(tree), "--out", str(tmp_path / "out"), "--outputs", "depth,mesh"]) == 1
+        assert "normals,albedo,depth,ply" in capsys.readouterr().err
+        assert not (tmp_path / "out").exists()
