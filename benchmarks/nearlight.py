@@ -69,8 +69,9 @@ def evaluate_case(fabric, config, offset_mm, calibrated, card, device) -> dict[s
     truth_normals, truth_depth = capture.normals[None], capture.depth_mm[None]
     pitch = config.pixel_pitch_mm
     runs = {
-        "far_raw": lambda: PhotometricStereo(capture.lights, pixel_pitch_mm=pitch, saturation_level=1.0)(images, dark=dark),
-        "far_flatfield": lambda: PhotometricStereo(capture.lights, pixel_pitch_mm=pitch, saturation_level=1.0)(
+        "far_raw": lambda: PhotometricStereo(capture.lights, pixel_pitch_mm=pitch, saturation_level=1.0,
+                                             solver="distant")(images, dark=dark),
+        "far_flatfield": lambda: PhotometricStereo(capture.lights, pixel_pitch_mm=pitch, saturation_level=1.0, solver="distant")(
             images, card.images[None], dark, card.dark[None], card_albedo=CARD_ALBEDO),
         "near_true": lambda: near_light_photometric_stereo(
             images, capture.lights, pitch, reference=card.images[None], dark=dark, reference_dark=card.dark[None],

@@ -80,7 +80,7 @@ def measure(name: str, size: int, seed: int) -> dict[str, float]:
     # 3. the rig: near LEDs, flat-fielded by the card, cloth on the card and 1 mm above it
     leds = rig_lights(rig)
     card = render_card(rig, CARD_ALBEDO, seed + 1)
-    near = PhotometricStereo(leds, pixel_pitch_mm=rig.pixel_pitch_mm, saturation_level=1.0)
+    near = PhotometricStereo(leds, pixel_pitch_mm=rig.pixel_pitch_mm, saturation_level=1.0, solver="distant")
     capture = render_capture(fabric, rig, seed)
     def solve():
         return near(capture.images[None], reference=card.images[None], dark=capture.dark[None],

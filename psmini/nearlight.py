@@ -46,7 +46,6 @@ __all__ = [
     "estimate_height_offset",
     "NearLightResult",
     "near_light_photometric_stereo",
-    "NearLightPhotometricStereo",
     "refine_depth",
 ]
 
@@ -305,6 +304,7 @@ def near_light_photometric_stereo(
     estimate_offset: bool = True,
     mask: Tensor | None = None,
     saturation_level: float | None = None,
+    min_reference: float = 0.02,
     integrator: str = "masked",
     max_iterations: int = 10,
     tolerance_mm: float = 1e-3,
@@ -331,6 +331,7 @@ def near_light_photometric_stereo(
             ``initial_depth``.
         mask: pixels to solve, :math:`(B, 1, H, W)`.
         saturation_level: raw level of saturation, or ``None``.
+        min_reference: see :func:`psmini.flatfield.flatfield`.
         integrator: method of :func:`psmini.integrate.integrate`. The default, least squares on the solved pixels
             (``"masked"``), keeps pixels left unsolved (lit by fewer than three LEDs: deep crevices of knits) from
             pulling the whole surface, as a solve on the full rectangle (``"fc"``) would; their depth is the
@@ -361,7 +362,7 @@ def near_light_photometric_stereo(
     if max_iterations < 1 or not tolerance_mm > 0:
         raise InputError(f"max_iterations must be >= 1 and tolerance_mm > 0, got {max_iterations}, {tolerance_mm}")
     mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
-    flat = flatfield(images, reference, dark, reference_dark, card_albedo, saturation_level=saturation_level)
+    flat = flatfield(images, reference, dark, reference_dark, card_albedo, min_reference, saturation_level)
     card_height = card_height_mm if reference is not None else None
     depth = _initial_depth(initial_depth, images, sizes)
     fixed_mean = depth.mean(dim=(2, 3), keepdim=True)
@@ -401,34 +402,6 @@ def _initial_depth(initial: Tensor | float, images: Tensor, sizes: dict[str, int
     if not math.isfinite(float(initial)):
         raise InputError(f"initial_depth must be finite, got {initial}")
     return torch.full(shape, float(initial), device=images.device, dtype=images.dtype)
-
-
-class NearLightPhotometricStereo(nn.Module):
-    """Near-light photometric stereo with a stored light model; see :func:`near_light_photometric_stereo`.
-
-    The light model's parameters stay registered (and learnable) in the module.
-
-    Example:
-        >>> from psmini.lights import LEDLights, ring_lights
-        >>> ring = ring_lights(8, 58.0)
-        >>> module = NearLightPhotometricStereo(LEDLights(ring * 18.6, -ring), pixel_pitch_mm=0.025, max_iterations=1)
-        >>> module(torch.rand(1, 8, 8, 8) + 0.5).normals.shape
-        torch.Size([1, 3, 8, 8])
-    """
-
-    def __init__(self, light_model: nn.Module, pixel_pitch_mm: float = 0.025, **options) -> None:
-        super().__init__()
-        self.light_model = _check_light_model(light_model)
-        self.pixel_pitch_mm, self.options = pixel_pitch_mm, options
-
-    def forward(self, images: Tensor, reference: Tensor | None = None, dark: Tensor | None = None,
-                reference_dark: Tensor | None = None, mask: Tensor | None = None,
-                card_albedo: float = 1.0) -> NearLightResult:
-        """Reconstruct ``images`` :math:`(B, K, H, W)`."""
-        return near_light_photometric_stereo(
-            images, self.light_model, self.pixel_pitch_mm, reference=reference, dark=dark,
-            reference_dark=reference_dark, mask=mask, card_albedo=card_albedo, **self.options,
-        )
 
 
 def _normals_from_depth(depth: Tensor, pitch: float) -> Tensor:

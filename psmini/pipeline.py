@@ -65,37 +65,67 @@ def _as_light_model(lights: nn.Module | Tensor) -> nn.Module:
     return lights
 
 
+_SOLVERS = ("auto", "distant", "near")
+
+
 class PhotometricStereo(nn.Module):
-    """Flat-field, normals and depth in one differentiable module.
+    """Flat-field, normals and depth in one differentiable module, for distant lights or near LEDs.
+
+    With ``solver="distant"`` the lights are used as seen from the field centre (:func:`distant_light_matrix`):
+    flat-field, least squares, integration, the classical pipeline. With ``solver="near"`` the point or LED model is
+    evaluated on the surface itself (:func:`psmini.nearlight.near_light_photometric_stereo`). ``"auto"`` picks
+    ``"near"`` for models with positions (:class:`~psmini.lights.PointLights`, :class:`~psmini.lights.LEDLights`)
+    and ``"distant"`` otherwise.
 
     Args:
         lights: a light model of :mod:`psmini.lights`, or a :math:`(K, 3)` tensor of directions scaled by
             intensity.
-        integrator: integration method of :func:`psmini.integrate.integrate` (``"fc"``: Frankot–Chellappa).
-        pixel_pitch_mm: size of one pixel on the cloth, mm; ``None`` integrates in pixel units.
+        integrator: integration method of :func:`psmini.integrate.integrate`; ``None``: ``"fc"``
+            (Frankot–Chellappa) for distant lights, ``"masked"`` for near ones.
+        pixel_pitch_mm: size of one pixel on the cloth, mm; ``None`` integrates in pixel units (distant only).
         min_reference: see :func:`psmini.flatfield.flatfield`.
         saturation_level: raw level at which an observation counts as saturated and is dropped; ``None`` keeps all.
+        solver: ``"auto"``, ``"distant"`` or ``"near"``.
+        **near_options: passed to :func:`~psmini.nearlight.near_light_photometric_stereo` (e.g. ``card_height_mm``,
+            ``estimate_offset``, ``max_iterations``).
+
+    Raises:
+        InputError: for an unknown solver, or ``"near"`` without light positions or pixel pitch.
 
     Example:
-        >>> from psmini.lights import ring_lights
+        >>> from psmini.lights import LEDLights, ring_lights
         >>> ps = PhotometricStereo(ring_lights(8, 55.0), pixel_pitch_mm=0.025)
-        >>> result = ps(torch.rand(2, 8, 32, 32))
-        >>> result.depth.shape
+        >>> ps(torch.rand(2, 8, 32, 32)).depth.shape
         torch.Size([2, 1, 32, 32])
+        >>> ring = ring_lights(8, 58.0)
+        >>> PhotometricStereo(LEDLights(ring * 18.6, -ring)).solver                 # LEDs: near light
+        'near'
     """
 
     def __init__(
         self,
         lights: nn.Module | Tensor,
-        integrator: str = "fc",
+        integrator: str | None = None,
         pixel_pitch_mm: float | None = 0.025,
         min_reference: float = 0.02,
         saturation_level: float | None = None,
+        solver: str = "auto",
+        **near_options,
     ) -> None:
         super().__init__()
+        if solver not in _SOLVERS:
+            raise InputError(f"solver must be one of {', '.join(_SOLVERS)}, got {solver!r}")
         self.lights = _as_light_model(lights)
-        self.integrator, self.pixel_pitch_mm = integrator, pixel_pitch_mm
-        self.min_reference, self.saturation_level = min_reference, saturation_level
+        has_positions = hasattr(self.lights, "positions_mm")
+        self.solver = ("near" if has_positions else "distant") if solver == "auto" else solver
+        if self.solver == "near" and (not has_positions or pixel_pitch_mm is None):
+            raise InputError(
+                f"the near-light solver needs a point or LED model and a pixel pitch; got {type(self.lights).__name__} "
+                f"and pixel_pitch_mm={pixel_pitch_mm}"
+            )
+        self.integrator = integrator or ("masked" if self.solver == "near" else "fc")
+        self.pixel_pitch_mm, self.min_reference, self.saturation_level = pixel_pitch_mm, min_reference, saturation_level
+        self.near_options = near_options
 
     def forward(
         self,
@@ -107,6 +137,13 @@ class PhotometricStereo(nn.Module):
         card_albedo: float = 1.0,
     ) -> Reconstruction:
         """Reconstruct ``images`` :math:`(B, K, H, W)`; see :func:`psmini.flatfield.flatfield` for the rest."""
+        if self.solver == "near":
+            return near_light_photometric_stereo(
+                images, self.lights, self.pixel_pitch_mm, reference=reference, dark=dark,
+                reference_dark=reference_dark, card_albedo=card_albedo, mask=mask,
+                saturation_level=self.saturation_level, min_reference=self.min_reference,
+                integrator=self.integrator, **self.near_options,
+            )
         sizes = check_shape(images, ["B", "K", "H", "W"], "images")
         mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
         flat = flatfield(
@@ -138,9 +175,9 @@ def reconstruct(
         dtype: floating dtype of the computation.
         integrator: integration method; ``None`` takes the model's default (``"fc"`` for distant lights,
             ``"masked"`` for near lights).
-        light_model: ``"distant"``: the classical pipeline (:class:`PhotometricStereo`, lights seen from the field
-            centre); ``"near"``: near-light photometric stereo with the sample's point or LED model
-            (:func:`psmini.nearlight.near_light_photometric_stereo`; needs a pixel pitch).
+        light_model: the :class:`PhotometricStereo` solver: ``"distant"`` (the classical pipeline, lights seen
+            from the field centre), ``"near"`` (near-light photometric stereo with the sample's point or LED model;
+            needs a pixel pitch) or ``"auto"`` (near for point and LED models).
         min_reference: see :func:`psmini.flatfield.flatfield`.
 
     Returns:
@@ -150,7 +187,6 @@ def reconstruct(
         InputError: for an unknown ``light_model``, or ``"near"`` without positions or pixel pitch.
 
     Example:
-        >>> import dataclasses
         >>> from psmini.io import Sample
         >>> from psmini.lights import DirectionalLights, ring_lights
         >>> sample = Sample(name="random", images=torch.rand(8, 16, 16) + 0.1, lights=DirectionalLights(ring_lights(8, 55.0)))
@@ -158,31 +194,18 @@ def reconstruct(
         torch.Size([1, 3, 16, 16])
     """
     check_tensor(sample.images, "sample.images")
-    if light_model not in ("distant", "near"):
-        raise InputError(f"light_model must be 'distant' or 'near', got {light_model!r}")
 
     def batch(x: Tensor | None) -> Tensor | None:
         return None if x is None else x.to(device=device, dtype=dtype).unsqueeze(0)
 
-    lights = sample.lights.to(device=device, dtype=dtype)
     mask = None if sample.mask is None else sample.mask.to(device).unsqueeze(0)
-    if light_model == "near":
-        if not hasattr(lights, "positions_mm") or sample.pixel_pitch_mm is None:
-            raise InputError(
-                f"--light-model near needs LED or point-light positions and a pixel pitch; {sample.name} has "
-                f"{type(lights).__name__} lights and pixel pitch {sample.pixel_pitch_mm}"
-            )
-        return near_light_photometric_stereo(
-            batch(sample.images), lights, sample.pixel_pitch_mm, reference=batch(sample.reference),
-            dark=batch(sample.dark), reference_dark=batch(sample.reference_dark), card_albedo=sample.card_albedo or 1.0,
-            mask=mask, saturation_level=sample.saturation_level, integrator=integrator or "masked",
-        )
     model = PhotometricStereo(
-        lights,
-        integrator=integrator or "fc",
+        sample.lights.to(device=device, dtype=dtype),
+        integrator=integrator,
         pixel_pitch_mm=sample.pixel_pitch_mm,
         min_reference=min_reference,
         saturation_level=sample.saturation_level,
+        solver=light_model,
     )
     return model(
         batch(sample.images),

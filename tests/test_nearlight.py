@@ -6,7 +6,6 @@ import torch
 from psmini import InputError, LEDLights, PointLights, ShapeError, ring_lights
 from psmini.geometry import depth_to_points
 from psmini.nearlight import (
-    NearLightPhotometricStereo,
     estimate_height_offset,
     near_light_photometric_stereo,
     near_light_vectors,
@@ -15,6 +14,7 @@ from psmini.nearlight import (
 )
 from psmini.metrics import angular_error_deg
 from psmini.normals import albedo_normals
+from psmini.pipeline import PhotometricStereo
 from psmini.render import normals_from_height, render
 from tests.conftest import BaseTester
 
@@ -121,10 +121,8 @@ class TestNearLightPhotometricStereo(BaseTester):
 
     def test_distant_assumption_is_much_worse(self):
         """The reason the module exists: least squares with the lights seen from the centre errs by degrees."""
-        from psmini.pipeline import PhotometricStereo
-
         leds, height, normals, images, card = _capture(offset_mm=1.0)
-        far = PhotometricStereo(leds, pixel_pitch_mm=PITCH)(images, card, card_albedo=0.8)
+        far = PhotometricStereo(leds, pixel_pitch_mm=PITCH, solver="distant")(images, card, card_albedo=0.8)
         near = near_light_photometric_stereo(images, leds, PITCH, reference=card, card_albedo=0.8)
         far_error = float(angular_error_deg(far.normals, normals).mean())
         near_error = float(angular_error_deg(near.normals, normals).mean())
@@ -132,11 +130,9 @@ class TestNearLightPhotometricStereo(BaseTester):
 
     def test_raw_images_without_card(self):
         """Without a card the height is weakly observable (inverse-square variation only): tens of µm, 0.1°."""
-        from psmini.pipeline import PhotometricStereo
-
         leds, height, normals, images, _ = _capture(offset_mm=0.3, dtype=torch.float64)
         result = near_light_photometric_stereo(images * 0.7, leds, PITCH)  # unknown camera gain
-        far = PhotometricStereo(leds, pixel_pitch_mm=PITCH)(images * 0.7)
+        far = PhotometricStereo(leds, pixel_pitch_mm=PITCH, solver="distant")(images * 0.7)
         near_error = float(angular_error_deg(result.normals, normals)[..., 2:-2, 2:-2].mean())
         assert near_error < 0.2
         assert float(angular_error_deg(far.normals, normals).mean()) > 20 * near_error
@@ -150,7 +146,7 @@ class TestNearLightPhotometricStereo(BaseTester):
 
     def test_module_equals_functional(self):
         leds, _, _, images, card = _capture(size=24)
-        module = NearLightPhotometricStereo(leds, pixel_pitch_mm=PITCH, max_iterations=2)
+        module = PhotometricStereo(leds, pixel_pitch_mm=PITCH, max_iterations=2)  # LEDs: the near solver
         a = module(images, card, card_albedo=0.8)
         b = near_light_photometric_stereo(images, leds, PITCH, reference=card, card_albedo=0.8, max_iterations=2)
         self.assert_close(a.normals, b.normals)

@@ -87,6 +87,18 @@ class TestPhotometricStereo(BaseTester):
         with pytest.raises(InputError, match="light model"):
             PhotometricStereo("ring")
 
+    def test_solver_choice(self):
+        ring = ring_lights(8, 58.0)
+        leds = LEDLights(ring * 18.6, -ring)
+        assert PhotometricStereo(leds).solver == "near" and PhotometricStereo(ring).solver == "distant"
+        assert PhotometricStereo(leds, solver="distant").solver == "distant"
+        with pytest.raises(InputError, match="solver must be"):
+            PhotometricStereo(leds, solver="far")
+        with pytest.raises(InputError, match="point or LED model"):
+            PhotometricStereo(ring, solver="near")
+        with pytest.raises(InputError, match="pixel pitch"):
+            PhotometricStereo(leds, pixel_pitch_mm=None)
+
     def test_light_below_card_raise(self):
         lights = DirectionalLights(torch.tensor([[0.5, 0, 0.8], [-0.5, 0, 0.8], [0, 0.5, -0.8]]))
         with pytest.raises(InputError, match="above the card"):
