@@ -31,6 +31,8 @@ from psmini.focus import (FOCUS_MEASURES, FocusMeasure, brenner, focus_measure, 
 from psmini.geometry import depth_to_points, pixel_grid_mm, point_cloud
 from psmini.lights import DirectionalLights, LEDLights, PointLights, as_batched_lights, check_spans_3d, ring_lights
 from psmini.metrics import angular_error_deg, depth_error, mean_angular_error, median_angular_error
+from psmini.nearlight import (NearLightResult, estimate_height_offset, near_light_photometric_stereo, near_light_vectors,
+                              refine_depth, robust_near_light_normals)
 from psmini.normals import LeastSquaresNormals, albedo_normals, normals_to_gradients
 from psmini.pipeline import PhotometricStereo, Reconstruction, distant_light_matrix, reconstruct
 # psmini.render is the function once the package is imported; reach the module by `from psmini.render import ...`
@@ -80,6 +82,13 @@ __all__ = [
     "depth_error",
     "evaluate_sample",
     "score_reconstruction",
+    # near light
+    "near_light_photometric_stereo",
+    "near_light_vectors",
+    "robust_near_light_normals",
+    "estimate_height_offset",
+    "refine_depth",
+    "NearLightResult",
     # pipeline
     "PhotometricStereo",
     "Reconstruction",
