@@ -34,6 +34,8 @@ from psmini.metrics import angular_error_deg, depth_error, mean_angular_error, m
 from psmini.nearlight import (NearLightResult, estimate_height_offset, near_light_photometric_stereo, near_light_vectors,
                               refine_depth, robust_near_light_normals)
 from psmini.normals import LeastSquaresNormals, albedo_normals, normals_to_gradients
+from psmini.robust import (RECOMMENDED_ROBUST_METHOD, ROBUST_METHODS, RobustNormals, rank_trim_weights,
+                           robust_normals, threshold_weights)
 from psmini.pipeline import PhotometricStereo, Reconstruction, distant_light_matrix, reconstruct
 # psmini.render is the function once the package is imported; reach the module by `from psmini.render import ...`
 from psmini.render import Renderer, cast_shadows, normals_from_height, render, render_lambertian
@@ -71,6 +73,13 @@ __all__ = [
     "albedo_normals",
     "LeastSquaresNormals",
     "normals_to_gradients",
+    # robust normals
+    "robust_normals",
+    "RobustNormals",
+    "rank_trim_weights",
+    "threshold_weights",
+    "ROBUST_METHODS",
+    "RECOMMENDED_ROBUST_METHOD",
     # geometry
     "pixel_grid_mm",
     "depth_to_points",

@@ -1,0 +1,360 @@
+r"""Robust Lambertian normals: rank trimming, thresholds, M-estimators by IRLS and L1, batched on tensors.
+
+Least squares (:func:`psmini.normals.albedo_normals`) lets every observation pull the normal: attached and cast
+shadows (the reading is 0 where :math:`l_k \cdot n < 0` or a facet hides the light) and specular glints pull it
+off. The estimators here down-weight such observations per pixel and solve the weighted normal equations
+:math:`(L^T W L) m = L^T W I` for :math:`m = \rho n`:
+
+- ``"trimmed"``: drop each pixel's darkest and brightest fractions of observations (ranks by ``torch.sort``), in the
+  manner of the shadow/highlight rejection of Barsky & Petrou (TPAMI 2003) and the order-statistics selection of
+  Miyazaki et al. (ACCV 2010), then least squares on the rest.
+- ``"threshold"``: drop observations darker than a fraction of the pixel's brightest one, and saturated ones.
+- ``"huber"``, ``"cauchy"``, ``"tukey"``: iteratively reweighted least squares (Holland & Welsch, 1977) with the
+  M-estimator's weight :math:`w(u) = \psi(u)/u` of the residual :math:`u = r / (c\,s)`, where :math:`s` is the pixel's
+  robust residual scale :math:`1.4826\,\mathrm{median}_k |r_k|` (MAD) and :math:`c` the usual 95%-efficiency
+  constant (1.345, 2.385, 4.685).
+- ``"l1"``: least absolute residuals :math:`\min_m \sum_k |I_k - l_k \cdot m|` (Wu et al., ACCV 2010, solve it
+  as a sparse-error problem) by IRLS with weights :math:`1 / \max(|r_k|, \varepsilon)`; :math:`\varepsilon` =
+  ``l1_epsilon`` times the pixel's mean reading smooths the kink at 0 (the fixed point minimises the Huber-like
+  smoothed L1 cost, within :math:`\varepsilon` of the L1 minimiser).
+
+The IRLS estimators first drop shadowed readings (below ``shadow``, 5% of the pixel's brightest by default): an
+attached shadow reads 0 whatever :math:`l_k \cdot n < 0` is, so it carries no linear information and, being a
+large share of the observations on a curved object, it would bias the residual scale itself. Each then starts
+from least squares on the remaining readings and runs a fixed number of iterations, so it is differentiable
+(almost everywhere: the median and the ranks are piecewise smooth). Pixels are solved as columns of GEMMs: with
+distant lights :math:`L` the per-pixel Gram matrices are one product of the weights with the six products of light
+components, and the 3×3 systems are solved in closed form. No per-pixel Python loop.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from psmini._checks import check_finite, check_mask, check_shape
+from psmini.errors import InputError, ShapeError
+from psmini.lights import as_batched_lights, check_spans_3d
+from psmini.normals import _RANK_RATIO, _check_weights, _unit_and_length
+
+__all__ = [
+    "ROBUST_METHODS",
+    "RECOMMENDED_ROBUST_METHOD",
+    "RobustNormals",
+    "rank_trim_weights",
+    "robust_normals",
+    "threshold_weights",
+]
+
+# M-estimator constants giving 95% efficiency under Gaussian noise (Holland & Welsch 1977).
+_TUNING = {"huber": 1.345, "cauchy": 2.385, "tukey": 4.685}
+ROBUST_METHODS = ("trimmed", "threshold", "huber", "cauchy", "tukey", "l1")
+# Chosen on DiLiGenT ball and cat by benchmarks/robust_diligent.py with the default parameters (no per-object tuning).
+RECOMMENDED_ROBUST_METHOD = "tukey"
+_MAD_TO_SIGMA = 1.4826  # MAD of a unit Gaussian is 1 / 1.4826
+
+
+def rank_trim_weights(intensities: Tensor, low: float = 0.25, high: float = 0.10, weights: Tensor | None = None) -> Tensor:
+    r"""Keep, per pixel, the observations between the darkest ``low`` and the brightest ``high`` fractions.
+
+    With :math:`n` usable observations at a pixel (all, or those with positive ``weights``), the
+    :math:`\lfloor \text{low}\, n \rfloor` darkest and :math:`\lfloor \text{high}\, n \rfloor` brightest are dropped;
+    ties are broken by light index. Ranks come from one ``torch.sort`` along K.
+
+    Args:
+        intensities: readings, shape :math:`(B, K, H, W)`.
+        low: fraction of darkest observations dropped (shadows), in [0, 1).
+        high: fraction of brightest observations dropped (highlights), in [0, 1); ``low + high < 1``.
+        weights: optional usable observations :math:`(B, K, H, W)` (bool or non-negative); the others are dropped
+            and not counted.
+
+    Returns:
+        kept observations, bool :math:`(B, K, H, W)`.
+
+    Raises:
+        ShapeError: when ``intensities`` is not 4-D or ``weights`` does not match it.
+        InputError: for fractions outside [0, 1) or summing to 1 or more.
+
+    Example:
+        >>> images = torch.arange(10.0).view(1, 10, 1, 1)
+        >>> rank_trim_weights(images, 0.2, 0.1)[0, :, 0, 0].tolist()
+        [False, False, True, True, True, True, True, True, True, False]
+    """
+    check_shape(intensities, ["B", "K", "H", "W"], "intensities")
+    _check_fractions(low, high)
+    usable = None if weights is None else _check_weights(weights, intensities.shape) > 0
+    return _trim_keep(intensities, low, high, usable, dim=1)
+
+
+def _trim_keep(values: Tensor, low: float, high: float, usable: Tensor | None, dim: int) -> Tensor:
+    """Rank trimming along ``dim`` (the observations); see :func:`rank_trim_weights`."""
+    values = values.detach()
+    if usable is not None:
+        values = values.masked_fill(~usable, float("inf"))  # unusable observations rank last, beyond n
+    order = values.argsort(dim=dim, stable=True)
+    shape = [1] * values.ndim
+    shape[dim] = values.shape[dim]
+    positions = torch.arange(values.shape[dim], device=values.device).view(shape).expand_as(order)
+    ranks = torch.empty_like(order).scatter_(dim, order, positions)
+    count = (torch.full_like(ranks.narrow(dim, 0, 1), values.shape[dim]) if usable is None
+             else usable.sum(dim, keepdim=True))
+    # floor(fraction * n) in float64: exact for the fractions a user types
+    drop_low = torch.floor(count.to(torch.float64) * low).long()
+    drop_high = torch.floor(count.to(torch.float64) * high).long()
+    return (ranks >= drop_low) & (ranks < count - drop_high)
+
+
+def threshold_weights(
+    intensities: Tensor, shadow: float = 0.05, saturation: float | None = None, weights: Tensor | None = None
+) -> Tensor:
+    r"""Drop shadowed observations (below ``shadow`` times the pixel's brightest) and saturated ones.
+
+    The shadow threshold is relative to each pixel's brightest usable reading, so it does not depend on albedo or
+    exposure.
+
+    Args:
+        intensities: readings, shape :math:`(B, K, H, W)`.
+        shadow: fraction of the pixel's brightest reading below which an observation counts as shadow, in [0, 1).
+        saturation: readings at or above this level count as saturated; ``None`` keeps all.
+        weights: optional usable observations :math:`(B, K, H, W)`; the others are dropped.
+
+    Returns:
+        kept observations, bool :math:`(B, K, H, W)`.
+
+    Raises:
+        ShapeError: when ``intensities`` is not 4-D or ``weights`` does not match it.
+        InputError: for ``shadow`` outside [0, 1) or a non-positive ``saturation``.
+
+    Example:
+        >>> images = torch.tensor([0.0, 0.01, 0.5, 1.0]).view(1, 4, 1, 1)
+        >>> threshold_weights(images, 0.05, saturation=1.0)[0, :, 0, 0].tolist()
+        [False, False, True, False]
+    """
+    check_shape(intensities, ["B", "K", "H", "W"], "intensities")
+    if not 0.0 <= shadow < 1.0:
+        raise InputError(f"shadow must lie in [0, 1) (a fraction of the brightest reading), got {shadow}")
+    if saturation is not None and not saturation > 0:
+        raise InputError(f"saturation must be positive, got {saturation}")
+    usable = None if weights is None else _check_weights(weights, intensities.shape) > 0
+    return _threshold_keep(intensities, shadow, saturation, usable, dim=1)
+
+
+def _threshold_keep(values: Tensor, shadow: float, saturation: float | None, usable: Tensor | None, dim: int) -> Tensor:
+    """Shadow and saturation thresholds along ``dim`` (the observations); see :func:`threshold_weights`."""
+    values = values.detach()
+    keep = torch.ones_like(values, dtype=torch.bool) if usable is None else usable
+    if saturation is not None:
+        keep = keep & (values < saturation)
+    brightest = values.masked_fill(~keep, float("-inf")).amax(dim=dim, keepdim=True)
+    return keep & (values > shadow * brightest)
+
+
+def _check_fractions(low: float, high: float) -> None:
+    if not (0.0 <= low < 1.0 and 0.0 <= high < 1.0 and low + high < 1.0):
+        raise InputError(f"trim fractions must lie in [0, 1) and sum to less than 1, got low={low}, high={high}")
+
+
+def _solve_columns(values: Tensor, lights: Tensor, weights: Tensor | None) -> tuple[Tensor, Tensor]:
+    """Weighted least squares for pixel columns: values (K, N), lights (K, 3), weights (K, N) or None.
+
+    Returns m (3, N) and whether each system is well posed (N,), by the same determinant criterion as
+    :func:`psmini.normals.albedo_normals`.
+    """
+    i, j = (0, 0, 0, 1, 1, 2), (0, 1, 2, 1, 2, 2)
+    products = lights[:, i] * lights[:, j]  # (K, 6): the distinct entries of l l^T
+    if weights is None:
+        weights = torch.ones_like(values)
+    a, b, c, d, e, f = products.T @ weights  # (6, N)
+    r0, r1, r2 = lights.T @ (weights * values)  # (3, N)
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * c00 + b * c01 + c * c02
+    trace = a + d + f
+    tiny = torch.finfo(values.dtype).tiny
+    well_posed = det.detach() > _RANK_RATIO * (trace.detach() / 3).pow(3).clamp_min(tiny)
+    safe_det = torch.where(well_posed, det, torch.ones_like(det))
+    m = torch.stack([c00 * r0 + c01 * r1 + c02 * r2, c01 * r0 + c11 * r1 + c12 * r2, c02 * r0 + c12 * r1 + c22 * r2])
+    return torch.where(well_posed, m / safe_det, torch.zeros_like(m)), well_posed
+
+
+def _median(values: Tensor, usable: Tensor | None) -> Tensor:
+    """Median along dim 0 of (K, N), over the usable entries only (NaN-masked) when ``usable`` is given."""
+    if usable is None:
+        return values.median(dim=0).values
+    return values.masked_fill(~usable, float("nan")).nanmedian(dim=0).values
+
+
+def _irls_weights(residuals: Tensor, values: Tensor, usable: Tensor | None, method: str, tuning: float,
+                  l1_epsilon: float) -> Tensor:
+    """M-estimator weights w(r) = psi(u) / u for residuals (K, N)."""
+    size = residuals.abs()
+    if method == "l1":
+        floor = l1_epsilon * (values.abs().mean(dim=0) + torch.finfo(values.dtype).tiny)
+        return 1.0 / torch.maximum(size, floor)
+    # MAD scale, floored so an exact fit (zero residuals) gives weight 1 rather than 0 / 0
+    floor = 1e-6 * values.abs().amax(dim=0) + torch.finfo(values.dtype).tiny
+    scale = (_MAD_TO_SIGMA * _median(size, usable)).clamp_min(0) + floor
+    u = size / (tuning * scale)
+    if method == "huber":
+        return 1.0 / u.clamp_min(1.0)
+    if method == "cauchy":
+        return 1.0 / (1.0 + u.square())
+    return (1.0 - u.square()).clamp_min(0).square()  # tukey's biweight
+
+
+def _rejection(values: Tensor, base: Tensor | None, method: str, options: dict) -> Tensor:
+    """Weights (K, N) after rejecting observations: ranks for "trimmed", thresholds for the others."""
+    usable = None if base is None else base > 0
+    if method == "trimmed":
+        keep = _trim_keep(values, options["low"], options["high"], usable, dim=0)
+        if options["saturation"] is not None:
+            keep = keep & _threshold_keep(values, 0.0, options["saturation"], None, dim=0)
+    else:
+        keep = _threshold_keep(values, options["shadow"], options["saturation"], usable, dim=0)
+    return keep.to(values.dtype) if base is None else base * keep
+
+
+def _solve_one(values: Tensor, lights: Tensor, base: Tensor | None, method: str, options: dict) -> tuple[Tensor, Tensor]:
+    """Robust m (3, N) and solvability (N,) for pixel columns of one batch element."""
+    base = _rejection(values, base, method, options)
+    if method in ("trimmed", "threshold"):
+        return _solve_columns(values, lights, base)
+    usable = base > 0
+    m, solved = _solve_columns(values, lights, base)
+    for _ in range(options["iterations"]):
+        residuals = values - lights @ m
+        weights = base * _irls_weights(residuals, values, usable, method, options["tuning"], options["l1_epsilon"])
+        update, ok = _solve_columns(values, lights, weights)
+        # a pixel whose weights leave fewer than three usable lights keeps its previous estimate
+        m = torch.where(ok, update, m)
+        solved = solved | ok
+    return m, solved
+
+
+def robust_normals(
+    intensities: Tensor,
+    lights: Tensor,
+    method: str = "robust",
+    mask: Tensor | None = None,
+    weights: Tensor | None = None,
+    *,
+    low: float = 0.25,
+    high: float = 0.10,
+    shadow: float = 0.05,
+    saturation: float | None = None,
+    iterations: int = 10,
+    tuning: float | None = None,
+    l1_epsilon: float = 1e-3,
+) -> tuple[Tensor, Tensor]:
+    r"""Robust Lambertian albedo and normals per pixel; see the module docstring for the estimators.
+
+    Args:
+        intensities: flat-fielded readings, shape :math:`(B, K, H, W)`.
+        lights: light directions scaled by intensity, :math:`(K, 3)` or :math:`(B, K, 3)` (distant lights).
+        method: one of :data:`ROBUST_METHODS`, or ``"robust"`` for :data:`RECOMMENDED_ROBUST_METHOD`.
+        mask: optional pixels to solve, bool :math:`(B, 1, H, W)`; only those are computed.
+        weights: optional usable observations :math:`(B, K, H, W)` (e.g. the flat-field's ``valid``); every method
+            works on these only.
+        low: ``"trimmed"``: fraction of darkest observations dropped per pixel.
+        high: ``"trimmed"``: fraction of brightest observations dropped per pixel.
+        shadow: every method but ``"trimmed"``: readings below this fraction of the pixel's brightest are dropped
+            as shadow (0 keeps all).
+        saturation: readings at or above this level are dropped by every method; ``None`` keeps all.
+        iterations: IRLS iterations of ``"huber"``, ``"cauchy"``, ``"tukey"`` and ``"l1"`` (fixed, so the result is
+            differentiable).
+        tuning: M-estimator constant :math:`c`; ``None`` takes 1.345 (Huber), 2.385 (Cauchy) or 4.685 (Tukey).
+        l1_epsilon: ``"l1"``: smoothing :math:`\varepsilon` relative to the pixel's mean reading.
+
+    Returns:
+        albedo :math:`(B, 1, H, W)` and unit normals :math:`(B, 3, H, W)`; pixels outside the mask or with fewer than
+        three usable lights get albedo 0 and normal (0, 0, 1).
+
+    Raises:
+        InputError: for an unknown method, bad fractions or iteration count, or NaN input.
+        ShapeError: when shapes do not fit (per-pixel lights are not supported here).
+        CalibrationError: when the lights do not span 3D.
+
+    Example:
+        >>> from psmini.lights import ring_lights
+        >>> albedo, normals = robust_normals(torch.rand(1, 8, 4, 4) + 0.1, ring_lights(8, 55.0), "huber")
+        >>> normals.shape
+        torch.Size([1, 3, 4, 4])
+    """
+    method = RECOMMENDED_ROBUST_METHOD if method == "robust" else method
+    if method not in ROBUST_METHODS:
+        raise InputError(f"method must be one of {('robust',) + ROBUST_METHODS}, got {method!r}")
+    sizes = check_shape(intensities, ["B", "K", "H", "W"], "intensities")
+    check_finite(intensities, "intensities")
+    if lights.ndim not in (2, 3):
+        raise ShapeError(f"robust_normals takes distant lights (K, 3) or (B, K, 3), got {tuple(lights.shape)}")
+    check_spans_3d(lights)
+    if lights.shape[-2] != sizes["K"]:
+        raise ShapeError(f"lights have {lights.shape[-2]} rows but the intensities {sizes['K']} images")
+    lights = as_batched_lights(lights, sizes["B"], intensities)
+    mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
+    _check_fractions(low, high)
+    if int(iterations) != iterations or iterations < 0:
+        raise InputError(f"iterations must be a non-negative integer, got {iterations}")
+    if tuning is not None and not tuning > 0:
+        raise InputError(f"tuning must be positive, got {tuning}")
+    if not l1_epsilon > 0:
+        raise InputError(f"l1_epsilon must be positive, got {l1_epsilon}")
+    if not 0.0 <= shadow < 1.0:
+        raise InputError(f"shadow must lie in [0, 1) (a fraction of the brightest reading), got {shadow}")
+    if saturation is not None and not saturation > 0:
+        raise InputError(f"saturation must be positive, got {saturation}")
+    base = None if weights is None else _check_weights(weights, intensities.shape).to(intensities.dtype)
+    options = {"iterations": int(iterations), "tuning": tuning or _TUNING.get(method, 1.0), "l1_epsilon": l1_epsilon,
+               "low": low, "high": high, "shadow": shadow, "saturation": saturation}
+
+    batch_m, batch_solved = [], []
+    for b in range(sizes["B"]):  # a loop over images, not pixels: each image's masked pixels are one set of columns
+        values = intensities[b].flatten(1)
+        columns = slice(None) if mask is None else mask[b, 0].flatten().bool()
+        weights_b = None if base is None else base[b].flatten(1)[:, columns]
+        m, solved = _solve_one(values[:, columns], lights[b], weights_b, method, options)
+        if mask is None:
+            batch_m.append(m)
+            batch_solved.append(solved)
+        else:
+            batch_m.append(_scatter(m, columns, values.shape[1]))
+            batch_solved.append(_scatter(solved[None], columns, values.shape[1])[0])
+    m = torch.stack(batch_m).view(sizes["B"], 3, sizes["H"], sizes["W"])
+    solved = torch.stack(batch_solved).view(sizes["B"], 1, sizes["H"], sizes["W"])
+    return _unit_and_length(m, solved)
+
+
+def _scatter(columns_values: Tensor, columns: Tensor, total: int) -> Tensor:
+    """Put (C, N) values back at the ``columns`` (bool, length ``total``) of a zero (C, total) tensor."""
+    out = columns_values.new_zeros(columns_values.shape[0], total)
+    return out.masked_scatter(columns.unsqueeze(0).expand_as(out), columns_values)
+
+
+class RobustNormals(nn.Module):
+    """Robust albedo and normals with stored lights and options; see :func:`robust_normals`.
+
+    Args:
+        lights: scaled light directions, shape :math:`(K, 3)`.
+        method: see :func:`robust_normals`.
+        **options: keyword options of :func:`robust_normals` (``low``, ``high``, ``iterations``, ...).
+
+    Example:
+        >>> from psmini.lights import ring_lights
+        >>> solver = RobustNormals(ring_lights(8, 55.0), "tukey", iterations=5)
+        >>> albedo, normals = solver(torch.rand(1, 8, 4, 4) + 0.1)
+        >>> albedo.shape
+        torch.Size([1, 1, 4, 4])
+    """
+
+    def __init__(self, lights: Tensor, method: str = "robust", **options) -> None:
+        super().__init__()
+        if method != "robust" and method not in ROBUST_METHODS:
+            raise InputError(f"method must be one of {('robust',) + ROBUST_METHODS}, got {method!r}")
+        self.register_buffer("lights", check_spans_3d(lights).clone())
+        self.method, self.options = method, options
+
+    def forward(
+        self, intensities: Tensor, mask: Tensor | None = None, weights: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """Albedo :math:`(B, 1, H, W)` and normals :math:`(B, 3, H, W)` of ``intensities`` :math:`(B, K, H, W)`."""
+        return robust_normals(intensities, self.lights, self.method, mask, weights, **self.options)

@@ -1,0 +1,165 @@
+import pytest
+import torch
+
+from psmini import InputError, ShapeError, ring_lights
+from psmini.normals import albedo_normals
+from psmini.robust import (
+    RECOMMENDED_ROBUST_METHOD,
+    ROBUST_METHODS,
+    RobustNormals,
+    rank_trim_weights,
+    robust_normals,
+    threshold_weights,
+)
+from tests._analytic import analytic_sphere, render
+from tests.conftest import BaseTester, shared_data
+
+IRLS = ("huber", "cauchy", "tukey", "l1")
+
+
+def _sphere(device, dtype, k=8, zenith=55.0, size=32):
+    normals, inside, albedo = analytic_sphere(size, device=device, dtype=dtype)
+    lights = ring_lights(k, zenith, device=device, dtype=dtype)
+    return normals, inside, albedo, lights, render(normals, albedo, lights)
+
+
+class TestWeights(BaseTester):
+    def test_rank_trim_counts(self, device):
+        images = torch.randn(2, 20, 3, 3, device=device)
+        keep = rank_trim_weights(images, 0.25, 0.10)
+        assert keep.sum(1).eq(20 - 5 - 2).all()
+        kept = images.masked_fill(~keep, float("nan"))
+        dropped_low = images.masked_fill(keep, float("inf")).sort(1).values[:, :5]
+        # every dropped dark reading is below every kept one
+        assert (dropped_low.amax(1) < kept.nan_to_num(float("inf")).amin(1)).all()
+
+    def test_rank_trim_counts_usable_only(self, device):
+        images = torch.arange(10.0, device=device).view(1, 10, 1, 1)
+        usable = torch.ones_like(images, dtype=torch.bool)
+        usable[0, 0] = usable[0, 9] = False  # 8 usable: drop 2 darkest (1, 2) and none brightest
+        keep = rank_trim_weights(images, 0.25, 0.10, usable)[0, :, 0, 0].tolist()
+        assert keep == [False, False, False, True, True, True, True, True, True, False]
+
+    def test_threshold(self, device):
+        images = torch.tensor([0.0, 0.04, 0.2, 0.95, 1.0], device=device).view(1, 5, 1, 1)
+        assert threshold_weights(images, 0.05)[0, :, 0, 0].tolist() == [False, False, True, True, True]
+        # saturated readings are dropped before the brightest is taken
+        assert threshold_weights(images, 0.1, saturation=0.99)[0, :, 0, 0].tolist() == [False, False, True, True, False]
+
+    def test_errors(self):
+        images = torch.rand(1, 8, 2, 2)
+        for low, high in ((-0.1, 0.1), (0.5, 0.5), (1.0, 0.0)):
+            with pytest.raises(InputError, match="trim fractions"):
+                rank_trim_weights(images, low, high)
+        with pytest.raises(InputError, match="shadow"):
+            threshold_weights(images, 1.5)
+        with pytest.raises(InputError, match="saturation"):
+            threshold_weights(images, 0.1, saturation=0.0)
+        with pytest.raises(ShapeError):
+            rank_trim_weights(images, weights=torch.ones(1, 7, 2, 2))
+
+
+class TestRobustNormals(BaseTester):
+    @pytest.mark.parametrize("method", ROBUST_METHODS)
+    def test_exact_with_attached_shadows(self, device, dtype, method):
+        normals, inside, albedo, lights, images = _sphere(device, dtype)
+        shading = torch.einsum("kc,bchw->bkhw", lights, normals)
+        # trimming drops the 2 darkest of 8: exact where at most 2 are shadowed; thresholds drop shadows themselves
+        lit = (shading > 0.05).sum(1, keepdim=True)
+        region = inside & ((lit >= 6) if method == "trimmed" else (lit >= 4))
+        region = region & (shading.clamp_min(0) > 1e-3).sum(1, keepdim=True).ge(lit)  # no grazing reading
+        assert int(region.sum()) > 200
+        est_albedo, est = robust_normals(images, lights, method, mask=inside)
+        self.assert_close(est * region, normals * region, rtol=1e-3, atol=1e-3)
+        self.assert_close(est_albedo * region, albedo * region, rtol=1e-3, atol=1e-3)
+        assert (est_albedo[~inside.expand_as(est_albedo)] == 0).all()
+
+    @pytest.mark.parametrize("method", IRLS)
+    def test_rejects_glints(self, device, method):
+        dtype = torch.float64
+        normals, inside, albedo, lights, images = _sphere(device, dtype, k=16, zenith=30.0, size=24)
+        glint = images.clone()
+        glint[:, 3] += 2.0  # a strong highlight in one of 16 images
+        _, plain = albedo_normals(glint, lights, inside)
+        _, robust = robust_normals(glint, lights, method, inside, iterations=30)
+        # where every light sees the surface, the glint is the only outlier
+        lit = inside & (torch.einsum("kc,bchw->bkhw", lights, normals) > 0.05).all(1, keepdim=True)
+        assert int(lit.sum()) > 100
+        error = lambda n: float(torch.rad2deg(torch.acos((n * normals).sum(1).clamp(-1, 1)))[lit[:, 0]].mean())
+        assert error(plain) > 5.0
+        assert error(robust) < (0.05 if method == "tukey" else 0.3) * error(plain)
+
+    def test_matches_albedo_normals_with_weights(self, device, dtype):
+        images = torch.rand(2, 10, 5, 6, device=device, dtype=dtype) + 0.05
+        lights = ring_lights(10, 50.0, device=device, dtype=dtype)
+        weights = torch.rand(2, 10, 5, 6, device=device, dtype=dtype)
+        expected = albedo_normals(images, lights, weights=weights)
+        actual = robust_normals(images, lights, "threshold", weights=weights, shadow=0.0)
+        self.assert_close(actual[0], expected[0])
+        self.assert_close(actual[1], expected[1])
+
+    def test_batch_with_masks(self, device):
+        images = torch.rand(2, 8, 6, 6, device=device) + 0.1
+        lights = ring_lights(8, 55.0, device=device)
+        mask = torch.rand(2, 1, 6, 6, device=device) > 0.5
+        albedo, normals = robust_normals(images, lights, "tukey", mask)
+        for b in range(2):
+            one_albedo, one_normals = robust_normals(images[b:b + 1], lights, "tukey")
+            self.assert_close(normals[b:b + 1] * mask[b:b + 1], one_normals * mask[b:b + 1])
+            self.assert_close(albedo[b:b + 1] * mask[b:b + 1], one_albedo * mask[b:b + 1])
+        assert (albedo[~mask] == 0).all() and (normals[:, 2:][~mask] == 1).all()
+
+    def test_robust_alias_and_module(self, device):
+        images = torch.rand(1, 8, 4, 4, device=device) + 0.1
+        lights = ring_lights(8, 55.0, device=device)
+        expected = robust_normals(images, lights, RECOMMENDED_ROBUST_METHOD)
+        actual = RobustNormals(lights, "robust").to(device)(images)
+        self.assert_close(actual[1], expected[1])
+
+    @pytest.mark.parametrize("method", IRLS)
+    def test_gradcheck_irls(self, method):
+        normals, _, albedo, lights, images = _sphere("cpu", torch.float64, k=8, zenith=40.0, size=6)
+        images = (images + 0.05 * torch.rand_like(images)).requires_grad_()
+        self.gradcheck(lambda x: robust_normals(x, lights, method, iterations=3, shadow=0.0), (images,))
+
+    def test_gradcheck_trimmed(self):
+        images = (torch.rand(1, 10, 2, 2, dtype=torch.float64) + 0.1).requires_grad_()  # distinct readings: no ties
+        lights = ring_lights(10, 50.0, dtype=torch.float64)
+        self.gradcheck(lambda x: robust_normals(x, lights, "trimmed"), (images,))
+
+    def test_errors(self):
+        images, lights = torch.rand(1, 8, 2, 2), ring_lights(8, 55.0)
+        with pytest.raises(InputError, match="method"):
+            robust_normals(images, lights, "ransac")
+        with pytest.raises(InputError, match="method"):
+            RobustNormals(lights, "ransac")
+        with pytest.raises(InputError, match="trim fractions"):
+            robust_normals(images, lights, "trimmed", low=0.8, high=0.3)
+        with pytest.raises(InputError, match="iterations"):
+            robust_normals(images, lights, "huber", iterations=-1)
+        with pytest.raises(InputError, match="tuning"):
+            robust_normals(images, lights, "huber", tuning=0.0)
+        with pytest.raises(InputError, match="shadow"):
+            robust_normals(images, lights, "tukey", shadow=1.0)
+        with pytest.raises(InputError):
+            robust_normals(images * float("nan"), lights)
+        with pytest.raises(ShapeError, match="distant lights"):
+            robust_normals(images, torch.rand(1, 8, 3, 2, 2))
+        with pytest.raises(ShapeError):
+            robust_normals(images, ring_lights(6, 55.0))
+
+
+@pytest.mark.parametrize("name, target", [("ball", 2.3), ("cat", 7.2)])
+def test_diligent_recommended_meets_issue_target(name, target):
+    from psmini.io import load_sample
+    from psmini.metrics import mean_angular_error
+    from psmini.pipeline import distant_light_matrix
+
+    sample = load_sample(shared_data("DiLiGenT", name))
+    images, mask = sample.images[None], sample.mask[None].bool()
+    lights = distant_light_matrix(sample.lights, False, images)
+    _, normals = robust_normals(images, lights, "robust", mask)
+    error = float(mean_angular_error(normals, torch.nan_to_num(sample.normals_gt[None]), mask)[0])
+    _, plain = albedo_normals(images, lights, mask)
+    assert error <= target
+    assert error < float(mean_angular_error(plain, torch.nan_to_num(sample.normals_gt[None]), mask)[0]) - 1.5
