@@ -235,7 +235,6 @@ def _stack(tensors: list[Tensor], device: torch.device, dtype: torch.dtype | Non
 def _solve_group(group: list[_Decoded], cards: _Cards, device: torch.device, dtype: torch.dtype,
                  integrator: str | None, light_model: str, min_reference: float) -> list[_Solved]:
     """Reconstruct samples that share a key in one batched call; the batch is ``(B, K, H, W)``."""
-    from psmini.nearlight import near_light_photometric_stereo
     from psmini.pipeline import PhotometricStereo
 
     first = group[0].sample
@@ -247,21 +246,10 @@ def _solve_group(group: list[_Decoded], cards: _Cards, device: torch.device, dty
     dark = None if first.dark is None else _stack([item.sample.dark for item in group], device, dtype)
     mask = None if first.mask is None else _stack([item.sample.mask.bool() for item in group], device, None)
     lights = first.lights.to(device=device, dtype=dtype)
-    card_albedo = first.card_albedo or 1.0
+    model = PhotometricStereo(lights, integrator=integrator, pixel_pitch_mm=first.pixel_pitch_mm,
+                              min_reference=min_reference, saturation_level=first.saturation_level, solver=light_model)
     with torch.no_grad():
-        if light_model == "near":
-            if not hasattr(lights, "positions_mm") or first.pixel_pitch_mm is None:
-                raise InputError(f"--light-model near needs LED or point-light positions and a pixel pitch; "
-                                 f"{first.name} has {type(lights).__name__} lights and pixel pitch {first.pixel_pitch_mm}")
-            result = near_light_photometric_stereo(
-                images, lights, first.pixel_pitch_mm, reference=reference, dark=dark, reference_dark=reference_dark,
-                card_albedo=card_albedo, mask=mask, saturation_level=first.saturation_level,
-                integrator=integrator or "masked",
-            )
-        else:
-            model = PhotometricStereo(lights, integrator=integrator or "fc", pixel_pitch_mm=first.pixel_pitch_mm,
-                                      min_reference=min_reference, saturation_level=first.saturation_level)
-            result = model(images, reference, dark, reference_dark, mask, card_albedo)
+        result = model(images, reference, dark, reference_dark, mask, first.card_albedo or 1.0)
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     share = (time.perf_counter() - start) / len(group)
@@ -478,6 +466,7 @@ def reconstruct_dataset(
     light_model: str = "distant",
     outputs: str | Sequence[str] | None = None,
     min_reference: float = 0.02,
+    score: bool = True,
     progress: Callable[[BatchRecord], None] | None = None,
 ) -> dict[str, Any]:
     """Reconstruct every sample under ``root`` into ``out/<relative path>``, resuming an earlier run.
@@ -495,6 +484,8 @@ def reconstruct_dataset(
         out: the output folder (created).
         device, dtype, batch_size, workers, integrator, light_model, min_reference: see :func:`iter_reconstructions`.
         outputs: which of :data:`OUTPUT_KINDS` to write (a list or ``"normals,albedo,depth,ply"``); None: all.
+        score: measure the errors against ground truth of the samples that have it (costs about as much as
+            the reconstruction itself on the CPU).
         progress: called with each sample's :class:`BatchRecord` as soon as it is finished, skipped or failed.
 
     Returns:
@@ -529,16 +520,16 @@ def reconstruct_dataset(
     stream = _solved_stream(root, todo, device=device, dtype=dtype, batch_size=batch_size, workers=workers,
                             integrator=integrator, light_model=light_model, min_reference=min_reference) if todo else ()
     for solved in stream:
-        records[solved.item.rel] = record = _finish(out, solved, kinds)
+        records[solved.item.rel] = record = _finish(out, solved, kinds, score)
         if progress is not None:
             progress(record)
     settings = {"root": str(root), "out": str(out), "device": str(device), "dtype": str(dtype).replace("torch.", ""),
                 "batch_size": batch_size, "workers": workers, "light_model": light_model,
-                "integrator": integrator, "outputs": list(kinds)}
+                "integrator": integrator, "outputs": list(kinds), "score": score}
     return _write_summary(out, [records[_relative(root, f)] for f in folders], settings)
 
 
-def _finish(out: Path, solved: _Solved, kinds: tuple[str, ...]) -> BatchRecord:
+def _finish(out: Path, solved: _Solved, kinds: tuple[str, ...], score: bool) -> BatchRecord:
     """Score and write one solved sample; any error of its own becomes a failed record."""
     item = solved.item
     record = BatchRecord(item.rel, "failed", decode_s=item.decode_s, compute_s=solved.compute_s,
@@ -549,7 +540,7 @@ def _finish(out: Path, solved: _Solved, kinds: tuple[str, ...]) -> BatchRecord:
         return record
     start = time.perf_counter()
     try:
-        record.scores = _scores(solved.result, item.sample)
+        record.scores = _scores(solved.result, item.sample) if score else {}
         record.status, record.error = "done", ""
         record.time_s = item.decode_s + solved.compute_s
         _write(out / item.rel, solved.result, item.sample, kinds, record.row())

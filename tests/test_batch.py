@@ -134,7 +134,8 @@ class TestReconstructDataset:
             assert np.isfinite(np.load(tmp_path / "out" / name / "depth.npy")).any()
 
     def test_selected_outputs_only(self, tree, tmp_path):
-        reconstruct_dataset(tree, tmp_path / "out", outputs="depth,normals")
+        summary = reconstruct_dataset(tree, tmp_path / "out", outputs="depth,normals", score=False)
+        assert all(row["mean_angular_error_deg"] == "" for row in summary["samples"])
         folder = tmp_path / "out" / "lotB" / "cotton"
         assert {p.name for p in folder.iterdir()} == {"normals.png", "depth.npy", "depth.png", "depth.json",
                                                       "outputs.json"}

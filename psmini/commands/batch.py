@@ -29,6 +29,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "least squares for near lights)")
     parser.add_argument("--outputs", default=",".join(_kinds()), metavar="LIST",
                         help="comma-separated outputs to write, of normals,albedo,depth,ply (default: all)")
+    parser.add_argument("--no-score", action="store_true",
+                        help="skip the errors against ground truth (they cost about as much as the reconstruction)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_device_flag(parser)
     add_json_flag(parser)
@@ -57,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         summary = reconstruct_dataset(args.root, args.out, device=device, batch_size=args.batch_size,
                                       workers=args.workers, integrator=args.integrator, light_model=args.light_model,
-                                      outputs=outputs, progress=progress)
+                                      outputs=outputs, score=not args.no_score, progress=progress)
     finally:
         bar.close()
     counts = summary["counts"]
