@@ -54,9 +54,15 @@ def score_reconstruction(result: Reconstruction, sample) -> dict[str, float | in
 
 
 def evaluate_sample(
-    sample, *, device: torch.device | str = "cpu", integrator: str | None = None, light_model: str = "distant"
+    sample,
+    *,
+    device: torch.device | str = "cpu",
+    integrator: str | None = None,
+    light_model: str = "distant",
+    method: str = "lstsq",
 ) -> dict[str, float | int | str]:
-    """Reconstruct ``sample`` (:func:`psmini.pipeline.reconstruct`) and score it; see :func:`score_reconstruction`.
+    """Reconstruct ``sample`` (:func:`psmini.pipeline.reconstruct`, with its ``method``) and score it; see
+    :func:`score_reconstruction`.
 
     Example:
         >>> from psmini.io import Sample
@@ -68,4 +74,5 @@ def evaluate_sample(
         >>> evaluate_sample(sample)["pixels"]
         64
     """
-    return score_reconstruction(reconstruct(sample, device=device, integrator=integrator, light_model=light_model), sample)
+    result = reconstruct(sample, device=device, integrator=integrator, light_model=light_model, method=method)
+    return score_reconstruction(result, sample)

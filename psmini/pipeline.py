@@ -18,9 +18,13 @@ from psmini.integrate import integrate
 from psmini.lights import DirectionalLights, check_spans_3d
 from psmini.nearlight import near_light_photometric_stereo
 from psmini.normals import albedo_normals, normals_to_gradients
+from psmini.robust import ROBUST_METHODS, robust_normals
 from psmini.result import Reconstruction
 
-__all__ = ["Reconstruction", "PhotometricStereo", "distant_light_matrix", "reconstruct"]
+__all__ = ["NORMAL_METHODS", "Reconstruction", "PhotometricStereo", "distant_light_matrix", "reconstruct"]
+
+# Normal estimators of the distant-light solver: least squares, and those of :mod:`psmini.robust`.
+NORMAL_METHODS = ("lstsq", "robust") + ROBUST_METHODS
 
 
 def distant_light_matrix(lights: nn.Module, flatfielded: bool, reference: Tensor) -> Tensor:
@@ -86,11 +90,15 @@ class PhotometricStereo(nn.Module):
         min_reference: see :func:`psmini.flatfield.flatfield`.
         saturation_level: raw level at which an observation counts as saturated and is dropped; ``None`` keeps all.
         solver: ``"auto"``, ``"distant"`` or ``"near"``.
+        method: normal estimator of the distant solver, one of :data:`NORMAL_METHODS`: ``"lstsq"`` (least squares,
+            :func:`psmini.normals.albedo_normals`) or a robust one of :func:`psmini.robust.robust_normals`
+            (``"robust"``: the recommended one). The near solver takes ``"lstsq"`` only.
         **near_options: passed to :func:`~psmini.nearlight.near_light_photometric_stereo` (e.g. ``card_height_mm``,
             ``estimate_offset``, ``max_iterations``).
 
     Raises:
-        InputError: for an unknown solver, or ``"near"`` without light positions or pixel pitch.
+        InputError: for an unknown solver or method, ``"near"`` without light positions or pixel pitch, or
+            ``"near"`` with a method other than ``"lstsq"``.
 
     Example:
         >>> from psmini.lights import LEDLights, ring_lights
@@ -110,6 +118,7 @@ class PhotometricStereo(nn.Module):
         min_reference: float = 0.02,
         saturation_level: float | None = None,
         solver: str = "auto",
+        method: str = "lstsq",
         **near_options,
     ) -> None:
         super().__init__()
@@ -123,6 +132,11 @@ class PhotometricStereo(nn.Module):
                 f"the near-light solver needs a point or LED model and a pixel pitch; got {type(self.lights).__name__} "
                 f"and pixel_pitch_mm={pixel_pitch_mm}"
             )
+        if method not in NORMAL_METHODS:
+            raise InputError(f"method must be one of {', '.join(NORMAL_METHODS)}, got {method!r}")
+        if self.solver == "near" and method != "lstsq":
+            raise InputError(f"method {method!r} is for distant lights; the near-light solver has its own estimator")
+        self.method = method
         self.integrator = integrator or ("masked" if self.solver == "near" else "fc")
         self.pixel_pitch_mm, self.min_reference, self.saturation_level = pixel_pitch_mm, min_reference, saturation_level
         self.near_options = near_options
@@ -151,7 +165,10 @@ class PhotometricStereo(nn.Module):
         )
         matrix = distant_light_matrix(self.lights, reference is not None, images)
         weights = None if bool(flat.valid.all()) else flat.valid
-        albedo, normals = albedo_normals(flat.images, matrix, mask, weights)
+        if self.method == "lstsq":
+            albedo, normals = albedo_normals(flat.images, matrix, mask, weights)
+        else:
+            albedo, normals = robust_normals(flat.images, matrix, self.method, mask, weights)
         solved = albedo > 0
         p, q = normals_to_gradients(normals)  # 0 where not solved: the normal there is (0, 0, 1)
         depth = integrate(p, q, method=self.integrator, pixel_pitch_mm=self.pixel_pitch_mm or 1.0, mask=solved)
@@ -166,6 +183,7 @@ def reconstruct(
     integrator: str | None = None,
     light_model: str = "distant",
     min_reference: float = 0.02,
+    method: str = "lstsq",
 ) -> Reconstruction:
     """Reconstruct one loaded sample (:func:`psmini.io.load_sample`).
 
@@ -179,12 +197,13 @@ def reconstruct(
             from the field centre), ``"near"`` (near-light photometric stereo with the sample's point or LED model;
             needs a pixel pitch) or ``"auto"`` (near for point and LED models).
         min_reference: see :func:`psmini.flatfield.flatfield`.
+        method: normal estimator of the distant solver (see :class:`PhotometricStereo`).
 
     Returns:
         :class:`Reconstruction` with batch size 1, on ``device``.
 
     Raises:
-        InputError: for an unknown ``light_model``, or ``"near"`` without positions or pixel pitch.
+        InputError: for an unknown ``light_model`` or ``method``, or ``"near"`` without positions or pixel pitch.
 
     Example:
         >>> from psmini.io import Sample
@@ -206,6 +225,7 @@ def reconstruct(
         min_reference=min_reference,
         saturation_level=sample.saturation_level,
         solver=light_model,
+        method=method,
     )
     return model(
         batch(sample.images),

@@ -1,7 +1,11 @@
+import json
+
 import pytest
 import torch
 
-from psmini import InputError, ShapeError, ring_lights
+from psmini import InputError, LEDLights, PhotometricStereo, ShapeError, ring_lights
+from psmini.cli import main
+from psmini.metrics import mean_angular_error
 from psmini.normals import albedo_normals
 from psmini.robust import (
     RECOMMENDED_ROBUST_METHOD,
@@ -149,17 +153,31 @@ class TestRobustNormals(BaseTester):
             robust_normals(images, ring_lights(6, 55.0))
 
 
-@pytest.mark.parametrize("name, target", [("ball", 2.3), ("cat", 7.2)])
-def test_diligent_recommended_meets_issue_target(name, target):
-    from psmini.io import load_sample
-    from psmini.metrics import mean_angular_error
-    from psmini.pipeline import distant_light_matrix
+class TestPipelineMethod(BaseTester):
+    def test_photometric_stereo_robust_beats_lstsq_with_shadows(self, device):
+        normals, inside, albedo, lights, images = _sphere(device, torch.float32, size=48)
+        error = {}
+        for method in ("lstsq", "robust"):
+            result = PhotometricStereo(lights, method=method, pixel_pitch_mm=None)(images, mask=inside)
+            error[method] = float(mean_angular_error(result.normals, normals, inside)[0])
+        assert error["lstsq"] > 3.0 and error["robust"] < 0.3 * error["lstsq"]
 
-    sample = load_sample(shared_data("DiLiGenT", name))
-    images, mask = sample.images[None], sample.mask[None].bool()
-    lights = distant_light_matrix(sample.lights, False, images)
-    _, normals = robust_normals(images, lights, "robust", mask)
-    error = float(mean_angular_error(normals, torch.nan_to_num(sample.normals_gt[None]), mask)[0])
-    _, plain = albedo_normals(images, lights, mask)
-    assert error <= target
-    assert error < float(mean_angular_error(plain, torch.nan_to_num(sample.normals_gt[None]), mask)[0]) - 1.5
+    def test_errors(self):
+        lights = ring_lights(8, 55.0)
+        with pytest.raises(InputError, match="method"):
+            PhotometricStereo(lights, method="ransac")
+        with pytest.raises(InputError, match="distant lights"):
+            PhotometricStereo(LEDLights(lights * 18.6, -lights), method="tukey")
+        with pytest.raises(SystemExit):
+            main(["evaluate", "nowhere", "--method", "ransac"])
+
+
+@pytest.mark.parametrize("name, target", [("ball", 2.3), ("cat", 7.2)])
+def test_cli_evaluate_robust_meets_issue_target(capsys, name, target):
+    folder = shared_data("DiLiGenT", name)
+    assert main(["evaluate", str(folder), "--method", "robust", "--json"]) == 0
+    scores = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert scores["mean_angular_error_deg"] <= target
+    assert main(["evaluate", str(folder), "--json"]) == 0
+    plain = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert scores["mean_angular_error_deg"] < plain["mean_angular_error_deg"] - 1.5

@@ -48,6 +48,11 @@ def add_reconstruction_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--light-model", choices=["distant", "near"], default="distant",
                         help="distant: classical least squares with the lights seen from the field centre (default); "
                         "near: near-light photometric stereo with the folder's LED or point-light positions")
+    from psmini.pipeline import NORMAL_METHODS
+
+    parser.add_argument("--method", choices=NORMAL_METHODS, default="lstsq",
+                        help="normal estimator for distant lights: lstsq (least squares, default); robust (the "
+                        "recommended robust one); or trimmed, threshold, huber, cauchy, tukey, l1 (psmini.robust)")
     add_device_flag(parser)
     add_json_flag(parser)
 

@@ -29,7 +29,8 @@ def run(args: argparse.Namespace) -> int:
     sample = load_sample_for(args)
     if sample.normals_gt is None:
         raise DataFormatError(f"{args.folder} has no ground-truth normals (Normal_gt.mat or gt/normals.npy) to evaluate against")
-    scores = evaluate_sample(sample, device=device, integrator=args.integrator, light_model=args.light_model)
+    scores = evaluate_sample(sample, device=device, integrator=args.integrator, light_model=args.light_model,
+                             method=args.method)
     scores["time_s"] = time.perf_counter() - start
     print(f"{sample.name}: mean angular error {scores['mean_angular_error_deg']:.3f} deg, "
           f"median {scores['median_angular_error_deg']:.3f} deg over {scores['pixels']} pixels")

@@ -29,7 +29,8 @@ def run(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     start = time.perf_counter()
     sample = load_sample_for(args)
-    result = reconstruct(sample, device=device, integrator=args.integrator, light_model=args.light_model)
+    result = reconstruct(sample, device=device, integrator=args.integrator, light_model=args.light_model,
+                         method=args.method)
     elapsed = time.perf_counter() - start
     written = write_outputs(args.out, result, pixel_pitch_mm=sample.pixel_pitch_mm, overwrite=args.overwrite)
     print(f"reconstructed {sample.name} ({sample.images.shape[0]} images, {sample.images.shape[-1]}x"
