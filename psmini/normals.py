@@ -16,7 +16,7 @@ from psmini._checks import check_finite, check_mask, check_same_size, check_shap
 from psmini.errors import CalibrationError, InputError, ShapeError
 from psmini.lights import as_batched_lights, check_spans_3d
 
-__all__ = ["albedo_normals", "LeastSquaresNormals", "normals_to_gradients"]
+__all__ = ["albedo_normals", "LeastSquaresNormals", "normals_to_gradients", "solve_normal_equations"]
 
 # Per-pixel normal matrices whose determinant falls below this fraction of (trace / 3)^3 are taken as
 # rank-deficient (fewer than three usable lights, or coplanar ones): the pixel is then left out. The ratio is at
@@ -40,7 +40,8 @@ def _unit_and_length(m: Tensor, solved: Tensor | None) -> tuple[Tensor, Tensor]:
 def _check_weights(weights: Tensor | None, shape: torch.Size) -> Tensor | None:
     if weights is None:
         return None
-    check_tensor(weights.float() if weights.dtype == torch.bool else weights, "weights")
+    if not isinstance(weights, Tensor) or not (weights.dtype == torch.bool or weights.is_floating_point()):
+        raise InputError(f"weights must be a bool or floating-point tensor, got {getattr(weights, 'dtype', type(weights))}")
     if weights.shape != shape:
         raise ShapeError(f"weights must have the shape of the intensities {tuple(shape)}, got {tuple(weights.shape)}")
     if weights.dtype != torch.bool:
@@ -50,36 +51,58 @@ def _check_weights(weights: Tensor | None, shape: torch.Size) -> Tensor | None:
     return weights
 
 
-def _weighted_solve(intensities: Tensor, lights: Tensor, weights: Tensor | None) -> tuple[Tensor, Tensor]:
-    """Per-pixel weighted least squares with lights (B, K, 3) or per-pixel (B, K, 3, H, W).
+# indices of the six distinct entries of a symmetric 3×3 matrix: (0,0) (0,1) (0,2) (1,1) (1,2) (2,2)
+_ROWS, _COLS = (0, 0, 0, 1, 1, 2), (0, 1, 2, 1, 2, 2)
 
-    The 3×3 normal equations are solved in closed form (adjugate over determinant), element-wise over the
-    pixels: batched LAPACK calls on millions of 3×3 systems cost far more than these few products.
 
-    Returns m (B, 3, H, W) and where the system is well posed (B, 1, H, W).
+def solve_normal_equations(gram: Tensor, rhs: Tensor, dim: int = 1) -> tuple[Tensor, Tensor]:
+    """Solve many symmetric 3×3 systems in closed form (adjugate over determinant), element-wise.
+
+    Batched LAPACK calls on millions of 3×3 systems cost far more than these few products, and the closed form
+    is differentiable.
+
+    Args:
+        gram: the six distinct entries (00, 01, 02, 11, 12, 22) along ``dim``, any other shape.
+        rhs: the three right-hand sides along ``dim``, the same other shape.
+        dim: the dimension holding the entries.
+
+    Returns:
+        solutions (three along ``dim``; 0 where not well posed) and where the system is well posed (``dim``
+        kept with size 1): its determinant is at least ``_RANK_RATIO`` times (trace / 3)³, which holds when three
+        usable, non-coplanar lights remain.
     """
-    if lights.ndim == 3:
-        lights = lights[..., None, None]
-    weighted = lights if weights is None else lights * weights.to(intensities).unsqueeze(2)
-    gram = torch.einsum("bkihw,bkjhw->bijhw", weighted, lights.expand_as(weighted))  # (B, 3, 3, H, W)
-    rhs = torch.einsum("bkihw,bkhw->bihw", weighted, intensities)  # (B, 3, H, W)
-    a, b, c = gram[:, 0, 0], gram[:, 0, 1], gram[:, 0, 2]
-    d, e, f = gram[:, 1, 1], gram[:, 1, 2], gram[:, 2, 2]
-    # cofactors of the symmetric matrix [[a, b, c], [b, d, e], [c, e, f]]
+    a, b, c, d, e, f = gram.unbind(dim)
+    r0, r1, r2 = rhs.unbind(dim)
     c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
     c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
     det = a * c00 + b * c01 + c * c02
-    trace = a + d + f
-    # det / (trace / 3)^3 is 1 for a multiple of the identity and 0 for a singular matrix; below the ratio the
-    # pixel has fewer than three usable, non-coplanar lights
-    tiny = torch.finfo(gram.dtype).tiny
-    well_posed = det.detach() > _RANK_RATIO * (trace.detach() / 3).pow(3).clamp_min(tiny)
-    safe_det = torch.where(well_posed, det, torch.ones_like(det))
-    r0, r1, r2 = rhs[:, 0], rhs[:, 1], rhs[:, 2]
+    # det / (trace / 3)^3 is 1 for a multiple of the identity and 0 for a singular matrix
+    scale = ((a + d + f).detach() / 3).pow(3).clamp_min(torch.finfo(gram.dtype).tiny)
+    well_posed = (det.detach() > _RANK_RATIO * scale).unsqueeze(dim)
+    safe_det = torch.where(well_posed, det.unsqueeze(dim), torch.ones_like(well_posed, dtype=det.dtype))
     m = torch.stack(
-        [c00 * r0 + c01 * r1 + c02 * r2, c01 * r0 + c11 * r1 + c12 * r2, c02 * r0 + c12 * r1 + c22 * r2], dim=1
-    ) / safe_det.unsqueeze(1)
-    return torch.where(well_posed.unsqueeze(1), m, torch.zeros_like(m)), well_posed.unsqueeze(1)
+        [c00 * r0 + c01 * r1 + c02 * r2, c01 * r0 + c11 * r1 + c12 * r2, c02 * r0 + c12 * r1 + c22 * r2], dim=dim
+    ) / safe_det
+    return torch.where(well_posed, m, torch.zeros_like(m)), well_posed
+
+
+def _weighted_solve(intensities: Tensor, lights: Tensor, weights: Tensor | None) -> tuple[Tensor, Tensor]:
+    """Per-pixel weighted least squares with lights (B, K, 3) or per-pixel (B, K, 3, H, W).
+
+    Returns m (B, 3, H, W) and where the system is well posed (B, 1, H, W).
+    """
+    used = torch.ones_like(intensities) if weights is None else weights.to(intensities)
+    signal = intensities if weights is None else intensities * used
+    if lights.ndim == 3:
+        # lights shared by the pixels: the normal matrix is one small matmul over the K observations
+        products = lights[..., _ROWS] * lights[..., _COLS]  # (B, K, 6)
+        gram = torch.einsum("bkp,bkhw->bphw", products, used)
+        rhs = torch.einsum("bki,bkhw->bihw", lights, signal)
+    else:
+        products = lights[:, :, _ROWS] * lights[:, :, _COLS]  # (B, K, 6, H, W)
+        gram = (products * used.unsqueeze(2)).sum(1)
+        rhs = (lights * signal.unsqueeze(2)).sum(1)
+    return solve_normal_equations(gram, rhs, dim=1)
 
 
 def _check_lights(lights: Tensor, sizes: dict[str, int]) -> Tensor:

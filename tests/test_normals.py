@@ -129,3 +129,34 @@ class TestGradients(BaseTester):
     def test_gradcheck(self):
         normals = torch.nn.functional.normalize(torch.rand(1, 3, 3, 3, dtype=torch.float64) + 0.3, dim=1).requires_grad_()
         self.gradcheck(normals_to_gradients, (normals,))
+
+
+class TestSolveNormalEquations(BaseTester):
+    def test_matches_linalg_solve(self, device, dtype):
+        from psmini.normals import solve_normal_equations
+
+        a = torch.randn(50, 3, 3, device=device, dtype=dtype)
+        spd = a @ a.transpose(1, 2) + 0.1 * torch.eye(3, device=device, dtype=dtype)
+        rhs = torch.randn(50, 3, device=device, dtype=dtype)
+        rows, cols = (0, 0, 0, 1, 1, 2), (0, 1, 2, 1, 2, 2)
+        m, well_posed = solve_normal_equations(spd[:, rows, cols], rhs, dim=1)
+        assert bool(well_posed.all())
+        self.assert_close(m, torch.linalg.solve(spd, rhs), rtol=1e-3, atol=1e-3)
+
+    def test_singular_is_flagged(self):
+        from psmini.normals import solve_normal_equations
+
+        gram = torch.tensor([[1.0, 0.0, 0.0, 1.0, 0.0, 0.0]])  # rank 2: no light along z
+        m, well_posed = solve_normal_equations(gram, torch.ones(1, 3), dim=1)
+        assert not bool(well_posed.any()) and m.abs().sum() == 0
+
+    def test_weighted_matches_lstsq_per_pixel(self):
+        lights = ring_lights(8, 50.0, dtype=torch.float64)
+        images = torch.rand(1, 8, 3, 3, dtype=torch.float64)
+        weights = torch.rand(1, 8, 3, 3, dtype=torch.float64)
+        albedo, normals = albedo_normals(images, lights, weights=weights)
+        for r in range(3):
+            for c in range(3):
+                w = weights[0, :, r, c].sqrt()
+                m = torch.linalg.lstsq(lights * w[:, None], (images[0, :, r, c] * w)[:, None]).solution[:, 0]
+                self.assert_close(normals[0, :, r, c] * albedo[0, 0, r, c], m)
