@@ -52,6 +52,9 @@ ROBUST_METHODS = ("trimmed", "threshold", "huber", "cauchy", "tukey", "l1")
 # Chosen on DiLiGenT ball and cat by benchmarks/robust_diligent.py with the default parameters (no per-object tuning).
 RECOMMENDED_ROBUST_METHOD = "tukey"
 _MAD_TO_SIGMA = 1.4826  # MAD of a unit Gaussian is 1 / 1.4826
+# Pixels solved together: the IRLS passes over (K, N) arrays are memory-bound, and (96, 4096) float32 arrays stay in
+# cache (1.6x faster than whole images on DiLiGenT cat, one CPU thread); on CUDA the blocks are still large enough.
+_CHUNK = 4096
 
 
 def rank_trim_weights(intensities: Tensor, low: float = 0.25, high: float = 0.10, weights: Tensor | None = None) -> Tensor:
@@ -177,14 +180,26 @@ def _solve_columns(values: Tensor, lights: Tensor, weights: Tensor | None) -> tu
     return torch.where(well_posed, m / safe_det, torch.zeros_like(m)), well_posed
 
 
-def _median(values: Tensor, usable: Tensor | None) -> Tensor:
-    """Median along dim 0 of (K, N), over the usable entries only (NaN-masked) when ``usable`` is given."""
-    if usable is None:
-        return values.median(dim=0).values
-    return values.masked_fill(~usable, float("nan")).nanmedian(dim=0).values
+def _median_padding(usable: Tensor, dtype: torch.dtype) -> Tensor:
+    """Values (K, N) for the unusable entries that leave the lower median of the usable ones in the middle.
+
+    With n usable and u unusable entries in a column, filling the first ``(u + [n even]) // 2`` unusable entries
+    with -inf and the rest with +inf puts the lower median of the n usable values at the lower median of all K,
+    so a plain ``median`` (a selection) replaces ``nanmedian``, which costs several times more.
+    """
+    n = usable.sum(dim=0)
+    below = (~usable).sum(dim=0).add((n % 2 == 0).long()).div(2, rounding_mode="floor")
+    rank = (~usable).long().cumsum(dim=0)  # 1, 2, ... along the unusable entries of each column
+    inf = torch.tensor(float("inf"), dtype=dtype, device=usable.device)
+    return torch.where(rank <= below, -inf, inf)
 
 
-def _irls_weights(residuals: Tensor, values: Tensor, usable: Tensor | None, method: str, tuning: float,
+def _median(values: Tensor, usable: Tensor, padding: Tensor) -> Tensor:
+    """Lower median along dim 0 of (K, N) over the ``usable`` entries; ``padding`` from :func:`_median_padding`."""
+    return torch.where(usable, values, padding).median(dim=0).values
+
+
+def _irls_weights(residuals: Tensor, values: Tensor, usable: Tensor, padding: Tensor, method: str, tuning: float,
                   l1_epsilon: float) -> Tensor:
     """M-estimator weights w(r) = psi(u) / u for residuals (K, N)."""
     size = residuals.abs()
@@ -193,7 +208,7 @@ def _irls_weights(residuals: Tensor, values: Tensor, usable: Tensor | None, meth
         return 1.0 / torch.maximum(size, floor)
     # MAD scale, floored so an exact fit (zero residuals) gives weight 1 rather than 0 / 0
     floor = 1e-6 * values.abs().amax(dim=0) + torch.finfo(values.dtype).tiny
-    scale = (_MAD_TO_SIGMA * _median(size, usable)).clamp_min(0) + floor
+    scale = (_MAD_TO_SIGMA * _median(size, usable, padding)).clamp_min(0) + floor
     u = size / (tuning * scale)
     if method == "huber":
         return 1.0 / u.clamp_min(1.0)
@@ -214,16 +229,27 @@ def _rejection(values: Tensor, base: Tensor | None, method: str, options: dict) 
     return keep.to(values.dtype) if base is None else base * keep
 
 
+def _solve_chunked(values: Tensor, lights: Tensor, base: Tensor | None, method: str, options: dict) -> tuple[Tensor, Tensor]:
+    """:func:`_solve_one` on blocks of :data:`_CHUNK` columns, whose (K, chunk) arrays stay in the CPU caches."""
+    if values.shape[1] <= _CHUNK:
+        return _solve_one(values, lights, base, method, options)
+    parts = [_solve_one(values[:, start:start + _CHUNK], lights, None if base is None else base[:, start:start + _CHUNK],
+                        method, options) for start in range(0, values.shape[1], _CHUNK)]
+    return torch.cat([m for m, _ in parts], dim=1), torch.cat([solved for _, solved in parts])
+
+
 def _solve_one(values: Tensor, lights: Tensor, base: Tensor | None, method: str, options: dict) -> tuple[Tensor, Tensor]:
     """Robust m (3, N) and solvability (N,) for pixel columns of one batch element."""
     base = _rejection(values, base, method, options)
     if method in ("trimmed", "threshold"):
         return _solve_columns(values, lights, base)
     usable = base > 0
+    padding = _median_padding(usable, values.dtype)
     m, solved = _solve_columns(values, lights, base)
     for _ in range(options["iterations"]):
         residuals = values - lights @ m
-        weights = base * _irls_weights(residuals, values, usable, method, options["tuning"], options["l1_epsilon"])
+        weights = base * _irls_weights(residuals, values, usable, padding, method, options["tuning"],
+                                       options["l1_epsilon"])
         update, ok = _solve_columns(values, lights, weights)
         # a pixel whose weights leave fewer than three usable lights keeps its previous estimate
         m = torch.where(ok, update, m)
@@ -312,7 +338,7 @@ def robust_normals(
         values = intensities[b].flatten(1)
         columns = slice(None) if mask is None else mask[b, 0].flatten().bool()
         weights_b = None if base is None else base[b].flatten(1)[:, columns]
-        m, solved = _solve_one(values[:, columns], lights[b], weights_b, method, options)
+        m, solved = _solve_chunked(values[:, columns], lights[b], weights_b, method, options)
         if mask is None:
             batch_m.append(m)
             batch_solved.append(solved)
