@@ -8,7 +8,7 @@ IRLS iteration) measured in the same run. The loop is timed on a random subset o
 the torch ones (last column) to show it is the same estimator. Every method runs with its defaults: nothing is
 tuned per object.
 
-    python benchmarks/robust_diligent.py [ROOT] [--device cpu|cuda] [--loop-pixels N] [--no-record]
+    python benchmarks/robust_diligent.py [ROOT] [--device cpu|cuda] [--threads N] [--loop-pixels N] [--no-record]
 """
 
 from __future__ import annotations
@@ -90,6 +90,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--loop-pixels", type=int, default=2000, help="mask pixels the per-pixel loop is timed on")
     parser.add_argument("--repeat", type=int, default=3, help="timed runs of each torch estimator (best is kept)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch CPU threads (default 1: the loop is single-threaded, and on a shared machine "
+                        "more threads than free cores stall every parallel op)")
     parser.add_argument("--no-record", action="store_true", help="do not append to benchmarks/results.md")
     args = parser.parse_args(argv)
     folders = object_folders(args.root)
@@ -97,6 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"no DiLiGenT object folder under {args.root}", file=sys.stderr)
         return 1
     device = torch.device(args.device)
+    torch.set_num_threads(args.threads)
     methods = ("lstsq",) + ROBUST_METHODS
     rows, errors = [], {}
     for folder in folders:
