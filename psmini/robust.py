@@ -94,11 +94,10 @@ def _trim_keep(values: Tensor, low: float, high: float, usable: Tensor | None, d
     values = values.detach()
     if usable is not None:
         values = values.masked_fill(~usable, float("inf"))  # unusable observations rank last, beyond n
-    order = values.argsort(dim=dim, stable=True)
-    shape = [1] * values.ndim
-    shape[dim] = values.shape[dim]
-    positions = torch.arange(values.shape[dim], device=values.device).view(shape).expand_as(order)
-    ranks = torch.empty_like(order).scatter_(dim, order, positions)
+    # sorting along a contiguous last dimension is ~3x faster than along a strided one
+    order = values.movedim(dim, -1).contiguous().argsort(dim=-1, stable=True)
+    positions = torch.arange(values.shape[dim], device=values.device).expand_as(order)
+    ranks = torch.empty_like(order).scatter_(-1, order, positions).movedim(-1, dim)
     count = (torch.full_like(ranks.narrow(dim, 0, 1), values.shape[dim]) if usable is None
              else usable.sum(dim, keepdim=True))
     # floor(fraction * n) in float64: exact for the fractions a user types
