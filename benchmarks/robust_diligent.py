@@ -129,8 +129,8 @@ def main(argv: list[str] | None = None) -> int:
                 folder.name, method, mean, float(median_angular_error(normals, normals_gt, mask)[0]), pixels, seconds,
                 seconds / pixels * 1e6, loop_per_pixel * 1e6, loop_per_pixel * pixels / seconds, f"{agreement:.2g}",
             ])
-            print(f"{folder.name:8s} {method:9s} {mean:6.3f} deg  {seconds:7.3f} s  loop {loop_per_pixel * 1e6:7.1f} us/px",
-                  flush=True)
+            print(f"{folder.name:8s} {method:9s} {mean:6.3f} deg  {seconds:7.3f} s  "
+                  f"loop {loop_per_pixel * 1e6:7.1f} us/px", flush=True)
     header = ["object", "method", "mean (°)", "median (°)", "mask pixels", "torch (s)", "torch (µs/px)",
               "loop (µs/px)", "speed-up", "loop vs torch (°)"]
     report = table(header, rows)

@@ -57,7 +57,9 @@ _MAD_TO_SIGMA = 1.4826  # MAD of a unit Gaussian is 1 / 1.4826
 _CHUNK = 4096
 
 
-def rank_trim_weights(intensities: Tensor, low: float = 0.25, high: float = 0.10, weights: Tensor | None = None) -> Tensor:
+def rank_trim_weights(
+    intensities: Tensor, low: float = 0.25, high: float = 0.10, weights: Tensor | None = None
+) -> Tensor:
     r"""Keep, per pixel, the observations between the darkest ``low`` and the brightest ``high`` fractions.
 
     With :math:`n` usable observations at a pixel (all, or those with positive ``weights``), the
@@ -228,16 +230,21 @@ def _rejection(values: Tensor, base: Tensor | None, method: str, options: dict) 
     return keep.to(values.dtype) if base is None else base * keep
 
 
-def _solve_chunked(values: Tensor, lights: Tensor, base: Tensor | None, method: str, options: dict) -> tuple[Tensor, Tensor]:
+def _solve_chunked(
+    values: Tensor, lights: Tensor, base: Tensor | None, method: str, options: dict
+) -> tuple[Tensor, Tensor]:
     """:func:`_solve_one` on blocks of :data:`_CHUNK` columns, whose (K, chunk) arrays stay in the CPU caches."""
     if values.shape[1] <= _CHUNK:
         return _solve_one(values, lights, base, method, options)
-    parts = [_solve_one(values[:, start:start + _CHUNK], lights, None if base is None else base[:, start:start + _CHUNK],
-                        method, options) for start in range(0, values.shape[1], _CHUNK)]
+    blocks = [slice(start, start + _CHUNK) for start in range(0, values.shape[1], _CHUNK)]
+    parts = [_solve_one(values[:, block], lights, None if base is None else base[:, block], method, options)
+             for block in blocks]
     return torch.cat([m for m, _ in parts], dim=1), torch.cat([solved for _, solved in parts])
 
 
-def _solve_one(values: Tensor, lights: Tensor, base: Tensor | None, method: str, options: dict) -> tuple[Tensor, Tensor]:
+def _solve_one(
+    values: Tensor, lights: Tensor, base: Tensor | None, method: str, options: dict
+) -> tuple[Tensor, Tensor]:
     """Robust m (3, N) and solvability (N,) for pixel columns of one batch element."""
     base = _rejection(values, base, method, options)
     if method in ("trimmed", "threshold"):
