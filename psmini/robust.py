@@ -35,7 +35,7 @@ from torch import Tensor, nn
 from psmini._checks import check_finite, check_mask, check_shape
 from psmini.errors import InputError, ShapeError
 from psmini.lights import as_batched_lights, check_spans_3d
-from psmini.normals import _RANK_RATIO, _check_weights, _unit_and_length
+from psmini.normals import _COLS, _ROWS, _check_weights, _unit_and_length, solve_normal_equations
 
 __all__ = [
     "ROBUST_METHODS",
@@ -161,24 +161,14 @@ def _check_fractions(low: float, high: float) -> None:
 def _solve_columns(values: Tensor, lights: Tensor, weights: Tensor | None) -> tuple[Tensor, Tensor]:
     """Weighted least squares for pixel columns: values (K, N), lights (K, 3), weights (K, N) or None.
 
-    Returns m (3, N) and whether each system is well posed (N,), by the same determinant criterion as
-    :func:`psmini.normals.albedo_normals`.
+    Returns m (3, N) and whether each system is well posed (N,), solved by
+    :func:`psmini.normals.solve_normal_equations` (the criterion of :func:`psmini.normals.albedo_normals`).
     """
-    i, j = (0, 0, 0, 1, 1, 2), (0, 1, 2, 1, 2, 2)
-    products = lights[:, i] * lights[:, j]  # (K, 6): the distinct entries of l l^T
+    products = lights[:, _ROWS] * lights[:, _COLS]  # (K, 6): the distinct entries of l l^T
     if weights is None:
         weights = torch.ones_like(values)
-    a, b, c, d, e, f = products.T @ weights  # (6, N)
-    r0, r1, r2 = lights.T @ (weights * values)  # (3, N)
-    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
-    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * c00 + b * c01 + c * c02
-    trace = a + d + f
-    tiny = torch.finfo(values.dtype).tiny
-    well_posed = det.detach() > _RANK_RATIO * (trace.detach() / 3).pow(3).clamp_min(tiny)
-    safe_det = torch.where(well_posed, det, torch.ones_like(det))
-    m = torch.stack([c00 * r0 + c01 * r1 + c02 * r2, c01 * r0 + c11 * r1 + c12 * r2, c02 * r0 + c12 * r1 + c22 * r2])
-    return torch.where(well_posed, m / safe_det, torch.zeros_like(m)), well_posed
+    m, well_posed = solve_normal_equations(products.T @ weights, lights.T @ (weights * values), dim=0)
+    return m, well_posed[0]
 
 
 def _median_padding(usable: Tensor, dtype: torch.dtype) -> Tensor:
