@@ -461,7 +461,9 @@ def sphere_centre_from_silhouette(
         target = weights.to(rays).unsqueeze(-1)
     else:
         target = torch.ones_like(rays[:, :1])
-    w = torch.linalg.lstsq(rays, target).solution[:, 0]
+    # plain QR ("gels"): the outline rays have full rank, and the default pivoting driver can flip its pivots
+    # between nearby inputs, which breaks the derivative
+    w = torch.linalg.lstsq(rays, target, driver="gels").solution[:, 0]
     norm = w.norm()
     if not bool(norm > 1):
         raise CalibrationError(f"the sphere's outline does not form a cone around a sphere (|w| = {float(norm):.4g} <= 1)")
