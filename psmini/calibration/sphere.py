@@ -88,7 +88,7 @@ def _kasa(points: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
     x, y = points[..., 0], points[..., 1]
     design = torch.stack([x, y, torch.ones_like(x)], dim=-1) * weights.unsqueeze(-1)
     target = -(x.square() + y.square()) * weights
-    solution = torch.linalg.lstsq(design, target.unsqueeze(-1)).solution[..., 0]  # (B, 3)
+    solution = torch.linalg.lstsq(design, target.unsqueeze(-1), driver="gels").solution[..., 0]  # (B, 3)
     centre = -solution[..., :2] / 2
     radius = (centre.square().sum(-1) - solution[..., 2]).clamp_min(0).sqrt()
     return centre, radius
@@ -102,7 +102,7 @@ def _geometric_step(points: Tensor, weights: Tensor, centre: Tensor, radius: Ten
     # d(residual)/d(c) = -(p - c)/|p - c|, d(residual)/d(r) = -1
     jacobian = torch.cat([-offset / distance.unsqueeze(-1), -torch.ones_like(distance).unsqueeze(-1)], dim=-1)
     jacobian = jacobian * weights.unsqueeze(-1)
-    step = torch.linalg.lstsq(jacobian, -residual.unsqueeze(-1)).solution[..., 0]
+    step = torch.linalg.lstsq(jacobian, -residual.unsqueeze(-1), driver="gels").solution[..., 0]
     return centre + step[..., :2], radius + step[..., 2]
 
 
