@@ -37,8 +37,10 @@ def _fc_periodic(gu: Tensor, gv: Tensor) -> Tensor:
     wv = 2 * math.pi * torch.fft.fftfreq(height, device=gu.device, dtype=gu.dtype).view(1, 1, -1, 1)
     denom = wu**2 + wv**2
     denom[..., 0, 0] = 1.0  # the mean is free: its numerator is zero, keep the division finite
-    spectrum = (-1j * wu * torch.fft.rfft2(gu) - 1j * wv * torch.fft.rfft2(gv)) / denom
-    return torch.fft.irfft2(spectrum, s=(height, width))
+    # z^ = -i (wu gu^ + wv gv^) / (wu² + wv²): real factors first, so that each transform is multiplied once by a
+    # real array (complex-by-complex products and a complex division cost several times more per element)
+    spectrum = torch.fft.rfft2(gu) * (wu / denom) + torch.fft.rfft2(gv) * (wv / denom)
+    return torch.fft.irfft2(spectrum * -1j, s=(height, width))
 
 
 def frankot_chellappa(
