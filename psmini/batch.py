@@ -29,6 +29,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
 from psmini.errors import DataFormatError, InputError, PsminiError
+from psmini.pipeline import NORMAL_METHODS
 from psmini.result import Reconstruction
 
 __all__ = [
@@ -233,7 +234,7 @@ def _stack(tensors: list[Tensor], device: torch.device, dtype: torch.dtype | Non
 
 
 def _solve_group(group: list[_Decoded], cards: _Cards, device: torch.device, dtype: torch.dtype,
-                 integrator: str | None, light_model: str, min_reference: float) -> list[_Solved]:
+                 integrator: str | None, light_model: str, method: str, min_reference: float) -> list[_Solved]:
     """Reconstruct samples that share a key in one batched call; the batch is ``(B, K, H, W)``."""
     from psmini.pipeline import PhotometricStereo
 
@@ -247,7 +248,8 @@ def _solve_group(group: list[_Decoded], cards: _Cards, device: torch.device, dty
     mask = None if first.mask is None else _stack([item.sample.mask.bool() for item in group], device, None)
     lights = first.lights.to(device=device, dtype=dtype)
     model = PhotometricStereo(lights, integrator=integrator, pixel_pitch_mm=first.pixel_pitch_mm,
-                              min_reference=min_reference, saturation_level=first.saturation_level, solver=light_model)
+                              min_reference=min_reference, saturation_level=first.saturation_level, solver=light_model,
+                              method=method)
     with torch.no_grad():
         result = model(images, reference, dark, reference_dark, mask, first.card_albedo or 1.0)
     if device.type == "cuda":
@@ -261,7 +263,7 @@ def _solve_group(group: list[_Decoded], cards: _Cards, device: torch.device, dty
 
 
 def _solve(items: list[_Decoded], cards: _Cards, device: torch.device, dtype: torch.dtype,
-           integrator: str | None, light_model: str, min_reference: float) -> list[_Solved]:
+           integrator: str | None, light_model: str, method: str, min_reference: float) -> list[_Solved]:
     """Group a loader batch by key and solve each group; a failing group is retried sample by sample so that
     one bad sample does not fail its neighbours."""
     solved: list[_Solved] = [_Solved(item, None, 0.0, 0, item.error) for item in items if item.error]
@@ -271,7 +273,7 @@ def _solve(items: list[_Decoded], cards: _Cards, device: torch.device, dtype: to
             groups.setdefault(_group_key(item), []).append(item)
     for group in groups.values():
         try:
-            solved += _solve_group(group, cards, device, dtype, integrator, light_model, min_reference)
+            solved += _solve_group(group, cards, device, dtype, integrator, light_model, method, min_reference)
             continue
         except PsminiError as error:
             if len(group) == 1:
@@ -279,7 +281,7 @@ def _solve(items: list[_Decoded], cards: _Cards, device: torch.device, dtype: to
                 continue
         for item in group:
             try:
-                solved += _solve_group([item], cards, device, dtype, integrator, light_model, min_reference)
+                solved += _solve_group([item], cards, device, dtype, integrator, light_model, method, min_reference)
             except PsminiError as error:
                 solved.append(_Solved(item, None, 0.0, 1, f"{type(error).__name__}: {error}"))
     return solved
@@ -290,7 +292,7 @@ def _finished(out: Path, rel: str) -> bool:
 
 
 def _solved_stream(root: Path, folders: Sequence[Path], *, device: torch.device, dtype: torch.dtype,
-                   batch_size: int, workers: int, integrator: str | None, light_model: str,
+                   batch_size: int, workers: int, integrator: str | None, light_model: str, method: str,
                    min_reference: float) -> Iterator[_Solved]:
     """Decode ``folders`` with ``workers`` processes and yield every sample solved (or failed), in batches."""
     loader = DataLoader(
@@ -299,10 +301,10 @@ def _solved_stream(root: Path, folders: Sequence[Path], *, device: torch.device,
     )
     cards = _Cards(device, dtype)
     for items in loader:
-        yield from _solve(items, cards, device, dtype, integrator, light_model, min_reference)
+        yield from _solve(items, cards, device, dtype, integrator, light_model, method, min_reference)
 
 
-def _check_arguments(root: str | Path, batch_size: int, workers: int, light_model: str,
+def _check_arguments(root: str | Path, batch_size: int, workers: int, light_model: str, method: str,
                      device: torch.device | str) -> tuple[Path, torch.device]:
     root = Path(root)
     if not root.is_dir():
@@ -313,6 +315,8 @@ def _check_arguments(root: str | Path, batch_size: int, workers: int, light_mode
         raise InputError(f"workers must be an integer >= 0, got {workers!r}")
     if light_model not in ("distant", "near"):
         raise InputError(f"light_model must be 'distant' or 'near', got {light_model!r}")
+    if method not in NORMAL_METHODS:
+        raise InputError(f"method must be one of {', '.join(NORMAL_METHODS)}, got {method!r}")
     device = torch.device(device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise InputError("device cuda was asked for, but torch sees no CUDA device on this machine")
@@ -337,6 +341,7 @@ def iter_reconstructions(
     workers: int = 0,
     integrator: str | None = None,
     light_model: str = "distant",
+    method: str = "lstsq",
     min_reference: float = 0.02,
 ) -> Iterator[tuple[str, Reconstruction]]:
     """Reconstruct every sample under ``root`` in batches and yield them one by one (for notebooks).
@@ -351,6 +356,8 @@ def iter_reconstructions(
         workers: decoding processes (0: decode in this process).
         integrator: see :func:`psmini.pipeline.reconstruct`.
         light_model: ``"distant"`` or ``"near"``, see :func:`psmini.pipeline.reconstruct`.
+        method: normal estimator of the distant solver (``"lstsq"``, ``"robust"``, ...; see
+            :data:`psmini.pipeline.NORMAL_METHODS`).
         min_reference: see :func:`psmini.flatfield.flatfield`.
 
     Yields:
@@ -366,10 +373,11 @@ def iter_reconstructions(
         >>> for name, result in iter_reconstructions("captures", batch_size=16):  # doctest: +SKIP
         ...     print(name, result.depth.std())
     """
-    root, device = _check_arguments(root, batch_size, workers, light_model, device)
+    root, device = _check_arguments(root, batch_size, workers, light_model, method, device)
     folders = _samples_under(root)
     for solved in _solved_stream(root, folders, device=device, dtype=dtype, batch_size=batch_size, workers=workers,
-                                 integrator=integrator, light_model=light_model, min_reference=min_reference):
+                                 integrator=integrator, light_model=light_model, method=method,
+                                 min_reference=min_reference):
         if solved.result is None:
             logger.warning("sample %s failed: %s", solved.item.rel, solved.error)
             continue
@@ -464,6 +472,7 @@ def reconstruct_dataset(
     workers: int = 0,
     integrator: str | None = None,
     light_model: str = "distant",
+    method: str = "lstsq",
     outputs: str | Sequence[str] | None = None,
     min_reference: float = 0.02,
     score: bool = True,
@@ -482,7 +491,8 @@ def reconstruct_dataset(
     Args:
         root: a folder holding capture folders and DiLiGenT folders at any depth (or one of them).
         out: the output folder (created).
-        device, dtype, batch_size, workers, integrator, light_model, min_reference: see :func:`iter_reconstructions`.
+        device, dtype, batch_size, workers, integrator, light_model, method, min_reference: see
+            :func:`iter_reconstructions`.
         outputs: which of :data:`OUTPUT_KINDS` to write (a list or ``"normals,albedo,depth,ply"``); None: all.
         score: measure the errors against ground truth of the samples that have it (costs about as much as
             the reconstruction itself on the CPU).
@@ -503,7 +513,7 @@ def reconstruct_dataset(
         {'done': 198, 'skipped': 0, 'failed': 2}
     """
     kinds = parse_outputs(outputs)
-    root, device = _check_arguments(root, batch_size, workers, light_model, device)
+    root, device = _check_arguments(root, batch_size, workers, light_model, method, device)
     out = Path(out)
     folders = _samples_under(root)
     records: dict[str, BatchRecord] = {}
@@ -518,7 +528,8 @@ def reconstruct_dataset(
             todo.append(folder)
     logger.info("%d samples under %s: %d finished earlier, %d to do", len(folders), root, len(records), len(todo))
     stream = _solved_stream(root, todo, device=device, dtype=dtype, batch_size=batch_size, workers=workers,
-                            integrator=integrator, light_model=light_model, min_reference=min_reference) if todo else ()
+                            integrator=integrator, light_model=light_model, method=method,
+                            min_reference=min_reference) if todo else ()
     for solved in stream:
         records[solved.item.rel] = record = _finish(out, solved, kinds, score)
         if progress is not None:

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from psmini.commands._common import add_device_flag, add_json_flag, emit_json, resolve_device
+from psmini.pipeline import NORMAL_METHODS
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -25,6 +26,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="decoding processes; 0 decodes in this process (default 2)")
     parser.add_argument("--light-model", choices=["distant", "near"], default="distant",
                         help="distant: classical least squares (default); near: near-light photometric stereo")
+    parser.add_argument("--method", default="lstsq", choices=NORMAL_METHODS,
+                        help="normal estimator of the distant solver (default: lstsq; robust: the recommended robust one)")
     parser.add_argument("--integrator", default=None, help="integration method (default: fc for distant, masked "
                         "least squares for near lights)")
     parser.add_argument("--outputs", default=",".join(_kinds()), metavar="LIST",
@@ -59,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         summary = reconstruct_dataset(args.root, args.out, device=device, batch_size=args.batch_size,
                                       workers=args.workers, integrator=args.integrator, light_model=args.light_model,
+                                      method=args.method,
                                       outputs=outputs, score=not args.no_score, progress=progress)
     finally:
         bar.close()
