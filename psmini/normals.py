@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from psmini._checks import check_finite, check_mask, check_same_size, check_shape, check_tensor
+from psmini._checks import check_finite, check_mask, check_same_size, check_shape
 from psmini.errors import CalibrationError, InputError, ShapeError
 from psmini.lights import as_batched_lights, check_spans_3d
 
