@@ -118,26 +118,6 @@ class _Decoded:
     error: str = ""
 
 
-def _load_without_card(path: Path):
-    """The sample of ``path`` like :func:`psmini.io.load_sample`, but a capture's card is left to the caller."""
-    from psmini.io import Sample, load_sample, read_capture
-    from psmini.io.capture import MANIFEST_NAME
-
-    if not (path / MANIFEST_NAME).is_file():
-        return load_sample(path), None
-    capture = read_capture(path)
-    if capture.lights is None:
-        raise DataFormatError(f"capture {path} is a {capture.kind!r} capture without lights; it cannot be reconstructed")
-    gt, card = capture.gt, capture.flatfield_path
-    sample = Sample(
-        name=path.name, images=capture.images, lights=capture.lights, mask=capture.mask, dark=capture.dark,
-        card_albedo=capture.card_albedo if card is not None else 1.0, pixel_pitch_mm=capture.pixel_pitch_mm,
-        normals_gt=gt.get("normals"), depth_gt=gt.get("depth"), albedo_gt=gt.get("albedo"), saturation_level=1.0,
-        gt_mask=gt.get("mask"), meta={"source": "capture", "path": str(path), "kind": capture.kind},
-    )
-    return sample, None if card is None else str(Path(card).resolve())
-
-
 class _SampleFolders(Dataset):
     """Decodes one sample folder per item; errors become records instead of exceptions (one bad file must not
     end the DataLoader)."""
@@ -149,11 +129,15 @@ class _SampleFolders(Dataset):
         return len(self.folders)
 
     def __getitem__(self, index: int) -> _Decoded:
+        from psmini.io import load_sample  # OpenCV: imported where files are decoded, not with psmini
+
         folder = self.folders[index]
         rel = _relative(self.root, folder)
         start = time.perf_counter()
         try:
-            sample, card = _load_without_card(folder)
+            sample = load_sample(folder, with_flatfield=False)  # the main process adds each card once
+            card = sample.meta.get("flatfield")  # absent for DiLiGenT folders
+            card = None if card is None else str(Path(card).resolve())
         except (PsminiError, OSError, ValueError) as error:
             return _Decoded(rel, error=f"{type(error).__name__}: {error}", decode_s=time.perf_counter() - start)
         return _Decoded(rel, sample, card, time.perf_counter() - start)

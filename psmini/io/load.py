@@ -19,7 +19,7 @@ logger = logging.getLogger(__name__)
 NOT_SAMPLE_KINDS = ("flatfield", "sphere", "focus")
 
 
-def load_sample(path: str | Path) -> Sample:
+def load_sample(path: str | Path, *, with_flatfield: bool = True) -> Sample:
     """Load a DiLiGenT object folder or a psmini capture folder as a :class:`Sample`.
 
     A folder with ``capture.json`` is a capture (``docs/capture-format.md``); one with ``filenames.txt`` and
@@ -29,6 +29,9 @@ def load_sample(path: str | Path) -> Sample:
 
     Args:
         path: the sample folder.
+        with_flatfield: read the referenced flat-field capture. ``False`` leaves ``reference`` and
+            ``reference_dark`` empty (the card's path stays in ``meta["flatfield"]`` and its albedo in
+            ``card_albedo``), for callers that decode each card once for many samples (:mod:`psmini.batch`).
 
     Returns:
         the :class:`Sample` (CPU tensors, ``float32``).
@@ -45,7 +48,7 @@ def load_sample(path: str | Path) -> Sample:
     """
     path = Path(path)
     if (path / MANIFEST_NAME).is_file():
-        return _capture_sample(path)
+        return _capture_sample(path, with_flatfield)
     if is_diligent_folder(path):
         return read_diligent(path)
     if not path.is_dir():
@@ -56,13 +59,13 @@ def load_sample(path: str | Path) -> Sample:
     )
 
 
-def _capture_sample(path: Path) -> Sample:
+def _capture_sample(path: Path, with_flatfield: bool) -> Sample:
     capture = read_capture(path)
     if capture.lights is None:
         raise DataFormatError(f"capture {path} is a {capture.kind!r} capture without lights; it cannot be "
             "reconstructed")
     reference = reference_dark = None
-    if capture.flatfield_path is not None:
+    if capture.flatfield_path is not None and with_flatfield:
         card = read_capture(capture.flatfield_path)
         if card.images.shape != capture.images.shape:
             raise DataFormatError(
@@ -79,7 +82,7 @@ def _capture_sample(path: Path) -> Sample:
         dark=capture.dark,
         reference=reference,
         reference_dark=reference_dark,
-        card_albedo=capture.card_albedo if reference is not None else 1.0,
+        card_albedo=capture.card_albedo if capture.flatfield_path is not None else 1.0,
         pixel_pitch_mm=capture.pixel_pitch_mm,
         normals_gt=gt.get("normals"),
         depth_gt=gt.get("depth"),

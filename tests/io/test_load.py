@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import logging
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -52,6 +54,20 @@ class TestLoadCapture:
         assert sample.albedo_gt.shape == (1, H, W) and sample.gt_mask.shape == (1, H, W)
         assert isinstance(sample.meta["gt_lights"], DirectionalLights)
         assert sample.meta["source"] == "capture" and sample.meta["metadata"] == {"fabric": "denim"}
+
+    def test_card_left_to_the_caller(self, rig, monkeypatch):
+        """with_flatfield=False: the card's images are not decoded; its path and albedo stay for the caller."""
+        import psmini.io.load as load_module
+
+        decoded = []
+        real_read_capture = load_module.read_capture
+        monkeypatch.setattr(load_module, "read_capture", lambda path: decoded.append(Path(path).name) or real_read_capture(path))
+        sample = load_sample(rig / "denim", with_flatfield=False)
+        assert decoded == ["denim"]
+        assert sample.reference is None and sample.reference_dark is None and sample.card_albedo == 0.8
+        assert Path(sample.meta["flatfield"]).resolve() == (rig / "card").resolve()
+        load_sample(rig / "denim")
+        assert decoded == ["denim", "denim", "card"]
 
     def test_sample_without_flatfield(self, tmp_path):
         write_capture(tmp_path / "s", images(0), lights(), pixel_pitch_mm=0.025)
