@@ -38,6 +38,7 @@ from psmini.flatfield import flatfield
 from psmini.geometry import depth_to_points
 from psmini.integrate import integrate
 from psmini.normals import albedo_normals, normals_to_gradients
+from psmini.render import normals_from_height
 from psmini.result import Reconstruction
 
 __all__ = [
@@ -407,15 +408,6 @@ def _initial_depth(initial: Tensor | float, images: Tensor, sizes: dict[str, int
     return torch.full(shape, float(initial), device=images.device, dtype=images.dtype)
 
 
-def _normals_from_depth(depth: Tensor, pitch: float) -> Tensor:
-    """Unit normals of a height map by central differences (one-sided at the border), (B, 3, H, W)."""
-    padded = F.pad(depth, (1, 1, 1, 1), mode="replicate")
-    dzdx = (padded[..., 1:-1, 2:] - padded[..., 1:-1, :-2]) / (2 * pitch)
-    dzdrow = (padded[..., 2:, 1:-1] - padded[..., :-2, 1:-1]) / (2 * pitch)
-    normals = torch.cat([-dzdx, dzdrow, torch.ones_like(depth)], dim=1)  # y up: dz/dy = -dz/drow
-    return normals / normals.norm(dim=1, keepdim=True)
-
-
 def refine_depth(
     intensities: Tensor,
     light_model: nn.Module,
@@ -507,7 +499,7 @@ def refine_depth(
 
 
 def _shading_and_albedo(images, light_model, depth, pitch, weights, card_height_mm):
-    normals = _normals_from_depth(depth, pitch)
+    normals = normals_from_height(depth, pitch)
     vectors = near_light_vectors(light_model, depth, pitch, card_height_mm)
     shading = (vectors * normals[:, None]).sum(dim=2).clamp_min(0)
     albedo = (weights * images * shading).sum(1, keepdim=True) / (weights * shading.square()).sum(1, keepdim=True).clamp_min(1e-12)
