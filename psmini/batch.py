@@ -1,13 +1,25 @@
 """Offline reconstruction of whole folder trees of samples: decode in workers, solve in batches, write atomically.
 
-Every capture folder and DiLiGenT folder under a root (:func:`psmini.io.find_samples`) is decoded in
-``torch.utils.data.DataLoader`` worker processes, grouped into batches of samples that share a size, a light
-model and a flat-field card, solved on one device in one batched call of :class:`psmini.pipeline.PhotometricStereo`
-(or the near-light solver), and written into ``OUT/<path relative to the root>`` with the atomic folder writer
-of :mod:`psmini.io`. Each card is decoded once per run, not once per sample. A sample whose output folder holds
-``outputs.json`` is finished (the folder appears only complete) and is skipped by the next run, so a run
-killed half-way resumes where it stopped. A sample that fails (a corrupt file, a solver error) is reported
+Every capture folder and DiLiGenT folder under a root (:func:`psmini.io.find_samples`) is decoded, grouped into
+batches of samples that share a size, a light model and a flat-field card, solved in one batched call of
+:class:`psmini.pipeline.PhotometricStereo` (or the near-light solver), and written into
+``OUT/<path relative to the root>`` with the atomic folder writer of :mod:`psmini.io`. A sample whose output
+folder holds ``outputs.json`` is finished (the folder appears only complete) and is skipped by the next run, so
+a run killed half-way resumes where it stopped. A sample that fails (a corrupt file, a solver error) is reported
 in the summary and the others go on.
+
+The unit of work is a *chunk*: ``batch_size`` consecutive sample folders, decoded, grouped, solved, scored and
+written by one process (:func:`_run_chunk`). Where it runs depends on the device:
+
+- CPU: ``workers`` ``DataLoader`` processes each run whole chunks, with ``torch.get_num_threads() // workers``
+  intra-op threads each (parallel samples beat parallel threads on small machines, and nothing but the summary
+  row crosses processes); ``workers=0`` runs the chunks in this process.
+- CUDA: ``workers`` ``DataLoader`` processes decode, the batches are solved on the GPU in this process and
+  written from it.
+- Dask (``scheduler`` or ``client``): each chunk is one task on a ``dask.distributed`` worker, on that worker's
+  device (:mod:`psmini._dask`).
+
+Each flat-field card is decoded once per process that needs it (once per run in this process; once per worker).
 """
 
 from __future__ import annotations
@@ -16,11 +28,13 @@ import csv
 import json
 import logging
 import math
+import os
 import re
 import shutil
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, fields
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -104,12 +118,26 @@ def parse_outputs(outputs: str | Sequence[str] | None) -> tuple[str, ...]:
     return tuple(kind for kind in OUTPUT_KINDS if kind in names)
 
 
+@dataclass(frozen=True)
+class _Settings:
+    """What every chunk needs to know; plain picklable values, sent to worker processes and Dask workers."""
+
+    device: str
+    dtype: torch.dtype
+    integrator: str | None
+    light_model: str
+    method: str
+    min_reference: float
+    kinds: tuple[str, ...] = OUTPUT_KINDS
+    score: bool = True
+
+
 # ------------------------------------------------------------------------------------------------ decoding
 
 
 @dataclass
 class _Decoded:
-    """What a worker sends back: the sample without its card (the main process adds it), or the error."""
+    """A decoded sample without its card (added by the process that solves it), or the error."""
 
     rel: str
     sample: Any = None
@@ -118,9 +146,22 @@ class _Decoded:
     error: str = ""
 
 
+def _decode(folder: Path, rel: str) -> _Decoded:
+    """Decode one sample folder; an error becomes the record's message (one bad file must not end the run)."""
+    from psmini.io import load_sample  # OpenCV: imported where files are decoded, not with psmini
+
+    start = time.perf_counter()
+    try:
+        sample = load_sample(folder, with_flatfield=False)  # cards are decoded once per process, not per sample
+        card = sample.meta.get("flatfield")  # absent for DiLiGenT folders
+        card = None if card is None else str(Path(card).resolve())
+    except (PsminiError, OSError, ValueError) as error:
+        return _Decoded(rel, error=f"{type(error).__name__}: {error}", decode_s=time.perf_counter() - start)
+    return _Decoded(rel, sample, card, time.perf_counter() - start)
+
+
 class _SampleFolders(Dataset):
-    """Decodes one sample folder per item; errors become records instead of exceptions (one bad file must not
-    end the DataLoader)."""
+    """Decodes one sample folder per item (the CUDA path: decode in workers, solve in the main process)."""
 
     def __init__(self, root: Path, folders: Sequence[Path]) -> None:
         self.root, self.folders = root, list(folders)
@@ -129,22 +170,12 @@ class _SampleFolders(Dataset):
         return len(self.folders)
 
     def __getitem__(self, index: int) -> _Decoded:
-        from psmini.io import load_sample  # OpenCV: imported where files are decoded, not with psmini
-
         folder = self.folders[index]
-        rel = _relative(self.root, folder)
-        start = time.perf_counter()
-        try:
-            sample = load_sample(folder, with_flatfield=False)  # the main process adds each card once
-            card = sample.meta.get("flatfield")  # absent for DiLiGenT folders
-            card = None if card is None else str(Path(card).resolve())
-        except (PsminiError, OSError, ValueError) as error:
-            return _Decoded(rel, error=f"{type(error).__name__}: {error}", decode_s=time.perf_counter() - start)
-        return _Decoded(rel, sample, card, time.perf_counter() - start)
+        return _decode(folder, _relative(self.root, folder))
 
 
-def _collate(items: list[_Decoded]) -> list[_Decoded]:
-    """Keep the batch as a list: the main process groups it by size and calibration after adding the cards."""
+def _collate(items: list) -> list:
+    """Keep what the loader gives as a list: no tensor collation of samples that may differ in size."""
     return items
 
 
@@ -167,16 +198,26 @@ def _group_key(item: _Decoded) -> tuple:
 
 
 class _Cards:
-    """Flat-field cards by resolved path, decoded once and kept on the device."""
+    """Flat-field cards by resolved path, decoded once and kept on the device.
 
-    def __init__(self, device: torch.device, dtype: torch.dtype) -> None:
-        self.device, self.dtype = device, dtype
-        self._cards: dict[str, tuple[Tensor, Tensor | None] | PsminiError] = {}
+    A card is known by its path and by the identity of its content (folder inode, manifest time): a card rewritten
+    in place (the capture writer replaces whole folders) is decoded again by a long-lived Dask worker. At most
+    ``limit`` cards are kept, the oldest dropped first.
+    """
+
+    def __init__(self, device: torch.device, dtype: torch.dtype, limit: int = 8) -> None:
+        self.device, self.dtype, self.limit = device, dtype, limit
+        self._cards: dict[tuple, tuple[Tensor, Tensor | None] | PsminiError] = {}
 
     def get(self, path: str, shape: tuple[int, ...]) -> tuple[Tensor, Tensor | None]:
-        if path not in self._cards:
-            self._cards[path] = self._load(path)
-        card = self._cards[path]
+        key = (path, _content_stamp(path))
+        if key not in self._cards:
+            for stale in [k for k in self._cards if k[0] == path]:  # an older content of the same card
+                del self._cards[stale]
+            while len(self._cards) >= self.limit:
+                del self._cards[next(iter(self._cards))]
+            self._cards[key] = self._load(path)
+        card = self._cards[key]
         if isinstance(card, PsminiError):
             raise card
         if tuple(card[0].shape[1:]) != shape:
@@ -193,9 +234,25 @@ class _Cards:
             card = read_capture(path)
         except PsminiError as error:
             return error
-        logger.info("decoded flat-field card %s once for every sample that references it", path)
+        logger.info("decoded flat-field card %s once for every sample of this process that references it", path)
         on = dict(device=self.device, dtype=self.dtype)
         return card.images.to(**on).unsqueeze(0), None if card.dark is None else card.dark.to(**on).unsqueeze(0)
+
+
+def _content_stamp(path: str) -> tuple[int, int]:
+    try:
+        return os.stat(path).st_ino, os.stat(Path(path) / "capture.json").st_mtime_ns
+    except OSError:  # a missing card: read_capture reports it
+        return 0, 0
+
+
+#: The cards of this process by (device, dtype), for chunks run in worker processes (a DataLoader worker lives for
+#: one run, a Dask worker for many).
+_PROCESS_CARDS: dict[tuple[str, torch.dtype], _Cards] = {}
+
+
+def _process_cards(device: torch.device, dtype: torch.dtype) -> _Cards:
+    return _PROCESS_CARDS.setdefault((str(device), dtype), _Cards(device, dtype))
 
 
 # ------------------------------------------------------------------------------------------------ solving
@@ -217,12 +274,11 @@ def _stack(tensors: list[Tensor], device: torch.device, dtype: torch.dtype | Non
     return stacked.to(device=device, dtype=dtype or stacked.dtype, non_blocking=True)
 
 
-def _solve_group(group: list[_Decoded], cards: _Cards, device: torch.device, dtype: torch.dtype,
-                 integrator: str | None, light_model: str, method: str, min_reference: float) -> list[_Solved]:
+def _solve_group(group: list[_Decoded], cards: _Cards, device: torch.device, settings: _Settings) -> list[_Solved]:
     """Reconstruct samples that share a key in one batched call; the batch is ``(B, K, H, W)``."""
     from psmini.pipeline import PhotometricStereo
 
-    first = group[0].sample
+    first, dtype = group[0].sample, settings.dtype
     start = time.perf_counter()
     reference = reference_dark = None
     if group[0].card is not None:
@@ -231,9 +287,9 @@ def _solve_group(group: list[_Decoded], cards: _Cards, device: torch.device, dty
     dark = None if first.dark is None else _stack([item.sample.dark for item in group], device, dtype)
     mask = None if first.mask is None else _stack([item.sample.mask.bool() for item in group], device, None)
     lights = first.lights.to(device=device, dtype=dtype)
-    model = PhotometricStereo(lights, integrator=integrator, pixel_pitch_mm=first.pixel_pitch_mm,
-                              min_reference=min_reference, saturation_level=first.saturation_level, solver=light_model,
-                              method=method)
+    model = PhotometricStereo(lights, integrator=settings.integrator, pixel_pitch_mm=first.pixel_pitch_mm,
+                              min_reference=settings.min_reference, saturation_level=first.saturation_level,
+                              solver=settings.light_model, method=settings.method)
     with torch.no_grad():
         result = model(images, reference, dark, reference_dark, mask, first.card_albedo or 1.0)
     if device.type == "cuda":
@@ -246,9 +302,8 @@ def _solve_group(group: list[_Decoded], cards: _Cards, device: torch.device, dty
     ]
 
 
-def _solve(items: list[_Decoded], cards: _Cards, device: torch.device, dtype: torch.dtype,
-           integrator: str | None, light_model: str, method: str, min_reference: float) -> list[_Solved]:
-    """Group a loader batch by key and solve each group; a failing group is retried sample by sample so that
+def _solve(items: list[_Decoded], cards: _Cards, device: torch.device, settings: _Settings) -> list[_Solved]:
+    """Group decoded samples by key and solve each group; a failing group is retried sample by sample so that
     one bad sample does not fail its neighbours."""
     solved: list[_Solved] = [_Solved(item, None, 0.0, 0, item.error) for item in items if item.error]
     groups: dict[tuple, list[_Decoded]] = {}
@@ -257,7 +312,7 @@ def _solve(items: list[_Decoded], cards: _Cards, device: torch.device, dtype: to
             groups.setdefault(_group_key(item), []).append(item)
     for group in groups.values():
         try:
-            solved += _solve_group(group, cards, device, dtype, integrator, light_model, method, min_reference)
+            solved += _solve_group(group, cards, device, settings)
             continue
         except PsminiError as error:
             if len(group) == 1:
@@ -265,7 +320,7 @@ def _solve(items: list[_Decoded], cards: _Cards, device: torch.device, dtype: to
                 continue
         for item in group:
             try:
-                solved += _solve_group([item], cards, device, dtype, integrator, light_model, method, min_reference)
+                solved += _solve_group([item], cards, device, settings)
             except PsminiError as error:
                 solved.append(_Solved(item, None, 0.0, 1, f"{type(error).__name__}: {error}"))
     return solved
@@ -275,21 +330,114 @@ def _finished(out: Path, rel: str) -> bool:
     return (out / rel / _MARKER).is_file()
 
 
-def _solved_stream(root: Path, folders: Sequence[Path], *, device: torch.device, dtype: torch.dtype,
-                   batch_size: int, workers: int, integrator: str | None, light_model: str, method: str,
-                   min_reference: float) -> Iterator[_Solved]:
-    """Decode ``folders`` with ``workers`` processes and yield every sample solved (or failed), in batches."""
+def _solved_stream(root: Path, folders: Sequence[Path], settings: _Settings, batch_size: int,
+                   workers: int) -> Iterator[_Solved]:
+    """Decode ``folders`` with ``workers`` processes and solve them here, in batches (the CUDA and notebook path)."""
     loader = DataLoader(
         _SampleFolders(root, folders), batch_size=batch_size, shuffle=False, num_workers=workers,
         collate_fn=_collate, persistent_workers=False, prefetch_factor=2 if workers else None,
     )
-    cards = _Cards(device, dtype)
+    device = torch.device(settings.device)
+    cards = _Cards(device, settings.dtype)
     for items in loader:
-        yield from _solve(items, cards, device, dtype, integrator, light_model, method, min_reference)
+        yield from _solve(items, cards, device, settings)
+
+
+# ------------------------------------------------------------------------------------------------ chunks
+
+
+def _run_chunk(out: str | Path, chunk: Sequence[tuple[str, str]], settings: _Settings,
+               cards: _Cards | None = None) -> list[BatchRecord]:
+    """Decode, solve, score and write one chunk of sample folders: the unit of work of the CPU workers and of
+    each Dask task.
+
+    Args:
+        out: the output folder (on a Dask worker: as the worker sees it).
+        chunk: ``(sample folder, path relative to the root)`` pairs; samples sharing a key are solved in one batch.
+            The relative path names the output folder ``out/<rel>`` and the summary row.
+        settings: the run's settings.
+        cards: the card cache to use; None: this process's (:data:`_PROCESS_CARDS`).
+
+    Returns:
+        each sample's record, done or failed, in the order the groups were solved.
+
+    Raises:
+        InputError: ``settings.device`` is CUDA and this process sees no CUDA device.
+    """
+    device = torch.device(settings.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise InputError(f"device {settings.device} was asked for, but torch sees no CUDA device on this worker")
+    out = Path(out)
+    cards = _process_cards(device, settings.dtype) if cards is None else cards
+    items = [_decode(Path(folder), rel) for folder, rel in chunk]
+    return [_finish(out, solved, settings) for solved in _solve(items, cards, device, settings)]
+
+
+class _Chunks(Dataset):
+    """One item is one chunk run to the end in a worker process: only its summary rows come back."""
+
+    def __init__(self, out: Path, chunks: list[list[tuple[str, str]]], settings: _Settings) -> None:
+        self.out, self.chunks, self.settings = out, chunks, settings
+
+    def __len__(self) -> int:
+        return len(self.chunks)
+
+    def __getitem__(self, index: int) -> list[BatchRecord]:
+        return _run_chunk(self.out, self.chunks[index], self.settings)
+
+
+def _set_threads(threads: int, worker_id: int) -> None:
+    """DataLoader worker start: the worker's share of the intra-op threads (the loader sets 1)."""
+    torch.set_num_threads(threads)
+
+
+def _chunked(root: Path, folders: Sequence[Path], size: int) -> list[list[tuple[str, str]]]:
+    """Consecutive ``(absolute folder, relative path)`` chunks of ``size`` samples (in ``find_samples`` order,
+    samples of one calibration lie together)."""
+    pairs = [(str(folder.absolute()), _relative(root, folder)) for folder in folders]
+    return [pairs[start : start + size] for start in range(0, len(pairs), size)]
+
+
+def _local_chunks(root: Path, out: Path, folders: Sequence[Path], settings: _Settings, batch_size: int,
+                  workers: int) -> Iterator[BatchRecord]:
+    """Run the chunks on the CPU: in this process (``workers=0``) or in ``workers`` DataLoader processes, each with
+    ``torch.get_num_threads() // workers`` threads (a sample per core beats a sample over all cores: elementwise
+    maths on 5 MB stacks is memory bound, and threads in two processes on one core stall each other)."""
+    chunks = _chunked(root, folders, batch_size)
+    if workers == 0:
+        cards = _Cards(torch.device(settings.device), settings.dtype)  # this run's own: decoded once per run
+        for chunk in chunks:
+            yield from _run_chunk(out, chunk, settings, cards)
+        return
+    threads = max(1, torch.get_num_threads() // workers)
+    loader = DataLoader(_Chunks(out, chunks, settings), batch_size=None, shuffle=False, num_workers=workers,
+                        collate_fn=_collate, worker_init_fn=partial(_set_threads, threads), persistent_workers=False)
+    for records in loader:
+        yield from records
+
+
+def _dask_chunks(root: Path, out: Path, folders: Sequence[Path], settings: _Settings, batch_size: int,
+                 scheduler: str | None, client: Any, timeout_s: float) -> Iterator[BatchRecord]:
+    """Run the chunks as Dask tasks; a task that raises (or whose worker dies) fails its own samples only."""
+    from psmini import _dask
+
+    chunks = _chunked(root, folders, batch_size)
+    task = partial(_run_chunk, str(out.absolute()), settings=settings)
+    for index, records, error in _dask.map_chunks(task, chunks, scheduler=scheduler, client=client,
+                                                  timeout_s=timeout_s):
+        if error is not None:
+            message = f"{type(error).__name__}: {error}"
+            logger.warning("a Dask task of %d samples failed: %s", len(chunks[index]), message)
+            records = [BatchRecord(rel, "failed", batch_size=len(chunks[index]), error=message)
+                       for _, rel in chunks[index]]
+        yield from records
+
+
+# ------------------------------------------------------------------------------------------------ arguments
 
 
 def _check_arguments(root: str | Path, batch_size: int, workers: int, light_model: str, method: str,
-                     device: torch.device | str) -> tuple[Path, torch.device]:
+                     device: torch.device | str, local_device: bool = True) -> tuple[Path, torch.device]:
     root = Path(root)
     if not root.is_dir():
         raise InputError(f"ROOT {root} does not exist or is not a folder")
@@ -302,7 +450,7 @@ def _check_arguments(root: str | Path, batch_size: int, workers: int, light_mode
     if method not in NORMAL_METHODS:
         raise InputError(f"method must be one of {', '.join(NORMAL_METHODS)}, got {method!r}")
     device = torch.device(device)
-    if device.type == "cuda" and not torch.cuda.is_available():
+    if local_device and device.type == "cuda" and not torch.cuda.is_available():
         raise InputError("device cuda was asked for, but torch sees no CUDA device on this machine")
     return root, device
 
@@ -330,7 +478,8 @@ def iter_reconstructions(
 ) -> Iterator[tuple[str, Reconstruction]]:
     """Reconstruct every sample under ``root`` in batches and yield them one by one (for notebooks).
 
-    Nothing is written. Samples that cannot be read or solved are logged (warning) and left out.
+    Nothing is written. Samples are decoded in ``workers`` processes and solved in this one. Samples that cannot
+    be read or solved are logged (warning) and left out.
 
     Args:
         root: a folder holding capture folders and DiLiGenT folders at any depth (or one of them).
@@ -359,9 +508,8 @@ def iter_reconstructions(
     """
     root, device = _check_arguments(root, batch_size, workers, light_model, method, device)
     folders = _samples_under(root)
-    for solved in _solved_stream(root, folders, device=device, dtype=dtype, batch_size=batch_size, workers=workers,
-                                 integrator=integrator, light_model=light_model, method=method,
-                                 min_reference=min_reference):
+    settings = _Settings(str(device), dtype, integrator, light_model, method, min_reference)
+    for solved in _solved_stream(root, folders, settings, batch_size, workers):
         if solved.result is None:
             logger.warning("sample %s failed: %s", solved.item.rel, solved.error)
             continue
@@ -461,26 +609,40 @@ def reconstruct_dataset(
     min_reference: float = 0.02,
     score: bool = True,
     progress: Callable[[BatchRecord], None] | None = None,
+    scheduler: str | None = None,
+    client: Any = None,
+    scheduler_timeout_s: float = 10.0,
 ) -> dict[str, Any]:
     """Reconstruct every sample under ``root`` into ``out/<relative path>``, resuming an earlier run.
 
     Samples whose output folder already holds ``outputs.json`` are skipped (their earlier summary row is kept).
-    The rest are decoded in ``workers`` processes, solved in batches (see :func:`iter_reconstructions`) and
-    written atomically: ``albedo.png``, ``normals.png``, ``depth.npy``/``.png``/``.json``, ``points.ply`` (as
-    :func:`psmini.io.write_outputs`; only those chosen by ``outputs``) and ``outputs.json``, whose
-    ``metadata.batch`` holds the sample's summary row. ``out/summary.csv`` and ``out/summary.json`` list every
-    sample with its status, times and, when it has ground truth, errors
+    The rest are split into chunks of ``batch_size`` consecutive samples; each chunk is decoded, solved in batches
+    of samples sharing a size, lights and card, and written atomically: ``albedo.png``, ``normals.png``,
+    ``depth.npy``/``.png``/``.json``, ``points.ply`` (as :func:`psmini.io.write_outputs`; only those chosen by
+    ``outputs``) and ``outputs.json``, whose ``metadata.batch`` holds the sample's summary row. ``out/summary.csv``
+    and ``out/summary.json`` list every sample with its status, times and, when it has ground truth, errors
     (:func:`psmini.evaluation.score_reconstruction`).
 
+    Where the chunks run: on the CPU, in ``workers`` processes that each decode, solve and write whole chunks; on
+    CUDA, decoded in ``workers`` processes and solved on the GPU here; with ``scheduler`` or ``client``, as tasks
+    of a ``dask.distributed`` cluster (``pip install psmini[dask]``), each on its worker's ``device``. Every
+    backend runs the same chunk code and gives the same files and summary.
+
     Args:
-        root: a folder holding capture folders and DiLiGenT folders at any depth (or one of them).
+        root: a folder holding capture folders and DiLiGenT folders at any depth (or one of them). With Dask,
+            ``root`` and ``out`` must be the same paths on every worker (a shared file system).
         out: the output folder (created).
-        device, dtype, batch_size, workers, integrator, light_model, method, min_reference: see
-            :func:`iter_reconstructions`.
+        device, dtype, batch_size, integrator, light_model, method, min_reference: see
+            :func:`iter_reconstructions`. On CPU, small batches (about 4) are fastest per sample.
+        workers: local worker processes (0: everything in this process); not used with Dask.
         outputs: which of :data:`OUTPUT_KINDS` to write (a list or ``"normals,albedo,depth,ply"``); None: all.
         score: measure the errors against ground truth of the samples that have it (costs about as much as
             the reconstruction itself on the CPU).
         progress: called with each sample's :class:`BatchRecord` as soon as it is finished, skipped or failed.
+        scheduler: a Dask scheduler address (``"tcp://head:8786"``), or ``"local"`` / ``"local:N"`` for a
+            ``LocalCluster`` of N single-threaded worker processes started for this run (N: the CPU count).
+        client: a ``distributed.Client`` to use instead (kept open); exclusive with ``scheduler``.
+        scheduler_timeout_s: how long to wait for the scheduler, and for its first worker, seconds.
 
     Returns:
         the summary: ``{"settings": ..., "counts": {"done", "skipped", "failed"}, "samples": [row, ...]}`` with
@@ -488,16 +650,26 @@ def reconstruct_dataset(
 
     Raises:
         InputError: ``root`` missing, no samples under it, bad ``outputs``, ``batch_size``, ``workers`` or
-            ``light_model``, CUDA asked for and absent.
+            ``light_model``, CUDA asked for and absent (here; on Dask workers the samples fail instead), both
+            ``scheduler`` and ``client``, a bad ``local:N``, a scheduler that cannot be reached or has no worker,
+            dask.distributed not installed.
         DataFormatError: ``out`` cannot be written.
 
     Example:
-        >>> summary = reconstruct_dataset("captures", "reconstructions", batch_size=16, workers=2)  # doctest: +SKIP
+        >>> summary = reconstruct_dataset("captures", "reconstructions", batch_size=4, workers=2)  # doctest: +SKIP
         >>> summary["counts"]  # doctest: +SKIP
         {'done': 198, 'skipped': 0, 'failed': 2}
+        >>> reconstruct_dataset("captures", "out", scheduler="tcp://head:8786", device="cuda")  # doctest: +SKIP
     """
     kinds = parse_outputs(outputs)
-    root, device = _check_arguments(root, batch_size, workers, light_model, method, device)
+    dask = scheduler is not None or client is not None
+    if scheduler is not None and client is not None:
+        raise InputError("give a Dask scheduler address or a client, not both")
+    root, device = _check_arguments(root, batch_size, workers, light_model, method, device, local_device=not dask)
+    if scheduler is not None:
+        from psmini._dask import parse_scheduler
+
+        parse_scheduler(scheduler)  # a malformed local:N fails before any work
     out = Path(out)
     folders = _samples_under(root)
     records: dict[str, BatchRecord] = {}
@@ -511,20 +683,33 @@ def reconstruct_dataset(
         else:
             todo.append(folder)
     logger.info("%d samples under %s: %d finished earlier, %d to do", len(folders), root, len(records), len(todo))
-    stream = _solved_stream(root, todo, device=device, dtype=dtype, batch_size=batch_size, workers=workers,
-                            integrator=integrator, light_model=light_model, method=method,
-                            min_reference=min_reference) if todo else ()
-    for solved in stream:
-        records[solved.item.rel] = record = _finish(out, solved, kinds, score)
+    settings = _Settings(str(device), dtype, integrator, light_model, method, min_reference, kinds, score)
+    if not todo:
+        stream: Iterator[BatchRecord] = iter(())
+    elif dask:
+        stream = _dask_chunks(root, out, todo, settings, batch_size, scheduler, client, scheduler_timeout_s)
+    elif device.type == "cpu":
+        stream = _local_chunks(root, out, todo, settings, batch_size, workers)
+    else:
+        stream = (_finish(out, solved, settings) for solved in _solved_stream(root, todo, settings, batch_size, workers))
+    for record in stream:
+        records[record.sample] = record
         if progress is not None:
             progress(record)
-    settings = {"root": str(root), "out": str(out), "device": str(device), "dtype": str(dtype).replace("torch.", ""),
-                "batch_size": batch_size, "workers": workers, "light_model": light_model,
-                "integrator": integrator, "outputs": list(kinds), "score": score}
-    return _write_summary(out, [records[_relative(root, f)] for f in folders], settings)
+    settings_row = {"root": str(root), "out": str(out), "device": str(device),
+                    "dtype": str(dtype).replace("torch.", ""), "batch_size": batch_size, "workers": workers,
+                    "light_model": light_model, "integrator": integrator, "outputs": list(kinds), "score": score,
+                    "scheduler": _scheduler_name(scheduler, client)}
+    return _write_summary(out, [records[_relative(root, f)] for f in folders], settings_row)
 
 
-def _finish(out: Path, solved: _Solved, kinds: tuple[str, ...], score: bool) -> BatchRecord:
+def _scheduler_name(scheduler: str | None, client: Any) -> str | None:
+    if client is not None:
+        return str(client.scheduler.address)
+    return scheduler
+
+
+def _finish(out: Path, solved: _Solved, settings: _Settings) -> BatchRecord:
     """Score and write one solved sample; any error of its own becomes a failed record."""
     item = solved.item
     record = BatchRecord(item.rel, "failed", decode_s=item.decode_s, compute_s=solved.compute_s,
@@ -535,10 +720,10 @@ def _finish(out: Path, solved: _Solved, kinds: tuple[str, ...], score: bool) -> 
         return record
     start = time.perf_counter()
     try:
-        record.scores = _scores(solved.result, item.sample) if score else {}
+        record.scores = _scores(solved.result, item.sample) if settings.score else {}
         record.status, record.error = "done", ""
         record.time_s = item.decode_s + solved.compute_s
-        _write(out / item.rel, solved.result, item.sample, kinds, record.row())
+        _write(out / item.rel, solved.result, item.sample, settings.kinds, record.row())
     except PsminiError as error:
         record.status, record.error = "failed", f"{type(error).__name__}: {error}"
         logger.warning("sample %s failed: %s", item.rel, record.error)

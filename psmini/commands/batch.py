@@ -16,14 +16,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Find every psmini capture folder and DiLiGenT folder under ROOT, decode them in worker "
         "processes, solve samples of equal size and calibration together, and write each one atomically into "
         "OUT/<path relative to ROOT>, with OUT/summary.csv and OUT/summary.json. A second run skips the samples "
-        "already finished; a sample that fails is reported in the summary and the others go on.",
+        "already finished; a sample that fails is reported in the summary and the others go on. With --scheduler "
+        "the chunks run as tasks of a Dask cluster (pip install 'psmini[dask]'), on each worker's --device.",
     )
     parser.add_argument("root", type=Path, metavar="ROOT", help="folder holding the sample folders (any depth)")
     parser.add_argument("--out", type=Path, required=True, metavar="OUT", help="output folder (created)")
     parser.add_argument("--batch-size", type=int, default=8, metavar="N",
                         help="samples decoded together; those of equal size and card are solved together (default 8)")
     parser.add_argument("--workers", type=int, default=2, metavar="W",
-                        help="decoding processes; 0 decodes in this process (default 2)")
+                        help="local worker processes: on CPU each decodes, solves and writes whole batches, on CUDA "
+                        "they decode; 0 does everything in this process (default 2; not used with --scheduler)")
     parser.add_argument("--light-model", choices=["distant", "near"], default="distant",
                         help="distant: classical least squares (default); near: near-light photometric stereo")
     parser.add_argument("--method", default="lstsq", choices=NORMAL_METHODS,
@@ -35,6 +37,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--no-score", action="store_true",
                         help="skip the errors against ground truth (they cost about as much as the reconstruction)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                        help="run on a Dask cluster: a scheduler address (tcp://HOST:8786, from `dask scheduler`), "
+                        "or local[:N] for N single-threaded worker processes on this machine; ROOT and OUT must be "
+                        "the same paths on every worker")
+    parser.add_argument("--scheduler-timeout", type=float, default=10.0, metavar="S",
+                        help="seconds to wait for the scheduler and its first worker (default 10)")
     add_device_flag(parser)
     add_json_flag(parser)
     parser.set_defaults(run=run)
@@ -52,7 +60,8 @@ def run(args: argparse.Namespace) -> int:
     from psmini.batch import parse_outputs, reconstruct_dataset
 
     outputs = parse_outputs(args.outputs)  # before any work: a typo fails at once
-    device = resolve_device(args.device)
+    # with a cluster the workers' devices count, not this machine's
+    device = args.device if args.scheduler else resolve_device(args.device)
     bar = tqdm(unit="sample", disable=args.no_progress, dynamic_ncols=True)
 
     def progress(record) -> None:
@@ -62,8 +71,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         summary = reconstruct_dataset(args.root, args.out, device=device, batch_size=args.batch_size,
                                       workers=args.workers, integrator=args.integrator, light_model=args.light_model,
-                                      method=args.method,
-                                      outputs=outputs, score=not args.no_score, progress=progress)
+                                      method=args.method, outputs=outputs, score=not args.no_score, progress=progress,
+                                      scheduler=args.scheduler, scheduler_timeout_s=args.scheduler_timeout)
     finally:
         bar.close()
     counts = summary["counts"]
