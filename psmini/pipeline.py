@@ -17,14 +17,16 @@ from psmini.flatfield import flatfield
 from psmini.integrate import integrate
 from psmini.lights import DirectionalLights, check_spans_3d
 from psmini.nearlight import near_light_photometric_stereo
+from psmini.nonlambertian import nonlambertian_normals
 from psmini.normals import albedo_normals, normals_to_gradients
 from psmini.robust import ROBUST_METHODS, robust_normals
 from psmini.result import Reconstruction
 
 __all__ = ["NORMAL_METHODS", "Reconstruction", "PhotometricStereo", "distant_light_matrix", "reconstruct"]
 
-# Normal estimators of the distant-light solver: least squares, and those of :mod:`psmini.robust`.
-NORMAL_METHODS = ("lstsq", "robust") + ROBUST_METHODS
+# Normal estimators of the distant-light solver: least squares, those of :mod:`psmini.robust`, and the
+# Lambertian + specular lobe fit of :mod:`psmini.nonlambertian`.
+NORMAL_METHODS = ("lstsq", "robust") + ROBUST_METHODS + ("nonlambertian",)
 
 
 def distant_light_matrix(lights: nn.Module, flatfielded: bool, reference: Tensor) -> Tensor:
@@ -92,7 +94,9 @@ class PhotometricStereo(nn.Module):
         solver: ``"auto"``, ``"distant"`` or ``"near"``.
         method: normal estimator of the distant solver, one of :data:`NORMAL_METHODS`: ``"lstsq"`` (least squares,
             :func:`psmini.normals.albedo_normals`) or a robust one of :func:`psmini.robust.robust_normals`
-            (``"robust"``: the recommended one). The near solver takes ``"lstsq"`` only.
+            (``"robust"``: the recommended one), or ``"nonlambertian"``
+            (:func:`psmini.nonlambertian.nonlambertian_normals`, a Lambertian + Blinn–Phong fit started from the
+            robust one). The near solver takes ``"lstsq"`` only.
         **near_options: passed to :func:`~psmini.nearlight.near_light_photometric_stereo` (e.g. ``card_height_mm``,
             ``estimate_offset``, ``max_iterations``).
 
@@ -167,6 +171,8 @@ class PhotometricStereo(nn.Module):
         weights = None if bool(flat.valid.all()) else flat.valid
         if self.method == "lstsq":
             albedo, normals = albedo_normals(flat.images, matrix, mask, weights)
+        elif self.method == "nonlambertian":
+            albedo, normals = nonlambertian_normals(flat.images, matrix, mask, weights)
         else:
             albedo, normals = robust_normals(flat.images, matrix, self.method, mask, weights)
         solved = albedo > 0
