@@ -102,7 +102,7 @@ def map_chunks(task: Callable[[Any], list], chunks: Sequence[Any], *, scheduler:
                              f"{timeout_s:g} s; start some with `dask worker ADDRESS`") from error
         logger.info("sending %d chunks to %d Dask workers", len(chunks), len(dask_client.nthreads()))
         futures = {dask_client.submit(task, chunk, pure=False): index for index, chunk in enumerate(chunks)}
-        for future in distributed.as_completed(futures):
+        for future in distributed.as_completed(futures, loop=dask_client.loop):  # the client need not be the default
             index = futures.pop(future)
             try:
                 result = future.result()

@@ -34,9 +34,16 @@ def tree(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def client():
+def cluster():
     """An in-process cluster (threads, no worker processes to start): the tasks still travel through the scheduler."""
-    with distributed.Client(processes=False, n_workers=1, threads_per_worker=2, dashboard_address=None) as client:
+    with distributed.LocalCluster(processes=False, n_workers=1, threads_per_worker=2, dashboard_address=None) as cluster:
+        yield cluster
+
+
+@pytest.fixture(scope="module")
+def client(cluster):
+    """A client that is not the default one, as a user's may not be."""
+    with distributed.Client(cluster, set_as_default=False) as client:
         yield client
 
 
@@ -57,6 +64,13 @@ class TestSameAsLocal:
                 assert (tmp_path / "dask" / name / file).read_bytes() == (tmp_path / "local" / name / file).read_bytes()
         csv = [(tmp_path / out / "summary.csv").read_text().splitlines() for out in ("local", "dask")]
         assert [line.split(",")[:2] for line in csv[0]] == [line.split(",")[:2] for line in csv[1]]
+
+    def test_through_a_scheduler_address(self, tree, tmp_path, cluster):
+        summary = reconstruct_dataset(tree / "lotB", tmp_path / "out", scheduler=cluster.scheduler_address,
+                                      outputs="depth", score=False)
+        assert summary["counts"] == {"done": 1, "skipped": 0, "failed": 0}
+        assert summary["settings"]["scheduler"] == cluster.scheduler_address
+        assert (tmp_path / "out" / "cotton" / "depth.npy").is_file()
 
     def test_resume_after_a_partial_run(self, tree, tmp_path, client):
         out = tmp_path / "out"
