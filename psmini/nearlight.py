@@ -24,6 +24,7 @@ map by gradient descent, coarse to fine, with the albedo solved in closed form a
 
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 from dataclasses import dataclass
@@ -36,6 +37,7 @@ from psmini._checks import check_finite, check_mask, check_positive, check_shape
 from psmini.errors import InputError, ShapeError
 from psmini.flatfield import flatfield
 from psmini.geometry import depth_to_points
+from psmini.integrate import METHODS as INTEGRATORS
 from psmini.integrate import integrate
 from psmini.normals import albedo_normals, normals_to_gradients
 from psmini.render import normals_from_height
@@ -62,6 +64,17 @@ _SHADOW_FRACTION = 0.02
 _GRAZING_COSINE = 0.02
 # Stride of the pixel grid on which the height offset is searched (the residual is smooth across pixels).
 _OFFSET_STRIDE = 4
+# An observation brighter than the fit of the others by more than this fraction of the pixel's brightness scale is
+# a highlight: a few per cent of specular lobe is already degrees of normal error, while the fit of the others
+# predicts a Lambertian observation to about the noise of an 8-bit sensor.
+_HIGHLIGHT_FRACTION = 0.02
+# ... or by more than this many times the image's typical residual per observation, when noise makes that larger.
+_HIGHLIGHT_SIGMAS = 4.0
+# A pixel is tested for a highlight only with at least this many observations: the fit of the others then stays
+# overdetermined (an exactly determined fit of three turns noise into false highlights where light is scarce).
+_HIGHLIGHT_MIN_OBS = 5
+# Pixels next to an unsolved one get this confidence in the integration (see near_light_photometric_stereo).
+_EDGE_CONFIDENCE = 0.01
 
 
 def near_light_vectors(
@@ -127,16 +140,22 @@ def robust_near_light_normals(
     iterations: int = 3,
     outlier_fraction: float = _OUTLIER_FRACTION,
     shadow_fraction: float = _SHADOW_FRACTION,
+    highlight_fraction: float | None = _HIGHLIGHT_FRACTION,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    r"""Per-pixel least squares with per-pixel lights, dropping shadowed and outlying observations.
+    r"""Per-pixel least squares with per-pixel lights, dropping shadowed, specular and outlying observations.
 
     Observations darker than ``shadow_fraction`` of the pixel's brightest are left out throughout (a shadow
     reads about zero once the dark frame is subtracted), unless that leaves fewer than three: then the three
-    brightest are used when none of them is zero. After each solve, an observation is dropped when the light grazes or lies behind the estimated tangent plane
-    (attached shadow: :math:`n \cdot L_k \le 0.02\,|L_k|`) or when its residual exceeds ``outlier_fraction`` of
-    the pixel's scale :math:`\rho\,\overline{|L|}` (cast shadows, highlights); a pixel keeps its previous
-    observations rather than fall below three. Pixels with fewer than three non-zero observations are left
-    unsolved (albedo 0, normal (0, 0, 1)) with no weights.
+    brightest are used when none of them is zero. Highlights go next, before any fit can be pulled by them: while a
+    pixel keeps five or more observations, its brightest relative to the light's strength (:math:`I_k / |L_k|`) is
+    dropped when the least-squares fit of the others predicts it darker by more than ``highlight_fraction`` of the
+    pixel's scale :math:`\rho\,\overline{|L|}` (a specular lobe only adds light; leaving the suspect out of its own
+    test avoids the masking of a plain residual test, where a glint tilts the fit until good observations look
+    like the outliers). After each solve, an observation is dropped when the light grazes or lies behind the
+    estimated tangent plane (attached shadow: :math:`n \cdot L_k \le 0.02\,|L_k|`) or when its residual exceeds
+    ``outlier_fraction`` of the pixel's scale (cast shadows); a pixel keeps its previous observations rather than
+    fall below three. Pixels with fewer than three non-zero observations are left unsolved (albedo 0, normal
+    (0, 0, 1)) with no weights.
 
     Args:
         intensities: images, shape :math:`(B, K, H, W)` (flat-fielded or dark-subtracted).
@@ -146,6 +165,8 @@ def robust_near_light_normals(
         iterations: re-solves after the first.
         outlier_fraction: residual threshold relative to the pixel's brightness scale.
         shadow_fraction: observations darker than this fraction of the pixel's brightest start as shadowed.
+        highlight_fraction: excess over the fit of the others, relative to the pixel's brightness scale, at which
+            the brightest observation is a highlight; ``None`` keeps every observation (purely Lambertian cloth).
 
     Returns:
         albedo :math:`(B, 1, H, W)`, unit normals :math:`(B, 3, H, W)` and the weights used :math:`(B, K, H, W)`.
@@ -163,11 +184,15 @@ def robust_near_light_normals(
             "iterations must be >= 0, outlier_fraction > 0 and shadow_fraction in [0, 1); "
             f"got {iterations}, {outlier_fraction}, {shadow_fraction}"
         )
+    if highlight_fraction is not None and not highlight_fraction > 0:
+        raise InputError(f"highlight_fraction must be > 0 or None, got {highlight_fraction}")
     valid_observations = torch.ones_like(intensities, dtype=torch.bool) if valid is None else valid.bool()
     candidates = _candidates(intensities, valid_observations, shadow_fraction)
+    length = light_vectors.norm(dim=2)
+    if highlight_fraction is not None:
+        candidates = _reject_highlights(intensities, light_vectors, length, candidates, mask, highlight_fraction)
     weights = candidates
     albedo, normals = albedo_normals(intensities, light_vectors, mask, weights)
-    length = light_vectors.norm(dim=2)
     for _ in range(iterations):
         predicted = _predict(albedo, normals, light_vectors)
         scale = albedo * length.mean(dim=1, keepdim=True)
@@ -178,6 +203,59 @@ def robust_near_light_normals(
         weights = torch.where(enough, proposal, weights)
         albedo, normals = albedo_normals(intensities, light_vectors, mask, weights)
     return albedo, normals, weights & (albedo > 0)
+
+
+def _reject_highlights(
+    intensities: Tensor, vectors: Tensor, length: Tensor, weights: Tensor, mask: Tensor | None, fraction: float
+) -> Tensor:
+    """Drop each pixel's brightest observation (relative to its light) while the others' fit finds it too bright.
+
+    One observation per pixel and round, at most K - 3 rounds; the test needs :data:`_HIGHLIGHT_MIN_OBS`
+    observations, so a pixel keeps at least four. The threshold is ``fraction`` of the pixel's scale, or
+    :data:`_HIGHLIGHT_SIGMAS` times the image's noise level scaled by the prediction's spread, whichever is larger.
+    """
+    relative = intensities / length.clamp_min(torch.finfo(length.dtype).tiny)
+    scale = length.mean(dim=1, keepdim=True)
+    noise = _noise_level(intensities, vectors, length, weights, mask) * _HIGHLIGHT_SIGMAS
+    for _ in range(intensities.shape[1] - 3):
+        brightest = relative.masked_fill(~weights, -torch.inf).argmax(dim=1, keepdim=True)
+        suspect = torch.zeros_like(weights).scatter_(1, brightest, True) & (weights.sum(dim=1, keepdim=True) >= _HIGHLIGHT_MIN_OBS)
+        others = weights & ~suspect
+        albedo, normals = albedo_normals(intensities, vectors, mask, others)
+        excess = ((intensities - _predict(albedo, normals, vectors)) * suspect).sum(dim=1, keepdim=True)
+        # the others' fit predicts the suspect with variance (1 + h) times an observation's, h its leverage
+        spread = (1 + _leverage(vectors, others, suspect)).sqrt()
+        threshold = torch.maximum(noise * spread, torch.full_like(spread, fraction))
+        highlight = suspect & (albedo > 0) & (excess > threshold * albedo * scale)
+        if not bool(highlight.any()):  # one sync per round: most pixels of matte cloth stop after the first
+            break
+        weights = weights & ~highlight
+    return weights
+
+
+def _leverage(vectors: Tensor, others: Tensor, suspect: Tensor) -> Tensor:
+    r""":math:`L_s^T (\sum_{k \in others} L_k L_k^T)^{-1} L_s` of the suspect light per pixel, shape (B, 1, H, W)."""
+    moved = vectors.permute(0, 3, 4, 1, 2)  # (B, H, W, K, 3)
+    used = others.permute(0, 2, 3, 1).unsqueeze(-1).to(vectors)
+    gram = (moved * used).transpose(-1, -2) @ moved
+    ridge = 1e-9 * gram.diagonal(dim1=-2, dim2=-1).sum(dim=-1).clamp_min(1e-30)  # keeps dark pixels invertible
+    gram = gram + ridge[..., None, None] * torch.eye(3, device=vectors.device, dtype=vectors.dtype)
+    light = (moved * suspect.permute(0, 2, 3, 1).unsqueeze(-1).to(vectors)).sum(dim=-2, keepdim=True)  # (B, H, W, 1, 3)
+    solved = torch.linalg.solve(gram, light.transpose(-1, -2))
+    return (light @ solved)[..., 0, 0].unsqueeze(1)
+
+
+def _noise_level(intensities: Tensor, vectors: Tensor, length: Tensor, weights: Tensor, mask: Tensor | None) -> Tensor:
+    """Median over pixels with four or more observations of their RMS residual (per degree of freedom) relative to
+    the pixel's scale, shape (B, 1, 1, 1): the noise plus model error that a highlight test must stand above."""
+    albedo, normals = albedo_normals(intensities, vectors, mask, weights)
+    count = weights.sum(dim=1, keepdim=True)
+    squared = ((intensities - _predict(albedo, normals, vectors)).square() * weights).sum(dim=1, keepdim=True)
+    relative = (squared / (count - 3).clamp_min(1)).sqrt() / (albedo * length.mean(dim=1, keepdim=True)).clamp_min(1e-12)
+    usable = (count >= 4) & (albedo > 0)
+    ranked = relative.masked_fill(~usable, torch.inf).flatten(1).sort(dim=1).values
+    middle = (usable.flatten(1).sum(dim=1, keepdim=True) - 1).clamp_min(0) // 2
+    return ranked.gather(1, middle).nan_to_num(0.0, posinf=0.0).view(-1, 1, 1, 1)
 
 
 def _residual(intensities: Tensor, vectors: Tensor, weights: Tensor) -> Tensor:
@@ -309,6 +387,7 @@ def near_light_photometric_stereo(
     integrator: str = "masked",
     max_iterations: int = 10,
     tolerance_mm: float = 1e-3,
+    highlight_fraction: float | None = _HIGHLIGHT_FRACTION,
 ) -> NearLightResult:
     r"""Near-light photometric stereo by alternating per-pixel lights, normals and integrated depth.
 
@@ -374,9 +453,8 @@ def near_light_photometric_stereo(
     offset = fixed_mean
     for _ in range(max_iterations):
         vectors = near_light_vectors(light_model, depth, pixel_pitch_mm, card_height)
-        albedo, normals, weights = robust_near_light_normals(flat.images, vectors, flat.valid, mask)
-        p, q = normals_to_gradients(normals)
-        relative = integrate(p, q, method=integrator, pixel_pitch_mm=pixel_pitch_mm, mask=albedo > 0)
+        albedo, normals, weights = robust_near_light_normals(flat.images, vectors, flat.valid, mask, highlight_fraction=highlight_fraction)
+        relative = _integrate_solved(normals, albedo > 0, integrator, pixel_pitch_mm)
         if estimate_offset:
             offset = estimate_height_offset(flat.images, light_model, relative, pixel_pitch_mm, weights, card_height)
         else:
@@ -388,12 +466,33 @@ def near_light_photometric_stereo(
         if changes[-1] < tolerance_mm:
             break
     vectors = near_light_vectors(light_model, depth, pixel_pitch_mm, card_height)
-    albedo, normals, weights = robust_near_light_normals(flat.images, vectors, flat.valid, mask)
+    albedo, normals, weights = robust_near_light_normals(flat.images, vectors, flat.valid, mask, highlight_fraction=highlight_fraction)
     p, q = normals_to_gradients(normals)
     return NearLightResult(
         albedo, normals, p, q, depth, albedo > 0,
         weights=weights, offset_mm=depth.mean(dim=(1, 2, 3)), iterations=len(changes), changes_mm=tuple(changes),
     )
+
+
+def _integrate_solved(normals: Tensor, solved: Tensor, method: str, pixel_pitch_mm: float) -> Tensor:
+    """Height (up to an offset) from the normals of the solved pixels, beside-the-gap pixels nearly left out.
+
+    A pixel next to an unsolved one (a crevice lit by fewer than three LEDs) sees the crevice's wall: its normal,
+    the slope over its footprint, takes in a drop that does not lie between it and its solved neighbours. Edges
+    of the integration grid carry the confidence-weighted mean of their two pixels' slopes, so such a pixel gets
+    confidence :data:`_EDGE_CONFIDENCE` and its edges take the slope of the pixel on the solved side; otherwise
+    each crevice pulls its rim down and the knits' many crevices add up to a dome (26 µm on data_synth's knit).
+    Integrators without per-pixel weights get the plain solved mask.
+    """
+    p, q = normals_to_gradients(normals)
+    accepts_weights = method in INTEGRATORS and "weights" in inspect.signature(INTEGRATORS[method]).parameters
+    if not accepts_weights:  # an unknown method is reported by integrate itself
+        return integrate(p, q, method=method, pixel_pitch_mm=pixel_pitch_mm, mask=solved)
+    inside = F.pad(solved.to(p.dtype), (1, 1, 1, 1), value=1.0)  # the image border is no gap
+    neighbours = torch.stack([inside[..., 1:-1, :-2], inside[..., 1:-1, 2:], inside[..., :-2, 1:-1], inside[..., 2:, 1:-1]])
+    beside_gap = solved & (neighbours.amin(dim=0) < 1)
+    confidence = torch.where(beside_gap, torch.full_like(p, _EDGE_CONFIDENCE), torch.ones_like(p))
+    return integrate(p, q, method=method, pixel_pitch_mm=pixel_pitch_mm, mask=solved, weights=confidence)
 
 
 def _initial_depth(initial: Tensor | float, images: Tensor, sizes: dict[str, int]) -> Tensor:
