@@ -1,4 +1,5 @@
 import json
+import os
 import shutil
 
 import numpy as np
@@ -6,6 +7,7 @@ import pytest
 import torch
 
 import psmini.batch as batch
+import psmini.errors
 import psmini.io
 from data_synth.rig import write_synthetic_capture
 from psmini.batch import iter_reconstructions, parse_outputs, reconstruct_dataset
@@ -228,3 +230,32 @@ def test_robust_method_through_batch(tmp_path):
     assert row_robust["mean_angular_error_deg"] != row_plain["mean_angular_error_deg"]
     with pytest.raises(InputError, match="method must be one of"):
         reconstruct_dataset(root, tmp_path / "bad", method="median")
+
+
+def test_card_cache_decodes_a_rewritten_card_again_and_keeps_at_most_limit(tree, tmp_path, monkeypatch):
+    """A long-lived worker's card cache: a card replaced in place is decoded again; the oldest card goes first."""
+    root = _fresh(tree, tmp_path)
+    decoded = []
+    read_capture = psmini.io.read_capture
+
+    def counting(folder):
+        decoded.append(str(folder))
+        return read_capture(folder)
+
+    monkeypatch.setattr(psmini.io, "read_capture", counting)
+    cards = batch._Cards(torch.device("cpu"), torch.float32, limit=1)
+    card_a, card_b = str(root / "lotA" / "card"), str(root / "lotB" / "card")
+    shape = (8, 64, 64)
+    first, _ = cards.get(card_a, shape)
+    cards.get(card_a, shape)
+    assert decoded == [card_a]  # decoded once
+    manifest = root / "lotA" / "card" / "capture.json"
+    stat = manifest.stat()
+    os.utime(manifest, ns=(stat.st_atime_ns, stat.st_mtime_ns + 1_000_000))  # the card was captured again
+    again, _ = cards.get(card_a, shape)
+    assert decoded == [card_a, card_a] and torch.equal(again, first)
+    cards.get(card_b, shape)
+    cards.get(card_a, shape)  # dropped to keep one card: decoded once more
+    assert decoded == [card_a, card_a, card_b, card_a]
+    with pytest.raises(psmini.errors.DataFormatError, match="the card must be imaged under the same LEDs"):
+        cards.get(card_a, (8, 32, 32))
