@@ -52,7 +52,7 @@ def add_reconstruction_flags(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--method", choices=NORMAL_METHODS, default="lstsq",
                         help="normal estimator for distant lights: lstsq (least squares, default); robust (the "
-                        "recommended robust one); trimmed, threshold, huber, cauchy, tukey, l1 (psmini.robust); or "
+                        "recommended robust one); trimmed, threshold, huber, cauchy, tukey, l1, rpca (psmini.robust); or "
                         "nonlambertian (Lambertian + Blinn-Phong lobe, psmini.nonlambertian)")
     add_device_flag(parser)
     add_json_flag(parser)
