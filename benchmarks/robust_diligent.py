@@ -8,6 +8,14 @@ IRLS iteration) measured in the same run. The loop is timed on a random subset o
 the torch ones (last column) to show it is the same estimator. Every method runs with its defaults: nothing is
 tuned per object.
 
+Two estimators are not per-pixel IRLS. "rpca" (low-rank recovery, Wu et al. 2010) works on the whole K x N matrix
+of an image: its baseline is the same inexact ALM in plain NumPy with ``np.linalg.svd`` of the matrix per iteration
+(the textbook form), run on the whole mask. "nonlambertian" (Lambertian + Blinn-Phong by robust Levenberg-Marquardt,
+psmini.nonlambertian) is compared with the same optimiser written per pixel in NumPy (same starts, race and
+iterations, ``np.linalg.solve`` of each 5x5 system), timed on ``--nl-loop-pixels`` (200) mask pixels from the torch
+robust start and extrapolated; its per-pixel time adds that of the tukey loop, which the torch time includes as the
+start.
+
     python benchmarks/robust_diligent.py [ROOT] [--device cpu|cuda] [--threads N] [--loop-pixels N] [--no-record]
 """
 
@@ -29,6 +37,7 @@ from psmini.io import load_sample  # noqa: E402
 from psmini.metrics import mean_angular_error, median_angular_error  # noqa: E402
 from psmini.normals import albedo_normals  # noqa: E402
 from psmini.pipeline import distant_light_matrix  # noqa: E402
+from psmini.nonlambertian import nonlambertian_normals  # noqa: E402
 from psmini.robust import RECOMMENDED_ROBUST_METHOD, ROBUST_METHODS, robust_normals  # noqa: E402
 
 # Mean angular error (degrees) on ball / cat, DiLiGenT benchmark (Shi et al., TPAMI 2019, Table 2).
@@ -39,7 +48,10 @@ PUBLISHED = {
     "bi-polynomial BRDF (Shi et al. 2014)": {"ball": 1.74, "cat": 6.12},
 }
 TUNING = {"huber": 1.345, "cauchy": 2.385, "tukey": 4.685}
-DEFAULTS = {"low": 0.25, "high": 0.10, "shadow": 0.05, "iterations": 10, "l1_epsilon": 1e-3}
+DEFAULTS = {"low": 0.25, "high": 0.10, "shadow": 0.05, "iterations": 10, "l1_epsilon": 1e-3, "rpca_iterations": 30}
+# psmini.nonlambertian's defaults and constants, for the per-pixel loop
+NL = {"iterations": 20, "race": 6, "shadow": 0.05, "scale": 0.1, "shininess": (4.0, 16.0, 64.0, 256.0),
+      "max_shininess": 2000.0, "faint": (0.01, 30.0), "peak_ratio": 4.0}
 
 
 def loop_pixel(values: np.ndarray, lights: np.ndarray, method: str) -> np.ndarray:
@@ -78,10 +90,125 @@ def loop_pixel(values: np.ndarray, lights: np.ndarray, method: str) -> np.ndarra
     return m
 
 
+def loop_rpca(values: np.ndarray, lights: np.ndarray) -> np.ndarray:
+    """m (3, N) by the textbook inexact ALM (np.linalg.svd per iteration) on the whole (K, N) matrix, then lstsq."""
+    observed = values > DEFAULTS["shadow"] * values.max(axis=0, keepdims=True)
+    weight = 1.0 / np.sqrt(max(values.shape))
+    spectral = np.linalg.norm(values, 2)
+    multiplier = values / max(spectral, np.abs(values).max() / weight)
+    penalty, low_rank = 1.25 / spectral, np.zeros_like(values)
+    for _ in range(DEFAULTS["rpca_iterations"]):
+        target = values - low_rank + multiplier / penalty
+        sparse = np.where(observed, np.sign(target) * np.maximum(np.abs(target) - weight / penalty, 0), target)
+        u, sigma, vt = np.linalg.svd(values - sparse + multiplier / penalty, full_matrices=False)
+        low_rank = (u * np.maximum(sigma - 1.0 / penalty, 0)) @ vt
+        multiplier = multiplier + penalty * (values - low_rank - sparse)
+        penalty *= 1.5
+    return np.linalg.lstsq(lights, low_rank, rcond=None)[0]
+
+
+def _nl_shade(n, rho, s, alpha, lights, energy, half):
+    cosine = lights @ n
+    g = np.maximum(half @ n, 1e-300)
+    lobe = np.where(cosine > 0, energy * g ** alpha, 0.0)
+    return cosine, lobe, g, rho * np.maximum(cosine, 0) + s * lobe
+
+
+def _nl_cost(residuals, usable, sigma):
+    return float((usable * np.log1p((residuals / sigma) ** 2)).sum())
+
+
+def _nl_iterate(values, usable, sigma, most, lights, energy, half, state, damping, iterations):
+    """Per-pixel Levenberg-Marquardt of psmini.nonlambertian on one pixel (state: n, rho, s, log alpha)."""
+    n, rho, s, log_alpha = state
+    cost = _nl_cost(values - _nl_shade(n, rho, s, np.exp(log_alpha), lights, energy, half)[3], usable, sigma)
+    top = np.log(NL["max_shininess"])
+    for _ in range(iterations):
+        alpha = np.exp(log_alpha)
+        cosine, lobe, g, model = _nl_shade(n, rho, s, alpha, lights, energy, half)
+        residuals = values - model
+        weights = usable / (1 + (residuals / sigma) ** 2)
+        axis = np.array([1.0, 0, 0]) if abs(n[2]) > 0.9 else np.array([0, 0, 1.0])
+        first = np.cross(n, axis)
+        first /= np.linalg.norm(first)
+        second = np.cross(n, first)
+        diffuse, glossy = rho * (cosine > 0), s * alpha * lobe / g
+        jacobian = np.stack([diffuse * (lights @ first) + glossy * (half @ first),
+                             diffuse * (lights @ second) + glossy * (half @ second),
+                             np.maximum(cosine, 0), lobe, s * alpha * lobe * np.log(g)], axis=1)  # (K, 5)
+        gram = jacobian.T @ (weights[:, None] * jacobian)
+        diagonal = np.diag(gram)
+        try:
+            step = np.linalg.solve(gram + np.diag(damping * diagonal + 1e-9 * diagonal.sum() + 1e-300),
+                                   jacobian.T @ (weights * residuals))
+        except np.linalg.LinAlgError:
+            step = np.zeros(5)
+        trial_n = n + step[0] * first + step[1] * second
+        trial = (trial_n / np.linalg.norm(trial_n), max(rho + step[2], 0.0), min(max(s + step[3], 0.0), most),
+                 float(np.clip(log_alpha + step[4], 0.0, top)))
+        trial_cost = _nl_cost(values - _nl_shade(trial[0], trial[1], trial[2], np.exp(trial[3]), lights, energy,
+                                                 half)[3], usable, sigma)
+        if trial_cost < cost:
+            (n, rho, s, log_alpha), cost, damping = trial, trial_cost, max(damping / 3, 1e-7)
+        else:
+            damping = min(damping * 4, 1e7)
+    return (n, rho, s, log_alpha), cost, damping
+
+
+def loop_nonlambertian(values: np.ndarray, lights: np.ndarray, rho0: float, n0: np.ndarray) -> np.ndarray:
+    """One pixel's normal by the per-pixel version of psmini.nonlambertian (``values`` (K,), robust start)."""
+    usable = (values > NL["shadow"] * values.max()).astype(float)
+    energy = np.linalg.norm(lights, axis=1)
+    half = lights / energy[:, None] + np.array([0, 0, 1.0])
+    half /= np.linalg.norm(half, axis=1, keepdims=True)
+    kept = np.sort(values[usable > 0])
+    sigma = max(NL["scale"] * kept[(len(kept) - 1) // 2], 1e-6 * kept[-1] + 1e-300)
+    most = NL["peak_ratio"] * (usable * values / energy).max()
+    faint = (n0, rho0, NL["faint"][0] * rho0, np.log(NL["faint"][1]))
+    peak = half[np.argmax(np.where(usable > 0, values, -np.inf))]
+    bisector = (n0 + peak) / max(np.linalg.norm(n0 + peak), 1e-300)
+    best, best_cost = None, np.inf
+    for normal in (n0, peak, bisector):
+        for exponent in NL["shininess"]:
+            cosine, lobe, _, _ = _nl_shade(normal, rho0, rho0, exponent, lights, energy, half)
+            design = np.stack([np.maximum(cosine, 0), lobe], axis=1) * usable[:, None]
+            a, b, d = design[:, 0] @ design[:, 0], design[:, 0] @ design[:, 1], design[:, 1] @ design[:, 1]
+            r1, r2 = design[:, 0] @ values, design[:, 1] @ values
+            s = min(max((a * r2 - b * r1) / max(a * d - b * b, 1e-300), 0.0), most)
+            rho = max((r1 - b * s) / max(a, 1e-300), 0.0)
+            cost = _nl_cost(values - _nl_shade(normal, rho, s, exponent, lights, energy, half)[3], usable, sigma)
+            if cost < best_cost:
+                best, best_cost = (normal, rho, s, np.log(exponent)), cost
+    raced = [_nl_iterate(values, usable, sigma, most, lights, energy, half, start, 1e-2, NL["race"])
+             for start in (faint, best)]
+    state, _, damping = raced[0] if raced[0][1] <= raced[1][1] else raced[1]
+    state, _, _ = _nl_iterate(values, usable, sigma, most, lights, energy, half, state, damping,
+                              NL["iterations"] - NL["race"])
+    return state[0]
+
+
 def torch_normals(images, lights, mask, method):
     if method == "lstsq":
         return albedo_normals(images, lights, mask)[1]
+    if method == "nonlambertian":
+        return nonlambertian_normals(images, lights, mask)[1]
     return robust_normals(images, lights, method, mask)[1]
+
+
+def loop_time(method, values_np, lights_np, start, ours):
+    """Per-pixel seconds of the loop version of ``method`` and its mean angle (°) to the torch normals ``ours``."""
+    begin = time.perf_counter()
+    if method == "rpca":  # a matrix method: the baseline runs on the whole mask
+        loop_m = loop_rpca(values_np, lights_np)
+    elif method == "nonlambertian":
+        rho0, n0 = start
+        loop_m = np.stack([loop_nonlambertian(values_np[:, i], lights_np, rho0[i], n0[:, i])
+                           for i in range(values_np.shape[1])], 1)
+    else:
+        loop_m = np.stack([loop_pixel(values_np[:, i], lights_np, method) for i in range(values_np.shape[1])], 1)
+    per_pixel = (time.perf_counter() - begin) / values_np.shape[1]
+    loop_n = loop_m / np.maximum(np.linalg.norm(loop_m, axis=0, keepdims=True), 1e-30)
+    return per_pixel, np.degrees(np.arccos(np.clip((loop_n * ours).sum(0), -1.0, 1.0))).mean()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -89,6 +216,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("root", nargs="?", type=Path, default=SHARED_DATA / "DiLiGenT")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--loop-pixels", type=int, default=2000, help="mask pixels the per-pixel loop is timed on")
+    parser.add_argument("--nl-loop-pixels", type=int, default=200,
+                        help="mask pixels the per-pixel loop of the non-Lambertian fit is timed on")
     parser.add_argument("--repeat", type=int, default=3, help="timed runs of each torch estimator (best is kept)")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch CPU threads (default 1: the loop is single-threaded, and on a shared machine "
@@ -101,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     device = torch.device(args.device)
     torch.set_num_threads(args.threads)
-    methods = ("lstsq",) + ROBUST_METHODS
+    methods = ("lstsq",) + ROBUST_METHODS + ("nonlambertian",)
     rows, errors = [], {}
     for folder in folders:
         sample = load_sample(folder)
@@ -112,17 +241,30 @@ def main(argv: list[str] | None = None) -> int:
         pixels = int(mask.sum())
         rng = np.random.default_rng(0)
         subset = rng.choice(pixels, size=min(args.loop_pixels, pixels), replace=False)
-        values_np = images[0][:, mask[0, 0]].double().cpu().numpy()[:, subset]  # (K, n)
+        all_values = images[0][:, mask[0, 0]].double().cpu().numpy()
+        values_np = all_values[:, subset]  # (K, n)
         lights_np = lights.double().cpu().numpy()
+        start_albedo, start_normals = robust_normals(images, lights, RECOMMENDED_ROBUST_METHOD, mask)
+        nl_subset = subset[:args.nl_loop_pixels]
+        nl_start = (start_albedo[0, 0][mask[0, 0]].double().cpu().numpy()[nl_subset],
+                    start_normals[0][:, mask[0, 0]].double().cpu().numpy()[:, nl_subset])
+        tukey_loop = None
         for method in methods:
+            # the non-Lambertian fit takes seconds: time it once (its first run is the timed one)
+            repeat, warmup = (1, 0) if method == "nonlambertian" else (args.repeat, 1)
+            seconds = best_time(lambda: torch_normals(images, lights, mask, method), repeat, warmup, args.device)
             normals = torch_normals(images, lights, mask, method)
-            seconds = best_time(lambda: torch_normals(images, lights, mask, method), args.repeat, 1, args.device)
-            start = time.perf_counter()
-            loop_m = np.stack([loop_pixel(values_np[:, i], lights_np, method) for i in range(len(subset))], 1)
-            loop_per_pixel = (time.perf_counter() - start) / len(subset)
-            loop_n = loop_m / np.maximum(np.linalg.norm(loop_m, axis=0, keepdims=True), 1e-30)
-            ours = normals[0][:, mask[0, 0]].double().cpu().numpy()[:, subset]
-            agreement = np.degrees(np.arccos(np.clip((loop_n * ours).sum(0), -1.0, 1.0))).mean()
+            ours = normals[0][:, mask[0, 0]].double().cpu().numpy()
+            if method == "rpca":
+                loop_per_pixel, agreement = loop_time(method, all_values, lights_np, None, ours)
+            elif method == "nonlambertian":
+                loop_per_pixel, agreement = loop_time(method, values_np[:, :len(nl_subset)], lights_np, nl_start,
+                                                      ours[:, nl_subset])
+                loop_per_pixel += tukey_loop
+            else:
+                loop_per_pixel, agreement = loop_time(method, values_np, lights_np, None, ours[:, subset])
+            if method == RECOMMENDED_ROBUST_METHOD:
+                tukey_loop = loop_per_pixel
             mean = float(mean_angular_error(normals, normals_gt, mask)[0])
             errors[(folder.name, method)] = mean
             rows.append([
@@ -141,7 +283,11 @@ def main(argv: list[str] | None = None) -> int:
                          + [errors[(n, m)] for n in names] for m in methods])
     note = (f"Loop: per-pixel NumPy (np.linalg.lstsq per pixel and IRLS iteration), timed on {args.loop_pixels} "
             "random mask pixels and extrapolated linearly to the whole mask (speed-up = loop time for the mask / "
-            f"torch time for the mask). Torch: best of {args.repeat}, device {args.device}, "
+            "torch time for the mask). rpca: the same inexact ALM in NumPy with np.linalg.svd of the whole matrix "
+            "per iteration, on the whole mask. nonlambertian: the same Levenberg-Marquardt per pixel in NumPy on "
+            f"{args.nl_loop_pixels} of those pixels from the torch robust start, extrapolated, plus the tukey loop's "
+            "time per pixel (the torch time includes the robust start); torch timed once. "
+            f"Torch: best of {args.repeat}, device {args.device}, "
             f"{torch.get_num_threads()} threads. Defaults for every method: {DEFAULTS}; no per-object tuning.")
     print(report)
     print()
