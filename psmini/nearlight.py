@@ -73,6 +73,8 @@ _HIGHLIGHT_SIGMAS = 4.0
 # A pixel is tested for a highlight only with at least this many observations: the fit of the others then stays
 # overdetermined (an exactly determined fit of three turns noise into false highlights where light is scarce).
 _HIGHLIGHT_MIN_OBS = 5
+# Observations within this many noise levels of zero (relative to the pixel's brightest) are shadows, not light.
+_SHADOW_SIGMAS = 3.0
 # Pixels next to an unsolved one get this confidence in the integration (see near_light_photometric_stereo).
 _EDGE_CONFIDENCE = 0.01
 
@@ -190,7 +192,9 @@ def robust_near_light_normals(
     candidates = _candidates(intensities, valid_observations, shadow_fraction)
     length = light_vectors.norm(dim=2)
     if highlight_fraction is not None:
-        candidates = _reject_highlights(intensities, light_vectors, length, candidates, mask, highlight_fraction)
+        noise = _noise_level(intensities, light_vectors, length, candidates, mask)
+        candidates = _candidates(intensities, valid_observations, torch.clamp(noise * _SHADOW_SIGMAS, min=shadow_fraction))
+        candidates = _reject_outliers(intensities, light_vectors, length, candidates, mask, highlight_fraction, noise)
     weights = candidates
     albedo, normals = albedo_normals(intensities, light_vectors, mask, weights)
     for _ in range(iterations):
@@ -205,44 +209,48 @@ def robust_near_light_normals(
     return albedo, normals, weights & (albedo > 0)
 
 
-def _reject_highlights(
-    intensities: Tensor, vectors: Tensor, length: Tensor, weights: Tensor, mask: Tensor | None, fraction: float
+def _reject_outliers(
+    intensities: Tensor, vectors: Tensor, length: Tensor, weights: Tensor, mask: Tensor | None, fraction: float,
+    noise: Tensor,
 ) -> Tensor:
-    """Drop each pixel's brightest observation (relative to its light) while the others' fit finds it too bright.
+    r"""Drop, one per pixel and round, the observation that the fit of the others explains worst, while it is an outlier.
 
-    One observation per pixel and round, at most K - 3 rounds; the test needs :data:`_HIGHLIGHT_MIN_OBS`
-    observations, so a pixel keeps at least four. The threshold is ``fraction`` of the pixel's scale, or
-    :data:`_HIGHLIGHT_SIGMAS` times the image's noise level scaled by the prediction's spread, whichever is larger.
+    For linear least squares the leave-one-out residual follows from the full fit: :math:`r_k / (1 - h_k)`, with
+    :math:`r_k` the residual and :math:`h_k = L_k^T (\sum_j L_j L_j^T)^{-1} L_k` the leverage of light k (the hat
+    matrix's diagonal; Cook and Weisberg, "Residuals and influence in regression", 1982). An observation is an
+    outlier when that residual exceeds, relative to the pixel's scale :math:`\rho\,\overline{|L|}`, ``fraction`` or
+    :data:`_HIGHLIGHT_SIGMAS` times the image's noise level (:func:`_noise_level`) times the prediction's spread
+    :math:`1 / \sqrt{1 - h_k}`, whichever is larger. At most K - 3 rounds; only pixels with
+    :data:`_HIGHLIGHT_MIN_OBS` observations are tested, so a pixel keeps at least four.
     """
-    relative = intensities / length.clamp_min(torch.finfo(length.dtype).tiny)
     scale = length.mean(dim=1, keepdim=True)
-    noise = _noise_level(intensities, vectors, length, weights, mask) * _HIGHLIGHT_SIGMAS
+    relative = intensities / length.clamp_min(torch.finfo(length.dtype).tiny)
     for _ in range(intensities.shape[1] - 3):
+        albedo, normals = albedo_normals(intensities, vectors, mask, weights)
+        kept = (1 - _leverage(vectors, weights)).clamp_min(1e-6)  # 1 - h_k
+        left_out = (intensities - _predict(albedo, normals, vectors)) / kept
+        threshold = torch.maximum(noise * _HIGHLIGHT_SIGMAS / kept.sqrt(), torch.full_like(kept, fraction))
+        badness = (left_out.abs() / (threshold * albedo * scale).clamp_min(1e-30)).masked_fill(~weights, 0)
         brightest = relative.masked_fill(~weights, -torch.inf).argmax(dim=1, keepdim=True)
-        suspect = torch.zeros_like(weights).scatter_(1, brightest, True) & (weights.sum(dim=1, keepdim=True) >= _HIGHLIGHT_MIN_OBS)
-        others = weights & ~suspect
-        albedo, normals = albedo_normals(intensities, vectors, mask, others)
-        excess = ((intensities - _predict(albedo, normals, vectors)) * suspect).sum(dim=1, keepdim=True)
-        # the others' fit predicts the suspect with variance (1 + h) times an observation's, h its leverage
-        spread = (1 + _leverage(vectors, others, suspect)).sqrt()
-        threshold = torch.maximum(noise * spread, torch.full_like(spread, fraction))
-        highlight = suspect & (albedo > 0) & (excess > threshold * albedo * scale)
-        if not bool(highlight.any()):  # one sync per round: most pixels of matte cloth stop after the first
+        badness = badness.masked_fill(~torch.zeros_like(weights).scatter_(1, brightest, True), 0)
+        worst = badness.amax(dim=1, keepdim=True)
+        testable = (weights.sum(dim=1, keepdim=True) >= _HIGHLIGHT_MIN_OBS) & (albedo > 0) & (worst > 1)
+        outlier = testable & (badness == worst) & weights
+        if not bool(outlier.any()):  # one sync per round: most pixels of matte cloth stop after the first
             break
-        weights = weights & ~highlight
+        weights = weights & ~outlier
     return weights
 
 
-def _leverage(vectors: Tensor, others: Tensor, suspect: Tensor) -> Tensor:
-    r""":math:`L_s^T (\sum_{k \in others} L_k L_k^T)^{-1} L_s` of the suspect light per pixel, shape (B, 1, H, W)."""
+def _leverage(vectors: Tensor, weights: Tensor) -> Tensor:
+    r"""Leverage :math:`L_k^T (\sum_{j \in weights} L_j L_j^T)^{-1} L_k` of every light, shape (B, K, H, W)."""
     moved = vectors.permute(0, 3, 4, 1, 2)  # (B, H, W, K, 3)
-    used = others.permute(0, 2, 3, 1).unsqueeze(-1).to(vectors)
+    used = weights.permute(0, 2, 3, 1).unsqueeze(-1).to(vectors)
     gram = (moved * used).transpose(-1, -2) @ moved
     ridge = 1e-9 * gram.diagonal(dim1=-2, dim2=-1).sum(dim=-1).clamp_min(1e-30)  # keeps dark pixels invertible
     gram = gram + ridge[..., None, None] * torch.eye(3, device=vectors.device, dtype=vectors.dtype)
-    light = (moved * suspect.permute(0, 2, 3, 1).unsqueeze(-1).to(vectors)).sum(dim=-2, keepdim=True)  # (B, H, W, 1, 3)
-    solved = torch.linalg.solve(gram, light.transpose(-1, -2))
-    return (light @ solved)[..., 0, 0].unsqueeze(1)
+    leverage = (moved * torch.linalg.solve(gram, moved.transpose(-1, -2)).transpose(-1, -2)).sum(dim=-1)
+    return leverage.permute(0, 3, 1, 2)
 
 
 def _noise_level(intensities: Tensor, vectors: Tensor, length: Tensor, weights: Tensor, mask: Tensor | None) -> Tensor:
