@@ -208,8 +208,7 @@ def _starts(values: Tensor, usable: Tensor, albedo: Tensor, normals: Tensor, lig
             specular = ((a * r2 - b * r1) / (a * d - b * b).clamp_min(tiny)).clamp_min(0).minimum(most)
             rho = ((r1 - b * specular) / a.clamp_min(tiny)).clamp_min(0)
             candidate = [start_normals, rho, specular, log_alpha]
-            cost = _cauchy_cost(values - _shade(start_normals, rho, specular, log_alpha.exp(), lights, energy,
-                                                half)[3], usable, sigma)
+            cost = _cauchy_cost(values - rho * diffuse - specular * lobe, usable, sigma)
             if best is None:
                 best, best_cost = candidate, cost
                 continue
