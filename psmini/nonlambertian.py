@@ -20,7 +20,9 @@ The fit minimises the Cauchy loss :math:`\sum_k \log(1 + (r_k / \sigma)^2)` of t
 fraction (``scale``) of the pixel's median reading, over the pixel's usable readings: readings darker than
 ``shadow`` times the pixel's brightest are dropped first, since a cast shadow reads about 0 where the model predicts
 light and an attached one carries no information on the lobe. It starts from the robust Lambertian estimate
-(:func:`psmini.robust.robust_normals`, or weighted least squares for per-pixel lights) and runs a fixed number of
+(:func:`psmini.robust.robust_normals`, or weighted least squares for per-pixel lights) with a faint lobe, raced for a
+few iterations against a start sized on the data (albedos by linear least squares, the normal possibly moved to the
+half vector of the brightest reading; see :func:`_starts`), and runs a fixed number of
 Levenberg–Marquardt iterations (Levenberg 1944, Marquardt 1963) on the iteratively reweighted normal equations
 (Cauchy weights :math:`1 / (1 + (r/\sigma)^2)`, Holland & Welsch 1977), with a damping factor and an accept/reject
 decision per pixel. The five unknowns are two tangent-plane steps of the normal, :math:`\rho`, :math:`s` and
