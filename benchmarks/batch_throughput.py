@@ -111,14 +111,17 @@ def numpy_solve(images, dark, card, card_dark, directions, card_albedo, pitch, m
         part = np.zeros((3, used.shape[1]))
         part[:, enough] = np.linalg.solve(gram[enough], rhs[enough][..., None])[..., 0].T
         m[:, partial] = part
-    albedo = np.linalg.norm(m, axis=0)
+    albedo = np.sqrt(np.einsum("chw,chw->hw", m, m))
     solved = albedo > np.finfo(m.dtype).eps
-    normals = np.where(solved, m / np.where(solved, albedo, 1), np.array([0.0, 0.0, 1.0])[:, None, None])
-    nz = np.maximum(normals[2], min_nz)
-    p, q = -normals[0] / nz, -normals[1] / nz
-    p0, q0 = p[solved].mean(), q[solved].mean()
-    depth = numpy_frankot_chellappa(np.where(solved, p, p0), np.where(solved, q, q0), pitch)
-    return depth - depth[solved].mean(), solved
+    # slopes of the unit normal m / |m|: -m_x / max(m_z, min_nz |m|); unsolved pixels (normal (0, 0, 1)) get 0
+    denominator = np.maximum(m[2], min_nz * albedo)
+    denominator[~solved] = np.inf
+    p, q = -m[0] / denominator, -m[1] / denominator
+    count = solved.sum()
+    p0, q0 = p.sum() / count, q.sum() / count  # unsolved pixels hold 0: the sums are over the solved ones
+    p[~solved], q[~solved] = p0, q0
+    depth = numpy_frankot_chellappa(p, q, pitch)
+    return depth - depth.mean(where=solved), solved
 
 
 def numpy_loop(folders: list[Path], out: Path, directions: np.ndarray) -> dict:
