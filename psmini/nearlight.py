@@ -75,6 +75,9 @@ _HIGHLIGHT_SIGMAS = 4.0
 _HIGHLIGHT_MIN_OBS = 5
 # Observations within this many noise levels of zero (relative to the pixel's brightest) are shadows, not light.
 _SHADOW_SIGMAS = 3.0
+# ... but an observation above this fraction of the brightest is light whatever the noise estimate says (a lobe
+# spread over many LEDs inflates the estimate).
+_SHADOW_CAP = 0.1
 # Pixels next to an unsolved one get this confidence in the integration (see near_light_photometric_stereo).
 _EDGE_CONFIDENCE = 0.01
 
@@ -150,13 +153,15 @@ def robust_near_light_normals(
     reads about zero once the dark frame is subtracted), unless that leaves fewer than three: then the three
     brightest are used when none of them is zero. Highlights go next, before any fit can be pulled by them: while a
     pixel keeps five or more observations, its brightest relative to the light's strength (:math:`I_k / |L_k|`) is
-    dropped when the least-squares fit of the others predicts it darker by more than ``highlight_fraction`` of the
-    pixel's scale :math:`\rho\,\overline{|L|}` (a specular lobe only adds light; leaving the suspect out of its own
-    test avoids the masking of a plain residual test, where a glint tilts the fit until good observations look
-    like the outliers). After each solve, an observation is dropped when the light grazes or lies behind the
-    estimated tangent plane (attached shadow: :math:`n \cdot L_k \le 0.02\,|L_k|`) or when its residual exceeds
-    ``outlier_fraction`` of the pixel's scale (cast shadows); a pixel keeps its previous observations rather than
-    fall below three. Pixels with fewer than three non-zero observations are left unsolved (albedo 0, normal
+    dropped when the least-squares fit of the others misses it by more than ``highlight_fraction`` of the
+    pixel's scale :math:`\rho\,\overline{|L|}`, or by more than four times the image's noise level where that is
+    larger (a specular lobe only adds light; leaving the suspect out of its own test avoids the masking of a plain
+    residual test, where a glint tilts the fit until good observations look like the outliers). A shadow left
+    among the others would make the brightest look like a highlight, so with the highlight test the shadow
+    threshold also rises to three noise levels when that exceeds ``shadow_fraction``. After each solve, an
+    observation is dropped when the light grazes or lies behind the estimated tangent plane (attached shadow:
+    :math:`n \cdot L_k \le 0.02\,|L_k|`) or when its residual exceeds ``outlier_fraction`` of the pixel's scale
+    (cast shadows); a pixel keeps its previous observations rather than fall below three. Pixels with fewer than three non-zero observations are left unsolved (albedo 0, normal
     (0, 0, 1)) with no weights.
 
     Args:
@@ -193,8 +198,9 @@ def robust_near_light_normals(
     length = light_vectors.norm(dim=2)
     if highlight_fraction is not None:
         noise = _noise_level(intensities, light_vectors, length, candidates, mask)
-        candidates = _candidates(intensities, valid_observations, torch.clamp(noise * _SHADOW_SIGMAS, min=shadow_fraction))
-        candidates = _reject_outliers(intensities, light_vectors, length, candidates, mask, highlight_fraction, noise)
+        shadow_level = (noise * _SHADOW_SIGMAS).clamp(min=shadow_fraction, max=max(shadow_fraction, _SHADOW_CAP))
+        candidates = _candidates(intensities, valid_observations, shadow_level)
+        candidates = _reject_highlights(intensities, light_vectors, length, candidates, mask, highlight_fraction, noise)
     weights = candidates
     albedo, normals = albedo_normals(intensities, light_vectors, mask, weights)
     for _ in range(iterations):
@@ -209,18 +215,19 @@ def robust_near_light_normals(
     return albedo, normals, weights & (albedo > 0)
 
 
-def _reject_outliers(
+def _reject_highlights(
     intensities: Tensor, vectors: Tensor, length: Tensor, weights: Tensor, mask: Tensor | None, fraction: float,
     noise: Tensor,
 ) -> Tensor:
-    r"""Drop, one per pixel and round, the observation that the fit of the others explains worst, while it is an outlier.
+    r"""Drop, one per pixel and round, the brightest observation (relative to its light) while the others find it too
+    bright.
 
     For linear least squares the leave-one-out residual follows from the full fit: :math:`r_k / (1 - h_k)`, with
     :math:`r_k` the residual and :math:`h_k = L_k^T (\sum_j L_j L_j^T)^{-1} L_k` the leverage of light k (the hat
-    matrix's diagonal; Cook and Weisberg, "Residuals and influence in regression", 1982). An observation is an
-    outlier when that residual exceeds, relative to the pixel's scale :math:`\rho\,\overline{|L|}`, ``fraction`` or
-    :data:`_HIGHLIGHT_SIGMAS` times the image's noise level (:func:`_noise_level`) times the prediction's spread
-    :math:`1 / \sqrt{1 - h_k}`, whichever is larger. At most K - 3 rounds; only pixels with
+    matrix's diagonal; Cook and Weisberg, "Residuals and influence in regression", 1982). The brightest is a
+    highlight when the magnitude of that residual exceeds, relative to the pixel's scale
+    :math:`\rho\,\overline{|L|}`, ``fraction`` or :data:`_HIGHLIGHT_SIGMAS` times the image's noise level
+    (:func:`_noise_level`) times the prediction's spread :math:`1 / \sqrt{1 - h_k}`, whichever is larger. At most K - 3 rounds; only pixels with
     :data:`_HIGHLIGHT_MIN_OBS` observations are tested, so a pixel keeps at least four.
     """
     scale = length.mean(dim=1, keepdim=True)
@@ -230,15 +237,13 @@ def _reject_outliers(
         kept = (1 - _leverage(vectors, weights)).clamp_min(1e-6)  # 1 - h_k
         left_out = (intensities - _predict(albedo, normals, vectors)) / kept
         threshold = torch.maximum(noise * _HIGHLIGHT_SIGMAS / kept.sqrt(), torch.full_like(kept, fraction))
-        badness = (left_out.abs() / (threshold * albedo * scale).clamp_min(1e-30)).masked_fill(~weights, 0)
         brightest = relative.masked_fill(~weights, -torch.inf).argmax(dim=1, keepdim=True)
-        badness = badness.masked_fill(~torch.zeros_like(weights).scatter_(1, brightest, True), 0)
-        worst = badness.amax(dim=1, keepdim=True)
-        testable = (weights.sum(dim=1, keepdim=True) >= _HIGHLIGHT_MIN_OBS) & (albedo > 0) & (worst > 1)
-        outlier = testable & (badness == worst) & weights
-        if not bool(outlier.any()):  # one sync per round: most pixels of matte cloth stop after the first
+        suspect = torch.zeros_like(weights).scatter_(1, brightest, True)
+        testable = (weights.sum(dim=1, keepdim=True) >= _HIGHLIGHT_MIN_OBS) & (albedo > 0)
+        highlight = suspect & testable & (left_out.abs() > threshold * albedo * scale)
+        if not bool(highlight.any()):  # one sync per round: most pixels of matte cloth stop after the first
             break
-        weights = weights & ~outlier
+        weights = weights & ~highlight
     return weights
 
 
@@ -254,14 +259,23 @@ def _leverage(vectors: Tensor, weights: Tensor) -> Tensor:
 
 
 def _noise_level(intensities: Tensor, vectors: Tensor, length: Tensor, weights: Tensor, mask: Tensor | None) -> Tensor:
-    """Median over pixels with four or more observations of their RMS residual (per degree of freedom) relative to
-    the pixel's scale, shape (B, 1, 1, 1): the noise plus model error that a highlight test must stand above."""
+    """The image's noise level relative to each pixel's scale, shape (B, 1, 1, 1).
+
+    The median over pixels of the RMS residual per degree of freedom of a fit without the pixel's brightest
+    observation (relative to its light), on pixels left with at least four: leaving the brightest out keeps a
+    glint, which lifts mostly one observation, from passing for noise (a lobe spread over several LEDs still
+    does, which makes the highlight test stricter, never looser).
+    """
+    relative = intensities / length.clamp_min(torch.finfo(length.dtype).tiny)
+    brightest = relative.masked_fill(~weights, -torch.inf).argmax(dim=1, keepdim=True)
+    weights = weights & ~torch.zeros_like(weights).scatter_(1, brightest, True)
     albedo, normals = albedo_normals(intensities, vectors, mask, weights)
     count = weights.sum(dim=1, keepdim=True)
     squared = ((intensities - _predict(albedo, normals, vectors)).square() * weights).sum(dim=1, keepdim=True)
-    relative = (squared / (count - 3).clamp_min(1)).sqrt() / (albedo * length.mean(dim=1, keepdim=True)).clamp_min(1e-12)
+    scale = (albedo * length.mean(dim=1, keepdim=True)).clamp_min(1e-12)
+    residual = (squared / (count - 3).clamp_min(1)).sqrt() / scale
     usable = (count >= 4) & (albedo > 0)
-    ranked = relative.masked_fill(~usable, torch.inf).flatten(1).sort(dim=1).values
+    ranked = residual.masked_fill(~usable, torch.inf).flatten(1).sort(dim=1).values
     middle = (usable.flatten(1).sum(dim=1, keepdim=True) - 1).clamp_min(0) // 2
     return ranked.gather(1, middle).nan_to_num(0.0, posinf=0.0).view(-1, 1, 1, 1)
 
@@ -423,12 +437,12 @@ def near_light_photometric_stereo(
         integrator: method of :func:`psmini.integrate.integrate`. The default, least squares on the solved pixels
             (``"masked"``), keeps pixels left unsolved (lit by fewer than three LEDs: deep crevices of knits) from
             pulling the whole surface, as a solve on the full rectangle (``"fc"``) would; their depth is the
-            solver's 0 plus the offset, and ``mask`` marks them. Its discretisation leaves a low-frequency error
-            of 17–29 µm on knits (``benchmarks/nearlight.py``), where Frankot–Chellappa of the true normals leaves
-            none; interpolating the unsolved pixels' slopes for a full-rectangle solve did worse (0.1° and 44 µm on
-            purl), so this remains the default.
+            solver's 0 plus the offset, and ``mask`` marks them. Pixels beside an unsolved one get a low
+            confidence in integrators that take per-pixel weights (their normals see the crevice's wall; without
+            this the knits' crevices added up to a dome of 17–29 µm, see ``benchmarks/nearlight.py``).
         max_iterations: most alternations.
         tolerance_mm: stop when the largest depth change falls below it, mm.
+        highlight_fraction: see :func:`robust_near_light_normals`; ``None`` turns the highlight test off.
 
     Returns:
         :class:`NearLightResult`; ``depth`` is the absolute height above the card plane's origin, mm.
@@ -461,7 +475,9 @@ def near_light_photometric_stereo(
     offset = fixed_mean
     for _ in range(max_iterations):
         vectors = near_light_vectors(light_model, depth, pixel_pitch_mm, card_height)
-        albedo, normals, weights = robust_near_light_normals(flat.images, vectors, flat.valid, mask, highlight_fraction=highlight_fraction)
+        albedo, normals, weights = robust_near_light_normals(
+            flat.images, vectors, flat.valid, mask, highlight_fraction=highlight_fraction
+        )
         relative = _integrate_solved(normals, albedo > 0, integrator, pixel_pitch_mm)
         if estimate_offset:
             offset = estimate_height_offset(flat.images, light_model, relative, pixel_pitch_mm, weights, card_height)
@@ -474,7 +490,9 @@ def near_light_photometric_stereo(
         if changes[-1] < tolerance_mm:
             break
     vectors = near_light_vectors(light_model, depth, pixel_pitch_mm, card_height)
-    albedo, normals, weights = robust_near_light_normals(flat.images, vectors, flat.valid, mask, highlight_fraction=highlight_fraction)
+    albedo, normals, weights = robust_near_light_normals(
+        flat.images, vectors, flat.valid, mask, highlight_fraction=highlight_fraction
+    )
     p, q = normals_to_gradients(normals)
     return NearLightResult(
         albedo, normals, p, q, depth, albedo > 0,
@@ -497,7 +515,9 @@ def _integrate_solved(normals: Tensor, solved: Tensor, method: str, pixel_pitch_
     if not accepts_weights:  # an unknown method is reported by integrate itself
         return integrate(p, q, method=method, pixel_pitch_mm=pixel_pitch_mm, mask=solved)
     inside = F.pad(solved.to(p.dtype), (1, 1, 1, 1), value=1.0)  # the image border is no gap
-    neighbours = torch.stack([inside[..., 1:-1, :-2], inside[..., 1:-1, 2:], inside[..., :-2, 1:-1], inside[..., 2:, 1:-1]])
+    neighbours = torch.stack(
+        [inside[..., 1:-1, :-2], inside[..., 1:-1, 2:], inside[..., :-2, 1:-1], inside[..., 2:, 1:-1]]
+    )
     beside_gap = solved & (neighbours.amin(dim=0) < 1)
     confidence = torch.where(beside_gap, torch.full_like(p, _EDGE_CONFIDENCE), torch.ones_like(p))
     return integrate(p, q, method=method, pixel_pitch_mm=pixel_pitch_mm, mask=solved, weights=confidence)

@@ -5,7 +5,9 @@ import torch
 
 from psmini import InputError, LEDLights, PointLights, ShapeError, ring_lights
 from psmini.geometry import depth_to_points
+from psmini.integrate import integrate
 from psmini.nearlight import (
+    _integrate_solved,
     estimate_height_offset,
     near_light_photometric_stereo,
     near_light_vectors,
@@ -13,7 +15,7 @@ from psmini.nearlight import (
     robust_near_light_normals,
 )
 from psmini.metrics import angular_error_deg
-from psmini.normals import albedo_normals
+from psmini.normals import albedo_normals, normals_to_gradients
 from psmini.pipeline import PhotometricStereo
 from psmini.render import normals_from_height, render
 from tests.conftest import BaseTester
@@ -95,9 +97,39 @@ class TestRobustNormals(BaseTester):
         assert float(angular_error_deg(robust, normals).max()) < 0.05
         assert not bool(weights[:, 2, 10:20, 10:20].any()) and not bool(weights[:, 5, 30:40, 5:15].any())
 
+    def test_specular_threads_are_dropped(self, device, dtype):
+        """Metallic tapes (a Blinn–Phong lobe, as data_synth's lurex) on every third band: the leave-one-out test
+        finds the glinting observations that a plain residual test keeps (the glint tilts the fit until the good
+        observations look like the outliers); matte pixels keep all their observations."""
+        leds, height, normals, _, _ = _capture(device=device, dtype=dtype)
+        rows = torch.arange(48, device=device).view(1, 1, 48, 1).expand(1, 1, 48, 48)
+        metal = (rows // 4) % 3 == 0
+        specular = torch.where(metal, 0.9, 0.0).to(height)
+        albedo = torch.where(metal, 0.25, 0.6).to(height)
+        images = render(depth_to_points(height, PITCH), normals, albedo, leds, specular=specular, shininess=40.0)
+        vectors = near_light_vectors(leds, height, PITCH)
+        _, plain, _ = robust_near_light_normals(images, vectors, highlight_fraction=None)
+        _, robust, weights = robust_near_light_normals(images, vectors)
+        assert float(angular_error_deg(plain, normals)[metal].mean()) > 5.0
+        assert float(angular_error_deg(robust, normals)[metal].mean()) < 0.6
+        assert bool((weights.sum(dim=1) >= 4).all())  # a pixel keeps an overdetermined fit
+        assert bool(weights.permute(0, 2, 3, 1)[~metal[:, 0]].all())
+
+    def test_noise_is_not_a_highlight(self, device):
+        """On noisy Lambertian images the threshold follows the image's noise: next to nothing is dropped."""
+        leds, height, normals, images, _ = _capture(device=device, dtype=torch.float64)
+        gen = torch.Generator().manual_seed(0)
+        noisy = images + 0.01 * images.mean() * torch.randn(images.shape, generator=gen, dtype=images.dtype).to(device)
+        vectors = near_light_vectors(leds, height, PITCH)
+        _, _, without = robust_near_light_normals(noisy, vectors, highlight_fraction=None)
+        _, _, weights = robust_near_light_normals(noisy, vectors)
+        assert float((without & ~weights).sum()) < 0.002 * float(without.sum())
+
     def test_bad_options_raise(self):
         with pytest.raises(InputError, match="outlier_fraction"):
             robust_near_light_normals(torch.rand(1, 4, 2, 2), torch.rand(1, 4, 3, 2, 2), outlier_fraction=0.0)
+        with pytest.raises(InputError, match="highlight_fraction"):
+            robust_near_light_normals(torch.rand(1, 4, 2, 2), torch.rand(1, 4, 3, 2, 2), highlight_fraction=0.0)
 
     def test_per_pixel_shape_mismatch_raise(self):
         with pytest.raises(ShapeError, match="per-pixel lights"):
@@ -143,6 +175,32 @@ class TestNearLightPhotometricStereo(BaseTester):
         result = near_light_photometric_stereo(images, leds, PITCH, reference=card, card_albedo=0.8,
                                                initial_depth=float(height.mean()), estimate_offset=False)
         assert abs(float(result.depth.mean() - height.mean())) < 1e-9
+
+    def test_rims_of_unsolved_pits_do_not_bend_the_surface(self, device):
+        """A flat plateau with deep pits: the pits are unsolved, and the rim pixels' central-difference normals see
+        the pit's wall. Integrated with full confidence they pull the plateau down around each pit; beside-the-gap
+        confidence leaves it flat to a micrometre."""
+        height = torch.full((1, 1, 40, 40), 0.2, device=device, dtype=torch.float64)
+        pits = torch.zeros_like(height, dtype=torch.bool)
+        for row in range(4, 40, 9):
+            for col in range(4, 40, 9):
+                pits[..., row : row + 3, col : col + 3] = True
+        height = height.masked_fill(pits, 0.0)
+        normals = normals_from_height(height, PITCH)
+        plateau = ~pits
+        weighted = _integrate_solved(normals, plateau, "masked", PITCH)
+        p, q = normals_to_gradients(normals)
+        plain = integrate(p, q, method="masked", pixel_pitch_mm=PITCH, mask=plateau)
+        spread = lambda z: float(z[plateau].max() - z[plateau].min())  # noqa: E731
+        assert spread(plain) > 0.01  # mm: tens of µm of bending
+        assert spread(weighted) < 0.002  # the rims keep 1 % of their slope: a micrometre, no bending
+
+    def test_integrator_without_weights(self):
+        """Integrators without per-pixel weights (Frankot–Chellappa) get the plain mask."""
+        leds, _, _, images, card = _capture(size=24)
+        result = near_light_photometric_stereo(images, leds, PITCH, reference=card, card_albedo=0.8, integrator="fc",
+                                               max_iterations=2)
+        assert result.depth.shape == (1, 1, 24, 24)
 
     def test_module_equals_functional(self):
         leds, _, _, images, card = _capture(size=24)
