@@ -223,22 +223,36 @@ def _cpu_lower_median(values: Tensor) -> Tensor:
     return values.gather(0, torch.from_numpy(position)[None])[0]
 
 
-def _irls_weights(residuals: Tensor, values: Tensor, usable: Tensor, padding: Tensor, method: str, tuning: float,
-                  l1_epsilon: float) -> Tensor:
-    """M-estimator weights w(r) = psi(u) / u for residuals (K, N)."""
-    size = residuals.abs()
+def _irls_floor(values: Tensor, method: str, l1_epsilon: float) -> Tensor:
+    """Per-pixel floor (N,) of the residual scale, the same in every IRLS iteration.
+
+    For the M-estimators it keeps an exact fit (zero residuals) at weight 1 rather than 0 / 0; for L1 it bounds the
+    weights 1 / |r| of observations that the fit passes through.
+    """
+    tiny = torch.finfo(values.dtype).tiny
     if method == "l1":
-        floor = l1_epsilon * (values.abs().mean(dim=0) + torch.finfo(values.dtype).tiny)
-        return 1.0 / torch.maximum(size, floor)
-    # MAD scale, floored so an exact fit (zero residuals) gives weight 1 rather than 0 / 0
-    floor = 1e-6 * values.abs().amax(dim=0) + torch.finfo(values.dtype).tiny
-    scale = (_MAD_TO_SIGMA * _median(size, usable, padding)).clamp_min(0) + floor
-    u = size / (tuning * scale)
+        return l1_epsilon * (values.abs().mean(dim=0) + tiny)
+    return 1e-6 * values.abs().amax(dim=0) + tiny
+
+
+def _irls_weights(residuals: Tensor, usable: Tensor, padding: Tensor, method: str, tuning: float,
+                  floor: Tensor) -> Tensor:
+    """M-estimator weights w(r) = psi(u) / u for residuals (K, N), u = r / (tuning * MAD scale)."""
+    if method == "l1":
+        return 1.0 / torch.maximum(residuals.abs(), floor)
     if method == "huber":
-        return 1.0 / u.clamp_min(1.0)
+        size = residuals.abs()
+        scale = (_MAD_TO_SIGMA * _median(size, usable, padding)).clamp_min(0) + floor
+        return 1.0 / (size / (tuning * scale)).clamp_min(1.0)
+    # Cauchy and Tukey need only u^2: the lower median of |r| is the root of that of r^2 (squaring keeps the order
+    # of non-negative numbers), which saves a pass over the (K, N) residuals; the clamp keeps the root's gradient
+    # finite at an exact fit
+    squared = residuals.square()
+    median = _median(squared, usable, padding).clamp_min(torch.finfo(squared.dtype).tiny).sqrt()
+    u_squared = squared * (tuning * (_MAD_TO_SIGMA * median + floor)).square().reciprocal()
     if method == "cauchy":
-        return 1.0 / (1.0 + u.square())
-    return (1.0 - u.square()).clamp_min(0).square()  # tukey's biweight
+        return 1.0 / (1.0 + u_squared)
+    return (1.0 - u_squared).clamp_min(0).square()  # tukey's biweight
 
 
 def _rejection(values: Tensor, base: Tensor | None, method: str, options: dict) -> Tensor:
@@ -314,11 +328,11 @@ def _solve_one(
         return _solve_columns(values, lights, base)
     usable = base > 0
     padding = _median_padding(usable, values.dtype)
+    floor = _irls_floor(values, method, options["l1_epsilon"])
     m, solved = _solve_columns(values, lights, base)
     for _ in range(options["iterations"]):
         residuals = values - lights @ m
-        weights = base * _irls_weights(residuals, values, usable, padding, method, options["tuning"],
-                                       options["l1_epsilon"])
+        weights = base * _irls_weights(residuals, usable, padding, method, options["tuning"], floor)
         update, ok = _solve_columns(values, lights, weights)
         # a pixel whose weights leave fewer than three usable lights keeps its previous estimate
         m = torch.where(ok, update, m)
