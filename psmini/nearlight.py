@@ -18,6 +18,12 @@ height offset by a one-dimensional search of that residual after each integratio
 sharp (about a micrometre on noise-free renders of the rig); on raw images the height shows only through the
 inverse-square law's variation across the field and is found to tens of micrometres.
 
+Two departures from plain least squares keep textiles within the Lambertian model's reach. Metallic threads add a
+specular lobe that only brightens: each pixel's brightest observation is tested against the fit of the others (a
+leave-one-out residual, from the hat matrix) before any fit can be pulled by it. Crevices lit by fewer than three
+LEDs stay unsolved, and the pixels on their rims, whose normals see the crevice's wall, get little weight in the
+integration, so that the many crevices of a knit do not add up to a dome.
+
 A second, joint refinement (:func:`refine_depth`) minimises a robust (Huber) re-rendering loss over the depth
 map by gradient descent, coarse to fine, with the albedo solved in closed form at each step.
 """
