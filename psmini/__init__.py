@@ -15,11 +15,13 @@ from psmini.errors import CalibrationError, DataFormatError, InputError, PsminiE
 from psmini import integrate  # the package, callable as psmini.integrate.integrate
 from psmini.integrate import METHODS as INTEGRATION_METHODS
 from psmini.integrate import (
+    BilateralIntegration,
     DCTPoisson,
     FrankotChellappa,
     MaskedLeastSquares,
     dct_poisson,
     frankot_chellappa,
+    bilateral_integration,
     integrate_normals,
     masked_least_squares,
 )
@@ -131,6 +133,8 @@ __all__ = [
     "integrate",
     "INTEGRATION_METHODS",
     "integrate_normals",
+    "bilateral_integration",
+    "BilateralIntegration",
     "frankot_chellappa",
     "FrankotChellappa",
     "dct_poisson",

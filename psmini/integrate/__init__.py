@@ -11,6 +11,7 @@ import sys
 import types
 
 from psmini.integrate.api import METHODS, integrate
+from psmini.integrate.bilateral import BilateralIntegration, bilateral_integration
 from psmini.integrate.fourier import DCTPoisson, FrankotChellappa, dct_poisson, frankot_chellappa
 from psmini.integrate.least_squares import MaskedLeastSquares, masked_least_squares
 from psmini.integrate.normals import integrate_normals, perspective_log_gradients
@@ -26,6 +27,8 @@ __all__ = [
     "masked_least_squares",
     "MaskedLeastSquares",
     "perspective_log_gradients",
+    "bilateral_integration",
+    "BilateralIntegration",
 ]
 
 

@@ -9,6 +9,7 @@ import torch  # noqa: F401  (the docstring example uses it)
 from torch import Tensor
 
 from psmini.errors import InputError
+from psmini.integrate.bilateral import bilateral_integration
 from psmini.integrate.fourier import dct_poisson, frankot_chellappa
 from psmini.integrate.least_squares import masked_least_squares
 
@@ -18,6 +19,7 @@ METHODS = {
     "fc": frankot_chellappa,
     "dct": dct_poisson,
     "masked": masked_least_squares,
+    "bilateral": bilateral_integration,
 }
 
 
@@ -30,7 +32,8 @@ def integrate(
         p: :math:`\partial z/\partial x`, shape :math:`(B, 1, H, W)` (x right).
         q: :math:`\partial z/\partial y`, shape :math:`(B, 1, H, W)` (y up).
         method: one of :data:`METHODS`: ``"fc"`` (:func:`frankot_chellappa`), ``"dct"`` (:func:`dct_poisson`),
-            ``"masked"`` (:func:`masked_least_squares`).
+            ``"masked"`` (:func:`masked_least_squares`), ``"bilateral"`` (:func:`bilateral_integration`,
+            discontinuity-preserving).
             For perspective integration from normals and intrinsics see :func:`integrate_normals`.
         pixel_pitch_mm: size of one pixel on the surface in mm.
         mask: optional pixels to integrate, shape :math:`(B, 1, H, W)`.
