@@ -11,6 +11,7 @@ from typing import Any
 import torch
 
 from psmini.errors import InputError
+from psmini.integrate import METHODS as INTEGRATION_METHODS
 
 
 def add_json_flag(parser: argparse.ArgumentParser) -> None:
@@ -39,9 +40,9 @@ def emit_json(payload: dict[str, Any]) -> None:
 def add_reconstruction_flags(parser: argparse.ArgumentParser) -> None:
     """The folder argument and the flags every reconstructing command shares (``reconstruct``, ``evaluate``)."""
     parser.add_argument("folder", type=Path, metavar="DIR", help="DiLiGenT object folder or psmini capture folder")
-    parser.add_argument("--integrator", default=None,
+    parser.add_argument("--integrator", default=None, choices=sorted(INTEGRATION_METHODS),
                         help="integration method (default: fc, Frankot-Chellappa, for distant lights; masked least "
-                        "squares for near lights)")
+                        "squares for near lights; bilateral keeps depth discontinuities)")
     parser.add_argument("--lights", type=Path, metavar="FILE",
                         help="lights file (docs/lights-file.md, from 'psmini calibrate sphere') to use instead of "
                         "the folder's own lights")

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from psmini.commands._common import add_device_flag, add_json_flag, emit_json, resolve_device
+from psmini.integrate import METHODS as INTEGRATION_METHODS
 from psmini.pipeline import NORMAL_METHODS
 
 
@@ -30,7 +31,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="distant: classical least squares (default); near: near-light photometric stereo")
     parser.add_argument("--method", default="lstsq", choices=NORMAL_METHODS,
                         help="normal estimator of the distant solver (default: lstsq; robust: the recommended robust one)")
-    parser.add_argument("--integrator", default=None, help="integration method (default: fc for distant, masked "
+    parser.add_argument("--integrator", default=None, choices=sorted(INTEGRATION_METHODS), help="integration method (default: fc for distant, masked "
                         "least squares for near lights)")
     parser.add_argument("--outputs", default=",".join(_kinds()), metavar="LIST",
                         help="comma-separated outputs to write, of normals,albedo,depth,ply (default: all)")
