@@ -191,12 +191,13 @@ def _median_padding(usable: Tensor, dtype: torch.dtype) -> Tensor:
     so a plain selection of ``values + padding`` replaces ``nanmedian``, which costs several times more. The
     padding is stored as the transpose of an (N, K) contiguous tensor, the layout :func:`_median` selects in on CPU.
     """
-    n = usable.sum(dim=0)
-    below = (~usable).sum(dim=0).add((n % 2 == 0).long()).div(2, rounding_mode="floor")
-    rank = (~usable).long().cumsum(dim=0)  # 1, 2, ... along the unusable entries of each column
+    # worked out on the (N, K) transpose: a cumulative sum along contiguous rows is 4x faster than along columns
+    unusable = ~usable.T.contiguous()
+    n = usable.shape[0] - unusable.sum(dim=1, keepdim=True)
+    below = unusable.sum(dim=1, keepdim=True).add((n % 2 == 0).long()).div(2, rounding_mode="floor")
+    rank = unusable.long().cumsum(dim=1)  # 1, 2, ... along the unusable entries of each pixel
     inf = torch.tensor(float("inf"), dtype=dtype, device=usable.device)
-    padding = torch.where(usable, torch.zeros_like(inf), torch.where(rank <= below, -inf, inf))
-    return padding.T.contiguous().T
+    return torch.where(unusable, torch.where(rank <= below, -inf, inf), torch.zeros_like(inf)).T
 
 
 def _median(values: Tensor, padding: Tensor) -> Tensor:
