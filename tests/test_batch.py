@@ -9,29 +9,19 @@ import torch
 import psmini.batch as batch
 import psmini.errors
 import psmini.io
-from data_synth.rig import write_synthetic_capture
 from psmini.batch import iter_reconstructions, parse_outputs, reconstruct_dataset
 from psmini.cli import main
 from psmini.errors import InputError
+from tests._captures import GOOD, write_capture_tree
 from psmini.io import load_sample
 from psmini.pipeline import reconstruct
 
-GOOD = ["lotA/jute", "lotA/twill", "lotB/cotton"]
 ALL = sorted(GOOD + ["lotC/broken"])
 
 
 @pytest.fixture(scope="module")
 def tree(tmp_path_factory):
-    """Two calibrations (lotA: two fabrics under one card, lotB: one) and a capture with a truncated image."""
-    root = tmp_path_factory.mktemp("captures")
-    for seed, fabric in enumerate(["jute", "twill"]):
-        write_synthetic_capture(root / "lotA", fabric, size=64, seed=seed, overwrite=True)
-    write_synthetic_capture(root / "lotB", "cotton", size=64, seed=5)
-    write_synthetic_capture(root / "lotC", "jute", size=64, seed=7)
-    (root / "lotC" / "jute").rename(root / "lotC" / "broken")
-    image = root / "lotC" / "broken" / "led_03.png"
-    image.write_bytes(image.read_bytes()[:100])
-    return root
+    return write_capture_tree(tmp_path_factory.mktemp("captures"), size=64)
 
 
 def _fresh(tree, tmp_path):

@@ -8,29 +8,19 @@ import numpy as np
 import pytest
 import torch
 
-from data_synth.rig import write_synthetic_capture
 from psmini.batch import reconstruct_dataset
 from psmini.cli import main
 from psmini.errors import InputError
+from tests._captures import GOOD, write_capture_tree
 
 distributed = pytest.importorskip("distributed")
 
-GOOD = ["lotA/jute", "lotA/twill", "lotB/cotton"]
 FILES = ["albedo.png", "normals.png", "depth.npy", "depth.png", "depth.json", "points.ply"]
 
 
 @pytest.fixture(scope="module")
 def tree(tmp_path_factory):
-    """Two calibrations (lotA: two fabrics under one card, lotB: one) and a capture with a truncated image."""
-    root = tmp_path_factory.mktemp("captures")
-    for seed, fabric in enumerate(["jute", "twill"]):
-        write_synthetic_capture(root / "lotA", fabric, size=48, seed=seed, overwrite=True)
-    write_synthetic_capture(root / "lotB", "cotton", size=48, seed=5)
-    write_synthetic_capture(root / "lotC", "jute", size=48, seed=7)
-    (root / "lotC" / "jute").rename(root / "lotC" / "broken")
-    image = root / "lotC" / "broken" / "led_03.png"
-    image.write_bytes(image.read_bytes()[:100])
-    return root
+    return write_capture_tree(tmp_path_factory.mktemp("captures"), size=48)
 
 
 @pytest.fixture(scope="module")
