@@ -232,22 +232,51 @@ def _irls_floor(values: Tensor, method: str, l1_epsilon: float) -> Tensor:
 
 def _irls_weights(residuals: Tensor, padding: Tensor, method: str, tuning: float,
                   floor: Tensor) -> Tensor:
-    """M-estimator weights w(r) = psi(u) / u for residuals (K, N), u = r / (tuning * MAD scale)."""
+    """M-estimator weights w(r) = psi(u) / u for residuals (K, N), u = r / (tuning * MAD scale).
+
+    ``residuals`` is consumed: without autograd the weights are computed in its memory, since each fresh (K, N)
+    array costs about as much as the arithmetic on it.
+    """
+    if residuals.requires_grad:
+        return _irls_weights_autograd(residuals, padding, method, tuning, floor)
+    if method == "l1":
+        return torch.maximum(residuals.abs_(), floor).reciprocal_()
+    if method == "huber":
+        size = residuals.abs_()
+        scale = (_MAD_TO_SIGMA * _median(size, padding)).clamp_min(0) + floor
+        return size.div_(tuning * scale).clamp_min_(1.0).reciprocal_()
+    squared = residuals.square_()
+    squared.mul_(_inverse_squared_scale(_median(squared, padding), floor, tuning))
+    if method == "cauchy":
+        return squared.add_(1.0).reciprocal_()
+    return squared.neg_().add_(1.0).clamp_min_(0).square_()  # tukey's biweight
+
+
+def _irls_weights_autograd(residuals: Tensor, padding: Tensor, method: str, tuning: float,
+                           floor: Tensor) -> Tensor:
+    """:func:`_irls_weights` out of place, for autograd."""
     if method == "l1":
         return 1.0 / torch.maximum(residuals.abs(), floor)
     if method == "huber":
         size = residuals.abs()
         scale = (_MAD_TO_SIGMA * _median(size, padding)).clamp_min(0) + floor
         return 1.0 / (size / (tuning * scale)).clamp_min(1.0)
-    # Cauchy and Tukey need only u^2: the lower median of |r| is the root of that of r^2 (squaring keeps the order
-    # of non-negative numbers), which saves a pass over the (K, N) residuals; the clamp keeps the root's gradient
-    # finite at an exact fit
     squared = residuals.square()
-    median = _median(squared, padding).clamp_min(torch.finfo(squared.dtype).tiny).sqrt()
-    u_squared = squared * (tuning * (_MAD_TO_SIGMA * median + floor)).square().reciprocal()
+    u_squared = squared * _inverse_squared_scale(_median(squared, padding), floor, tuning)
     if method == "cauchy":
         return 1.0 / (1.0 + u_squared)
     return (1.0 - u_squared).clamp_min(0).square()  # tukey's biweight
+
+
+def _inverse_squared_scale(median_squared: Tensor, floor: Tensor, tuning: float) -> Tensor:
+    """1 / (tuning * sigma)^2 (N,) from the lower median of the squared residuals (N,).
+
+    Cauchy and Tukey need only u^2: the lower median of |r| is the root of that of r^2 (squaring keeps the order of
+    non-negative numbers), which saves a pass over the (K, N) residuals; the clamp keeps the root's gradient finite
+    at an exact fit.
+    """
+    median = median_squared.clamp_min(torch.finfo(median_squared.dtype).tiny).sqrt()
+    return (tuning * (_MAD_TO_SIGMA * median + floor)).square().reciprocal()
 
 
 def _rejection(values: Tensor, base: Tensor | None, method: str, options: dict) -> Tensor:
@@ -326,8 +355,9 @@ def _solve_one(
     floor = _irls_floor(values, method, options["l1_epsilon"])
     m, solved = _solve_columns(values, lights, base)
     for _ in range(options["iterations"]):
-        residuals = values - lights @ m
-        weights = base * _irls_weights(residuals, padding, method, options["tuning"], floor)
+        residuals = torch.addmm(values, lights, m, alpha=-1)  # values - lights @ m in one pass
+        weights = _irls_weights(residuals, padding, method, options["tuning"], floor)
+        weights = weights * base if weights.requires_grad else weights.mul_(base)
         update, ok = _solve_columns(values, lights, weights)
         # a pixel whose weights leave fewer than three usable lights keeps its previous estimate
         m = torch.where(ok, update, m)
