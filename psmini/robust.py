@@ -232,29 +232,7 @@ def _irls_floor(values: Tensor, method: str, l1_epsilon: float) -> Tensor:
 
 def _irls_weights(residuals: Tensor, padding: Tensor, method: str, tuning: float,
                   floor: Tensor) -> Tensor:
-    """M-estimator weights w(r) = psi(u) / u for residuals (K, N), u = r / (tuning * MAD scale).
-
-    ``residuals`` is consumed: without autograd the weights are computed in its memory, since each fresh (K, N)
-    array costs about as much as the arithmetic on it.
-    """
-    if residuals.requires_grad:
-        return _irls_weights_autograd(residuals, padding, method, tuning, floor)
-    if method == "l1":
-        return torch.maximum(residuals.abs_(), floor).reciprocal_()
-    if method == "huber":
-        size = residuals.abs_()
-        scale = (_MAD_TO_SIGMA * _median(size, padding)).clamp_min(0) + floor
-        return size.div_(tuning * scale).clamp_min_(1.0).reciprocal_()
-    squared = residuals.square_()
-    squared.mul_(_inverse_squared_scale(_median(squared, padding), floor, tuning))
-    if method == "cauchy":
-        return squared.add_(1.0).reciprocal_()
-    return squared.neg_().add_(1.0).clamp_min_(0).square_()  # tukey's biweight
-
-
-def _irls_weights_autograd(residuals: Tensor, padding: Tensor, method: str, tuning: float,
-                           floor: Tensor) -> Tensor:
-    """:func:`_irls_weights` out of place, for autograd."""
+    """M-estimator weights w(r) = psi(u) / u for residuals (K, N), u = r / (tuning * MAD scale)."""
     if method == "l1":
         return 1.0 / torch.maximum(residuals.abs(), floor)
     if method == "huber":
@@ -356,8 +334,7 @@ def _solve_one(
     m, solved = _solve_columns(values, lights, base)
     for _ in range(options["iterations"]):
         residuals = torch.addmm(values, lights, m, alpha=-1)  # values - lights @ m in one pass
-        weights = _irls_weights(residuals, padding, method, options["tuning"], floor)
-        weights = weights * base if weights.requires_grad else weights.mul_(base)
+        weights = base * _irls_weights(residuals, padding, method, options["tuning"], floor)
         update, ok = _solve_columns(values, lights, weights)
         # a pixel whose weights leave fewer than three usable lights keeps its previous estimate
         m = torch.where(ok, update, m)
