@@ -279,7 +279,7 @@ def _fit_columns(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor,
     energy, half = _split_lights(lights)
     tiny = torch.finfo(values.dtype).tiny
     # the Cauchy scale: a fraction of the pixel's median usable reading
-    median = _median(values, _median_padding(usable > 0, values.dtype))
+    median = _median(values.T, _median_padding((usable > 0).T, values.dtype))
     sigma = (options["scale"] * median).clamp_min(1e-6 * (usable * values).abs().amax(dim=0) + tiny)
     top = math.log(options["max_shininess"])
     faint, strong = _starts(values, usable, albedo, normals, lights, energy, half, sigma, options)

@@ -56,14 +56,18 @@ class TestWeights(BaseTester):
     def test_masked_median_matches_nanmedian(self, device, dtype):
         from psmini.robust import _median, _median_padding
 
-        values = torch.rand(9, 500, device=device, dtype=dtype)
-        usable = torch.rand(9, 500, device=device) > 0.4
-        usable[:, 0] = True
-        usable[1:, 1] = False  # one usable entry
-        expected = values.masked_fill(~usable, float("nan")).nanmedian(dim=0).values
+        values = torch.randn(500, 9, device=device, dtype=dtype)  # pixel rows (N, K), negatives included
+        usable = torch.rand(500, 9, device=device) > 0.4
+        usable[0] = True
+        usable[1, 1:] = False  # one usable entry
+        expected = values.masked_fill(~usable, float("nan")).nanmedian(dim=1).values
         padding = _median_padding(usable, dtype)
-        has_any = usable.any(dim=0)
+        has_any = usable.any(dim=1)
         self.assert_close(_median(values, padding)[has_any], expected[has_any])
+        # non-negative values (squared residuals) may select on the floats' bits read as integers
+        squared = values.square()
+        expected_squared = squared.masked_fill(~usable, float("nan")).nanmedian(dim=1).values
+        self.assert_close(_median(squared, padding, nonnegative=True)[has_any], expected_squared[has_any])
         # the autograd path (torch's median) selects the same values
         self.assert_close(_median(values.requires_grad_(), padding)[has_any].detach(), expected[has_any])
 
