@@ -109,8 +109,7 @@ def _trim_keep(values: Tensor, low: float, high: float, usable: Tensor | None, d
     values = values.detach()
     if usable is not None:
         values = values.masked_fill(~usable, float("inf"))  # unusable observations rank last, beyond n
-    # sorting along a contiguous last dimension is ~3x faster than along a strided one
-    order = values.movedim(dim, -1).contiguous().argsort(dim=-1, stable=True)
+    order = _stable_argsort(values.movedim(dim, -1))
     positions = torch.arange(values.shape[dim], device=values.device).expand_as(order)
     ranks = torch.empty_like(order).scatter_(-1, order, positions).movedim(-1, dim)
     count = (torch.full_like(ranks.narrow(dim, 0, 1), values.shape[dim]) if usable is None
@@ -119,6 +118,24 @@ def _trim_keep(values: Tensor, low: float, high: float, usable: Tensor | None, d
     drop_low = torch.floor(count.to(torch.float64) * low).long()
     drop_high = torch.floor(count.to(torch.float64) * high).long()
     return (ranks >= drop_low) & (ranks < count - drop_high)
+
+
+def _stable_argsort(values: Tensor) -> Tensor:
+    """Stable argsort along the last dimension (ties in index order).
+
+    float32 on CPU sorts one int64 key per entry with NumPy (SIMD sort): the float's bits, made to order like
+    integers (negative floats' magnitude bits flipped), in the high 32 bits and the index in the low 32, so equal
+    values keep their index order; measured 4.6x faster than torch's stable argsort for 4096 × 96. Elsewhere, torch's.
+    """
+    if values.device.type != "cpu" or values.dtype != torch.float32:
+        # sorting along a contiguous last dimension is ~3x faster than along a strided one
+        return values.contiguous().argsort(dim=-1, stable=True)
+    bits = (values + 0.0).view(torch.int32)  # + 0.0 turns -0.0 into +0.0, which ties with it
+    ordered = bits ^ ((bits >> 31) & 0x7FFFFFFF)  # IEEE 754 order as signed integers (NaN never reaches here)
+    index = torch.arange(values.shape[-1], dtype=torch.int64)
+    keys = (ordered.long() << 32) | index
+    keys.numpy().sort(axis=-1)
+    return keys & 0xFFFFFFFF
 
 
 def threshold_weights(
@@ -320,22 +337,26 @@ def _low_rank(values: Tensor, observed: Tensor, iterations: int, weight: float |
 
 
 def _solve_chunked(
-    rows: Tensor, lights: Tensor, base: Tensor | None, method: str, options: dict
+    values: Tensor, lights: Tensor, base: Tensor | None, method: str, options: dict
 ) -> tuple[Tensor, Tensor]:
-    """:func:`_solve_one` on blocks of :data:`_CHUNK` pixel rows, whose (chunk, K) arrays stay in the CPU caches.
+    """:func:`_solve_one` on blocks of :data:`_CHUNK` pixels of values (K, N), each turned into contiguous pixel rows
+    (chunk, K) that stay in the CPU caches (transposing block by block measured 2.5x faster than the whole matrix).
 
     ``"rpca"`` works on all pixels at once: the low-rank structure is that of the whole image.
     """
     if method == "rpca":
-        observed = _rejection(rows, base, method, options) > 0
-        low_rank = _low_rank(rows.T, observed.T, options["rpca_iterations"], options["rpca_lambda"])
+        observed = _rejection(values.T, None if base is None else base.T, method, options).T > 0
+        low_rank = _low_rank(values, observed, options["rpca_iterations"], options["rpca_lambda"])
         return _solve_rows(low_rank.T, _light_products(lights), None)
     design = _light_products(lights)
-    if rows.shape[0] <= _CHUNK:
-        return _solve_one(rows, design, base, method, options)
-    blocks = [slice(start, start + _CHUNK) for start in range(0, rows.shape[0], _CHUNK)]
-    parts = [_solve_one(rows[block], design, None if base is None else base[block], method, options)
-             for block in blocks]
+    parts = []
+    for start in range(0, values.shape[1], _CHUNK):
+        block = slice(start, start + _CHUNK)
+        rows = values[:, block].T.contiguous()
+        parts.append(_solve_one(rows, design, None if base is None else base[:, block].T.contiguous(), method,
+                                options))
+    if len(parts) == 1:
+        return parts[0]
     return torch.cat([m for m, _ in parts], dim=1), torch.cat([solved for _, solved in parts])
 
 
@@ -448,17 +469,18 @@ def robust_normals(
     batch_m, batch_solved = [], []
     for b in range(sizes["B"]):  # a loop over images, not pixels: each image's masked pixels are one set of columns
         values = intensities[b].flatten(1)
-        columns = slice(None) if mask is None else mask[b, 0].flatten().bool()
-        # pixels as contiguous rows (N, K): each pixel's selections and sums run along contiguous memory
-        rows = values[:, columns].T.contiguous()
-        weights_b = None if base is None else base[b].flatten(1)[:, columns].T.contiguous()
-        m, solved = _solve_chunked(rows, lights[b], weights_b, method, options)
+        weights_b = None if base is None else base[b].flatten(1)
         if mask is None:
-            batch_m.append(m)
-            batch_solved.append(solved)
+            m, solved = _solve_chunked(values, lights[b], weights_b, method, options)
         else:
-            batch_m.append(_scatter(m, columns, values.shape[1]))
-            batch_solved.append(_scatter(solved[None], columns, values.shape[1])[0])
+            columns = mask[b, 0].flatten().bool()
+            # index_select of the masked columns measured 2x faster than boolean indexing on DiLiGenT images
+            index = columns.nonzero()[:, 0]
+            weights_b = None if weights_b is None else weights_b.index_select(1, index)
+            m, solved = _solve_chunked(values.index_select(1, index), lights[b], weights_b, method, options)
+            m, solved = _scatter(m, columns, values.shape[1]), _scatter(solved[None], columns, values.shape[1])[0]
+        batch_m.append(m)
+        batch_solved.append(solved)
     m = torch.stack(batch_m).view(sizes["B"], 3, sizes["H"], sizes["W"])
     solved = torch.stack(batch_solved).view(sizes["B"], 1, sizes["H"], sizes["W"])
     return _unit_and_length(m, solved)

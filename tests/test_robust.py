@@ -53,6 +53,19 @@ class TestWeights(BaseTester):
         # saturated readings are dropped before the brightest is taken
         assert threshold_weights(images, 0.1, saturation=0.99)[0, :, 0, 0].tolist() == [False, False, True, True, False]
 
+    def test_stable_argsort_matches_torch(self, device, dtype):
+        from psmini.robust import _stable_argsort
+
+        values = torch.randn(300, 40, device=device, dtype=dtype).round(decimals=1)  # many ties
+        values[:, :5] = 0.0
+        values[:, 5:8] = -0.0  # ties with +0.0
+        values[:, 8:10] = float("inf")
+        values[:, 10] = float("-inf")
+        values[:, 11:] *= 1e30
+        expected = values.argsort(dim=-1, stable=True)
+        assert torch.equal(_stable_argsort(values), expected)
+        assert torch.equal(_stable_argsort(values.T.T[:, ::2]), values[:, ::2].argsort(dim=-1, stable=True))
+
     def test_masked_median_matches_nanmedian(self, device, dtype):
         from psmini.robust import _median, _median_padding
 
