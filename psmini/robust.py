@@ -264,7 +264,7 @@ def _irls_floor(rows: Tensor, method: str, l1_epsilon: float) -> Tensor:
     return 1e-6 * rows.abs().amax(dim=1) + tiny
 
 
-def _irls_weights(residuals: Tensor, padding: Tensor, method: str, tuning: float,
+def _irls_weights(residuals: Tensor, padding: Tensor | None, method: str, tuning: float,
                   floor: Tensor) -> Tensor:
     """M-estimator weights w(r) = psi(u) / u for residuals (N, K), u = r / (tuning * MAD scale)."""
     if method == "l1":
@@ -367,7 +367,7 @@ def _solve_one(
     base = _rejection(rows, base, method, options)
     if method in ("trimmed", "threshold"):
         return _solve_rows(rows, design, base)
-    padding = _median_padding(base > 0, rows.dtype)
+    padding = None if method == "l1" else _median_padding(base > 0, rows.dtype)  # l1 takes no residual scale
     floor = _irls_floor(rows, method, options["l1_epsilon"])
     m, solved = _solve_rows(rows, design, base)
     for _ in range(options["iterations"]):
