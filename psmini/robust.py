@@ -350,7 +350,7 @@ def _solve_chunked(
         return _solve_rows(low_rank.T, _light_products(lights), None)
     design = _light_products(lights)
     parts = []
-    for start in range(0, values.shape[1], _CHUNK):
+    for start in range(0, max(values.shape[1], 1), _CHUNK):  # one empty block for an empty mask
         block = slice(start, start + _CHUNK)
         rows = values[:, block].T.contiguous()
         parts.append(_solve_one(rows, design, None if base is None else base[:, block].T.contiguous(), method,

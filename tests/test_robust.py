@@ -147,6 +147,22 @@ class TestRobustNormals(BaseTester):
             self.assert_close(albedo[b:b + 1] * mask[b:b + 1], one_albedo * mask[b:b + 1])
         assert (albedo[~mask] == 0).all() and (normals[:, 2:][~mask] == 1).all()
 
+    @pytest.mark.parametrize("method", ROBUST_METHODS)
+    def test_empty_mask_and_chunk_boundaries(self, device, method):
+        images = torch.rand(1, 8, 70, 70, device=device) + 0.1  # 4,900 pixels: two blocks of _CHUNK
+        lights = ring_lights(8, 55.0, device=device)
+        albedo, normals = robust_normals(images, lights, method, torch.zeros(1, 1, 70, 70, dtype=torch.bool,
+                                                                              device=device))
+        assert (albedo == 0).all() and (normals[:, 2] == 1).all()
+        if method == "rpca":  # a whole-image method: a pixel's result depends on the others
+            return
+        full = robust_normals(images, lights, method)[1]
+        # the pixels on either side of the block boundary are solved as they are alone
+        for pixel in (4095, 4096):
+            y, x = divmod(pixel, 70)
+            alone = robust_normals(images[..., y:y + 1, x:x + 1], lights, method)[1]
+            self.assert_close(full[..., y, x], alone[..., 0, 0])
+
     def test_robust_alias_and_module(self, device):
         images = torch.rand(1, 8, 4, 4, device=device) + 0.1
         lights = ring_lights(8, 55.0, device=device)
