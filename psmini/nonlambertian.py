@@ -26,8 +26,10 @@ half vector of the brightest reading; see :func:`_starts`), and runs a fixed num
 Levenberg–Marquardt iterations (Levenberg 1944, Marquardt 1963) on the iteratively reweighted normal equations
 (Cauchy weights :math:`1 / (1 + (r/\sigma)^2)`, Holland & Welsch 1977), with a damping factor and an accept/reject
 decision per pixel. The five unknowns are two tangent-plane steps of the normal, :math:`\rho`, :math:`s` and
-:math:`\log \alpha`. All pixels are solved at once as columns (blocks of :data:`_CHUNK` that stay in the CPU caches);
-the 5×5 systems are one batched solve. The fixed iteration count keeps the result differentiable.
+:math:`\log \alpha`. All pixels are solved at once as the rows of :math:`N \times K` matrices (blocks of
+:data:`_CHUNK` that stay in the CPU caches, each pixel's readings contiguous); the normal equations of all pixels are
+one batched product and the 5×5 systems one batched solve. The fixed iteration count keeps the result
+differentiable.
 """
 
 from __future__ import annotations
@@ -46,8 +48,8 @@ from psmini.robust import _median, _median_padding, _scatter, robust_normals, th
 
 __all__ = ["BlinnPhongFit", "NonLambertianNormals", "blinn_phong_images", "fit_blinn_phong", "nonlambertian_normals"]
 
-# Pixels solved together: the (K, chunk) arrays of one iteration stay in cache (the 15 products of the normal
-# equations ran ~5x faster in blocks of 4096 columns than over DiLiGenT cat's 45,200 at once, one CPU thread).
+# Pixels solved together: the (chunk, K) arrays of one iteration stay in cache (the normal equations ran ~5x faster
+# in blocks of 4096 pixels than over DiLiGenT cat's 45,200 at once, one CPU thread).
 _CHUNK = 4096
 _PARAMETERS = 5  # two tangent-plane steps of the normal, rho, s, log(alpha)
 _FAINT_LOBE, _FAINT_SHININESS = 0.01, 30.0
@@ -55,8 +57,6 @@ _FAINT_LOBE, _FAINT_SHININESS = 0.01, 30.0
 _RACE = 6
 # largest lobe peak s E, in units of the pixel's brightest usable reading
 _PEAK_RATIO = 4.0
-# the 15 distinct entries of the symmetric 5×5 normal matrix
-_PAIRS = [(p, q) for p in range(_PARAMETERS) for q in range(p, _PARAMETERS)]
 
 
 class BlinnPhongFit(NamedTuple):
@@ -78,27 +78,30 @@ class BlinnPhongFit(NamedTuple):
 def _split_lights(lights: Tensor) -> tuple[Tensor, Tensor]:
     """Irradiance |l| and the half vectors between the unit directions and the view (0, 0, 1).
 
-    ``lights`` is (K, 3) or per column (K, 3, N) (dim 1 holds xyz); returns irradiance (K, 1) or (K, N), and half
-    vectors of the shape of ``lights``.
+    ``lights`` is (K, 3) or per pixel row (N, K, 3) (the last dim holds xyz); returns irradiance as a (1, K) row or
+    (N, K), and half vectors of the shape of ``lights``.
     """
     tiny = torch.finfo(lights.dtype).tiny
-    energy = lights.norm(dim=1, keepdim=True).clamp_min(tiny)
+    energy = lights.norm(dim=-1, keepdim=True).clamp_min(tiny)
     half = lights / energy
-    half[:, 2] += 1
-    half = half / half.norm(dim=1, keepdim=True).clamp_min(tiny)
-    return (energy if lights.ndim == 2 else energy.squeeze(1)), half
+    half[..., 2] += 1
+    half = half / half.norm(dim=-1, keepdim=True).clamp_min(tiny)
+    return (energy.T if lights.ndim == 2 else energy.squeeze(-1)), half
 
 
-def _dot(vectors: Tensor, columns: Tensor) -> Tensor:
-    """Dot products of K vectors (K, 3) or per-column vectors (K, 3, N) with columns (3, N): (K, N)."""
+def _dot(vectors: Tensor, normals: Tensor) -> Tensor:
+    """Dot products of K vectors (K, 3) or per-pixel vectors (N, K, 3) with pixel rows of vectors (N, 3): (N, K)."""
     if vectors.ndim == 2:
-        return vectors @ columns
-    return (vectors * columns.unsqueeze(0)).sum(dim=1)
+        return normals @ vectors.T
+    return (vectors * normals.unsqueeze(1)).sum(dim=-1)
 
 
 def _shade(normals: Tensor, albedo: Tensor, specular: Tensor, shininess: Tensor, lights: Tensor, energy: Tensor,
            half: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The model on columns: normals (3, N), maps (1, N). Returns cosine E(n·u), lit lobe E g^α, g = n·h, images."""
+    """The model on pixel rows: normals (N, 3), maps (N, 1).
+
+    Returns cosine E(n·u), lit lobe E g^α, g = n·h and the images, each (N, K).
+    """
     cosine = _dot(lights, normals)  # E (n · u): lights carry their irradiance
     tiny = torch.finfo(normals.dtype).tiny
     # g is clamped to a tiny positive value: g**α has an infinite gradient at 0 for α < 1, and log(g) is needed
@@ -151,40 +154,41 @@ def blinn_phong_images(normals: Tensor, albedo: Tensor, specular: Tensor, shinin
         lights = as_batched_lights(lights, sizes["B"], normals)
     images = []
     for b in range(sizes["B"]):  # a loop over images, not pixels
-        columns = lights[b].to(normals).flatten(2) if lights.ndim == 5 else lights[b]
-        energy, half = _split_lights(columns)
-        maps = [x[b].flatten(1) for x in (albedo, specular, shininess)]
-        images.append(_shade(normals[b].flatten(1), *maps, columns, energy, half)[3])
+        rows = lights[b].to(normals).flatten(2).permute(2, 0, 1) if lights.ndim == 5 else lights[b]
+        energy, half = _split_lights(rows)
+        maps = [x[b].flatten(1).T for x in (albedo, specular, shininess)]
+        images.append(_shade(normals[b].flatten(1).T, *maps, rows, energy, half)[3].T)
     return torch.stack(images).view(sizes["B"], -1, sizes["H"], sizes["W"])
 
 
 def _tangents(normals: Tensor) -> tuple[Tensor, Tensor]:
-    """Two unit vectors (3, N) orthogonal to unit normals (3, N) and to each other."""
+    """Two unit vectors (N, 3) orthogonal to unit normals (N, 3) and to each other."""
     # cross with z unless the normal is near z; then with x
     axis = torch.zeros_like(normals)
-    near_z = normals[2].abs() > 0.9
-    axis[0] = near_z.to(normals.dtype)
-    axis[2] = (~near_z).to(normals.dtype)
-    first = torch.linalg.cross(normals, axis, dim=0)
-    first = first / first.norm(dim=0, keepdim=True)
-    return first, torch.linalg.cross(normals, first, dim=0)
+    near_z = normals[:, 2].abs() > 0.9
+    axis[:, 0] = near_z.to(normals.dtype)
+    axis[:, 2] = (~near_z).to(normals.dtype)
+    first = torch.linalg.cross(normals, axis, dim=1)
+    first = first / first.norm(dim=1, keepdim=True)
+    return first, torch.linalg.cross(normals, first, dim=1)
 
 
 def _cauchy_cost(residuals: Tensor, usable: Tensor, sigma: Tensor) -> Tensor:
-    return (usable * torch.log1p((residuals / sigma).square())).sum(dim=0)
+    """Cauchy cost (N, 1) of residuals (N, K) over the usable readings, scale sigma (N, 1)."""
+    return (usable * torch.log1p((residuals / sigma).square())).sum(dim=1, keepdim=True)
 
 
 def _brightest_half(values: Tensor, usable: Tensor, half: Tensor) -> Tensor:
-    """Half vector (3, N) of each pixel's brightest usable reading: the normal if that reading is a highlight peak."""
-    brightest = torch.where(usable > 0, values, torch.full_like(values, -math.inf)).argmax(dim=0)  # (N,)
+    """Half vector (N, 3) of each pixel's brightest usable reading: the normal if that reading is a highlight peak."""
+    brightest = torch.where(usable > 0, values, torch.full_like(values, -math.inf)).argmax(dim=1)  # (N,)
     if half.ndim == 2:
-        return half[brightest].T
-    return half.gather(0, brightest.view(1, 1, -1).expand(1, 3, -1))[0]
+        return half[brightest]
+    return half.gather(1, brightest.view(-1, 1, 1).expand(-1, 1, 3))[:, 0]
 
 
 def _starts(values: Tensor, usable: Tensor, albedo: Tensor, normals: Tensor, lights: Tensor, energy: Tensor,
             half: Tensor, sigma: Tensor, options: dict) -> tuple[list[Tensor], list[Tensor]]:
-    """Two starting states [normals (3, N), albedo, specular albedo, log shininess (each (1, N))].
+    """Two starting states [normals (N, 3), albedo, specular albedo, log shininess (each (N, 1))].
 
     The first is the given start with a faint lobe (specular 1% of the albedo, exponent 30): the robust loss then
     sees a highlight as an outlier at first and grows the lobe only as far as the data support it. The second is the
@@ -194,18 +198,18 @@ def _starts(values: Tensor, usable: Tensor, albedo: Tensor, normals: Tensor, lig
     size and at the place of a strong highlight, which the first start can miss when the robust start is far off.
     """
     tiny = torch.finfo(values.dtype).tiny
-    most = _PEAK_RATIO * (usable * values / energy).amax(dim=0, keepdim=True)
+    most = _PEAK_RATIO * (usable * values / energy).amax(dim=1, keepdim=True)
     faint = [normals, albedo, _FAINT_LOBE * albedo, torch.full_like(albedo, math.log(_FAINT_SHININESS))]
     best, best_cost = None, None
     peak = _brightest_half(values, usable, half)
     bisector = normals + peak
-    bisector = bisector / bisector.norm(dim=0, keepdim=True).clamp_min(tiny)
+    bisector = bisector / bisector.norm(dim=1, keepdim=True).clamp_min(tiny)
     for start_normals in (normals, peak, bisector):
         for exponent in options["shininess"]:
             log_alpha = torch.full_like(albedo, math.log(exponent))
             cosine, lobe, _, _ = _shade(start_normals, albedo, albedo, log_alpha.exp(), lights, energy, half)
             diffuse = cosine.clamp_min(0)
-            a, b, d, r1, r2 = [(usable * x * y).sum(dim=0, keepdim=True) for x, y in (
+            a, b, d, r1, r2 = [(usable * x * y).sum(dim=1, keepdim=True) for x, y in (
                 (diffuse, diffuse), (diffuse, lobe), (lobe, lobe), (diffuse, values), (lobe, values))]
             specular = ((a * r2 - b * r1) / (a * d - b * b).clamp_min(tiny)).clamp_min(0).minimum(most)
             rho = ((r1 - b * specular) / a.clamp_min(tiny)).clamp_min(0)
@@ -220,14 +224,25 @@ def _starts(values: Tensor, usable: Tensor, albedo: Tensor, normals: Tensor, lig
     return faint, best
 
 
+def _normal_equations(jacobian: list[Tensor], residuals: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
+    """J^T W J (N, 5, 5) and J^T W r (N, 5) of the weighted Gauss–Newton step, each pixel's rows (N, K).
+
+    One batched product of the stacked (N, 6, K) matrix [J | r] with its weighted transpose gives both: measured
+    3x faster than the 20 products and sums of the separate entries.
+    """
+    design = torch.stack(jacobian + [residuals], dim=1)
+    normal = torch.bmm(design * weights.unsqueeze(1), design.transpose(1, 2))
+    return normal[:, :_PARAMETERS, :_PARAMETERS], normal[:, :_PARAMETERS, _PARAMETERS]
+
+
 def _iterate(values: Tensor, usable: Tensor, sigma: Tensor, lights: Tensor, energy: Tensor, half: Tensor,
              state: list[Tensor], damping: Tensor, iterations: int, top: float) -> tuple[list[Tensor], Tensor, Tensor]:
-    """Levenberg–Marquardt iterations on the Cauchy cost; returns the state, its cost and the damping (1, N)."""
+    """Levenberg–Marquardt iterations on the Cauchy cost; returns the state, its cost and the damping (N, 1)."""
     tiny = torch.finfo(values.dtype).tiny
     normals, albedo, specular, log_alpha = state
     # the lobe's peak stays within a few times the brightest reading: a huge, narrow lobe far from every light
     # would otherwise fit a tail of readings (the peak between lights is unobserved, not unbounded)
-    most = _PEAK_RATIO * (usable * values / energy).amax(dim=0, keepdim=True)
+    most = _PEAK_RATIO * (usable * values / energy).amax(dim=1, keepdim=True)
     cost = _cauchy_cost(values - _shade(normals, albedo, specular, log_alpha.exp(), lights, energy, half)[3],
                         usable, sigma)
     for _ in range(iterations):
@@ -241,23 +256,16 @@ def _iterate(values: Tensor, usable: Tensor, sigma: Tensor, lights: Tensor, ener
         jacobian = [diffuse * _dot(lights, first) + glossy * _dot(half, first),
                     diffuse * _dot(lights, second) + glossy * _dot(half, second),
                     cosine.clamp_min(0), lobe, specular * alpha * lobe * torch.log(g)]
-        weighted = [weights * j for j in jacobian]
-        gram = torch.zeros(values.shape[1], _PARAMETERS, _PARAMETERS, device=values.device, dtype=values.dtype)
-        for p, q in _PAIRS:
-            entry = (weighted[p] * jacobian[q]).sum(dim=0)
-            gram[:, p, q] = entry
-            gram[:, q, p] = entry
-        rhs = torch.stack([(w * residuals).sum(dim=0) for w in weighted], dim=1)  # (N, 5)
+        gram, rhs = _normal_equations(jacobian, residuals, weights)
         diagonal = gram.diagonal(dim1=1, dim2=2)
         # Marquardt's scaled damping, plus a floor so that a parameter without effect (s = 0) keeps the system regular
         floor = 1e-9 * diagonal.sum(dim=1, keepdim=True) + tiny
-        step, info = torch.linalg.solve_ex(gram + torch.diag_embed(damping.T * diagonal + floor), rhs)
-        step = torch.where((info == 0)[:, None], step, torch.zeros_like(step)).T  # (5, N)
-        trial_normals = normals + step[0:1] * first + step[1:2] * second
-        trial_normals = trial_normals / trial_normals.norm(dim=0, keepdim=True)
-        trial = [trial_normals, (albedo + step[2:3]).clamp_min(0), torch.minimum((specular + step[3:4]).clamp_min(0),
-                                                                              most),
-                 (log_alpha + step[4:5]).clamp(0.0, top)]
+        step, info = torch.linalg.solve_ex(gram + torch.diag_embed(damping * diagonal + floor), rhs)
+        step = torch.where((info == 0)[:, None], step, torch.zeros_like(step))  # (N, 5)
+        trial_normals = normals + step[:, 0:1] * first + step[:, 1:2] * second
+        trial_normals = trial_normals / trial_normals.norm(dim=1, keepdim=True)
+        trial = [trial_normals, (albedo + step[:, 2:3]).clamp_min(0),
+                 torch.minimum((specular + step[:, 3:4]).clamp_min(0), most), (log_alpha + step[:, 4:5]).clamp(0.0, top)]
         trial_cost = _cauchy_cost(values - _shade(trial[0], trial[1], trial[2], trial[3].exp(), lights, energy,
                                                   half)[3], usable, sigma)
         better = trial_cost < cost  # per pixel: accept and trust the model more, or reject and damp
@@ -268,31 +276,31 @@ def _iterate(values: Tensor, usable: Tensor, sigma: Tensor, lights: Tensor, ener
     return [normals, albedo, specular, log_alpha], cost, damping
 
 
-def _fit_columns(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor, normals: Tensor,
-                 options: dict) -> list[Tensor]:
-    """Robust LM fit on pixel columns; returns albedo, normals, specular albedo and shininess.
+def _fit_rows(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor, normals: Tensor,
+              options: dict) -> list[Tensor]:
+    """Robust LM fit on pixel rows; returns albedo (N, 1), normals (N, 3), specular albedo and shininess (N, 1).
 
-    values and usable (K, N), lights (K, 3) or (K, 3, N), starting albedo (1, N) and normals (3, N). Both starts of
-    :func:`_starts` run side by side (as 2N columns) for the first :data:`_RACE` iterations; each pixel goes on from
+    values and usable (N, K), lights (K, 3) or (N, K, 3), starting albedo (N, 1) and normals (N, 3). Both starts of
+    :func:`_starts` run side by side (as 2N rows) for the first :data:`_RACE` iterations; each pixel goes on from
     the one of lower cost.
     """
     energy, half = _split_lights(lights)
     tiny = torch.finfo(values.dtype).tiny
     # the Cauchy scale: a fraction of the pixel's median usable reading
-    median = _median(values.T, _median_padding((usable > 0).T, values.dtype))
-    sigma = (options["scale"] * median).clamp_min(1e-6 * (usable * values).abs().amax(dim=0) + tiny)
+    median = _median(values, _median_padding(usable > 0, values.dtype))[:, None]
+    sigma = (options["scale"] * median).clamp_min(1e-6 * (usable * values).abs().amax(dim=1, keepdim=True) + tiny)
     top = math.log(options["max_shininess"])
     faint, strong = _starts(values, usable, albedo, normals, lights, energy, half, sigma, options)
     race = min(_RACE, options["iterations"])
-    both = [torch.cat(pair, dim=-1) for pair in ((values, values), (usable, usable), (sigma, sigma))]
-    columns = [x if lights.ndim == 2 else torch.cat([x, x], dim=-1) for x in (lights, energy, half)]
-    state = [torch.cat(pair, dim=-1) for pair in zip(faint, strong)]
+    both = [torch.cat(pair) for pair in ((values, values), (usable, usable), (sigma, sigma))]
+    per_row = [x if lights.ndim == 2 else torch.cat([x, x]) for x in (lights, energy, half)]
+    state = [torch.cat(pair) for pair in zip(faint, strong)]
     damping = torch.full_like(state[1], 1e-2)
-    state, cost, damping = _iterate(*both, *columns, state, damping, race, top)
-    count = values.shape[1]
+    state, cost, damping = _iterate(*both, *per_row, state, damping, race, top)
+    count = values.shape[0]
     first = cost[:count] <= cost[count:]
-    state = [torch.where(first, x[:, :count], x[:, count:]) for x in state]
-    damping = torch.where(first, damping[:, :count], damping[:, count:])
+    state = [torch.where(first, x[:count], x[count:]) for x in state]
+    damping = torch.where(first, damping[:count], damping[count:])
     state, _, _ = _iterate(values, usable, sigma, lights, energy, half, state, damping,
                            options["iterations"] - race, top)
     normals, albedo, specular, log_alpha = state
@@ -301,14 +309,18 @@ def _fit_columns(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor,
 
 def _fit_chunked(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor, normals: Tensor,
                  options: dict) -> list[Tensor]:
-    """:func:`_fit_columns` on blocks of :data:`_CHUNK` columns; returns albedo, normals, specular, shininess."""
+    """:func:`_fit_rows` on blocks of :data:`_CHUNK` pixels, each turned into contiguous pixel rows.
+
+    values and usable (K, N), lights (K, 3) or (K, 3, N), albedo (1, N), normals (3, N); returns albedo, normals,
+    specular and shininess as (C, N).
+    """
     parts = []
     for start in range(0, values.shape[1], _CHUNK):
         block = slice(start, start + _CHUNK)
-        block_lights = lights if lights.ndim == 2 else lights[..., block]
-        parts.append(_fit_columns(values[:, block], block_lights, usable[:, block], albedo[:, block],
-                                  normals[:, block], options))
-    return [torch.cat(maps, dim=1) for maps in zip(*parts)] if parts else [albedo, normals, albedo, albedo]
+        block_lights = lights if lights.ndim == 2 else lights[..., block].permute(2, 0, 1).contiguous()
+        rows = [x[:, block].T.contiguous() for x in (values, usable, albedo, normals)]
+        parts.append(_fit_rows(rows[0], block_lights, rows[1], rows[2], rows[3], options))
+    return [torch.cat(maps).T for maps in zip(*parts)] if parts else [albedo, normals, albedo, albedo]
 
 
 def _check_options(options: dict) -> None:
