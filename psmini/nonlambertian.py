@@ -265,7 +265,8 @@ def _iterate(values: Tensor, usable: Tensor, sigma: Tensor, lights: Tensor, ener
         trial_normals = normals + step[:, 0:1] * first + step[:, 1:2] * second
         trial_normals = trial_normals / trial_normals.norm(dim=1, keepdim=True)
         trial = [trial_normals, (albedo + step[:, 2:3]).clamp_min(0),
-                 torch.minimum((specular + step[:, 3:4]).clamp_min(0), most), (log_alpha + step[:, 4:5]).clamp(0.0, top)]
+                 torch.minimum((specular + step[:, 3:4]).clamp_min(0), most),
+                 (log_alpha + step[:, 4:5]).clamp(0.0, top)]
         trial_cost = _cauchy_cost(values - _shade(trial[0], trial[1], trial[2], trial[3].exp(), lights, energy,
                                                   half)[3], usable, sigma)
         better = trial_cost < cost  # per pixel: accept and trust the model more, or reject and damp
