@@ -461,9 +461,10 @@ def sphere_centre_from_silhouette(
         target = weights.to(rays).unsqueeze(-1)
     else:
         target = torch.ones_like(rays[:, :1])
-    # plain QR ("gels"): the outline rays have full rank, and the default pivoting driver can flip its pivots
-    # between nearby inputs, which breaks the derivative
-    w = torch.linalg.lstsq(rays, target, driver="gels").solution[:, 0]
+    # least squares by an explicit QR: the outline rays have full rank, pivoting drivers can flip their pivots
+    # between nearby inputs, and torch 2.13's lstsq backward disagrees with finite differences here
+    q, r = torch.linalg.qr(rays)
+    w = torch.linalg.solve_triangular(r, q.transpose(-2, -1) @ target, upper=True)[:, 0]
     norm = w.norm()
     if not bool(norm > 1):
         raise CalibrationError(f"the sphere's outline does not form a cone around a sphere (|w| = {float(norm):.4g} <= 1)")
