@@ -31,7 +31,8 @@ from psmini.autofocus import AutofocusController, AutofocusResult, autofocus_swe
 from psmini.focus import (FOCUS_MEASURES, FocusMeasure, brenner, focus_measure, gaussian_derivative, image_contrast,
                           normalized_variance, tenengrad, variance_of_laplacian, wavelet_sum)
 from psmini.geometry import depth_to_points, pixel_grid_mm, point_cloud
-from psmini.lights import DirectionalLights, LEDLights, PointLights, as_batched_lights, check_spans_3d, ring_lights
+from psmini.lights import (DirectionalLights, LEDLights, LightModel, PointLights, as_batched_lights, check_spans_3d,
+                           lights_from_dict, lights_to_dict, ring_lights)
 from psmini.metrics import angular_error_deg, depth_error, mean_angular_error, median_angular_error
 from psmini.nearlight import (NearLightResult, estimate_height_offset, near_light_photometric_stereo, near_light_vectors,
                               refine_depth, robust_near_light_normals)
@@ -43,15 +44,8 @@ from psmini.robust import (RECOMMENDED_ROBUST_METHOD, ROBUST_METHODS, RobustNorm
 from psmini.pipeline import PhotometricStereo, Reconstruction, distant_light_matrix, reconstruct
 # psmini.render is the function once the package is imported; reach the module by `from psmini.render import ...`
 from psmini.render import Renderer, cast_shadows, normals_from_height, render, render_lambertian
-from psmini.calibration import (
-    calibrate_sphere,
-    card_reference,
-    read_lights_file,
-    triangulate_leds,
-    with_lights_file,
-    write_lights_file,
-)
-from psmini.ledcal import LEDFit, fit_leds, load_rig_calibration_mat
+from psmini.calibration import calibrate_sphere, card_reference, triangulate_leds
+from psmini.ledcal import LEDFit, fit_leds
 
 __all__ = [
     "__version__",
@@ -66,6 +60,9 @@ __all__ = [
     "ring_lights",
     "check_spans_3d",
     "as_batched_lights",
+    "LightModel",
+    "lights_to_dict",
+    "lights_from_dict",
     "DirectionalLights",
     "PointLights",
     "LEDLights",
@@ -121,14 +118,10 @@ __all__ = [
     # LED calibration from card images
     "fit_leds",
     "LEDFit",
-    "load_rig_calibration_mat",
     # calibration
     "calibrate_sphere",
     "triangulate_leds",
     "card_reference",
-    "read_lights_file",
-    "write_lights_file",
-    "with_lights_file",
     # integration
     "integrate",
     "INTEGRATION_METHODS",

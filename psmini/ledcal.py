@@ -38,7 +38,6 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -48,7 +47,7 @@ from torch import Tensor, nn
 from psmini._checks import check_finite, check_positive, check_shape, check_tensor
 from psmini.errors import CalibrationError, InputError, ShapeError
 from psmini.geometry import pixel_grid_mm
-from psmini.lights import DirectionalLights, LEDLights, PointLights
+from psmini.lights import DirectionalLights, LEDLights, PointLights, lights_from_dict, lights_to_dict
 
 __all__ = [
     "LEDFit",
@@ -57,7 +56,6 @@ __all__ = [
     "card_shading",
     "eliminate_gain",
     "card_loss",
-    "load_rig_calibration_mat",
 ]
 
 logger = logging.getLogger(__name__)
@@ -69,9 +67,6 @@ NOMINAL_LED_HEIGHT_MM = 10.0
 # A card image whose mean signal is below this fraction of the median image's is taken as an LED that did not
 # light (or a missing card): it would pull the shared gain toward zero and the LED's parameters anywhere.
 _MIN_SIGNAL_FRACTION = 0.05
-
-# DiLiGenT / MATLAB rgb2gray weights (the same as psmini.io's), for the RGB intensities of a MAT calibration.
-_GRAY_WEIGHTS = (0.2989, 0.5870, 0.1140)
 
 STAGES = ("point", "led")
 
@@ -266,10 +261,8 @@ class LEDFit:
         """The fitted model as a light object of ``docs/capture-format.md`` (``"model": "led"``), plus residuals.
 
         The extra keys (``residuals``, ``intensity_scale``, ``calibration``) are ignored by
-        :func:`psmini.io.lights_from_dict`, so the object can be written as a lights file and read back.
+        :func:`psmini.lights.lights_from_dict`, so the object can be written as a lights file and read back.
         """
-        from psmini.io.capture import lights_to_dict  # io sits around the core; imported where it is needed
-
         data = lights_to_dict(self.lights)
         data["intensity_scale"] = "relative: mean 1 (a card calibration leaves the overall scale to the camera gain)"
         data["residuals"] = {
@@ -340,8 +333,6 @@ def _per_height(values: float | Sequence[float] | Tensor, count: int, name: str,
 def _start_lights(init: Any, count: int, nominal_distance_mm: float, mu_init: float) -> LEDLights:
     """The start of the fit as float64 LEDs on the CPU (see :func:`fit_leds` for what ``init`` may be)."""
     if isinstance(init, Mapping):
-        from psmini.io.capture import lights_from_dict  # the light-file format lives in io
-
         init = lights_from_dict(init, dtype=torch.float64)
     if isinstance(init, Tensor):
         check_shape(init, ["K", "3"], "init (directions)")
@@ -637,61 +628,3 @@ def _result(lights: LEDLights, data: tuple[Tensor, Tensor, Tensor], image_scale:
         start=LEDLights(*(t.to(device=images.device, dtype=dtype) for t in (
             start.positions_mm, start.principal_directions, start.intensities, start.mu))),
     )
-
-
-def load_rig_calibration_mat(path: str | Path, reference_depth_mm: float = 0.0) -> LEDLights:
-    r"""Read an LED calibration saved as a MAT-file (``S``, ``Dir``, ``Phi``, ``mu``) into psmini's frame.
-
-    The layout is the one of the near-light rig in ``../shared/data/near_ps_rig/light.mat`` (Quéau et al. 2018's
-    calibration format): ``S`` (K × 3) LED positions in mm, ``Dir`` (K × 3) principal directions, ``Phi``
-    (K × 3) RGB intensities, ``mu`` (K × 1) anisotropies, in the camera frame of computer vision (origin at the
-    centre of projection, x right, y down, z along the optical axis toward the scene). psmini's frame has y up and
-    z toward the camera, so positions and directions become :math:`(x, -y, -z)` (a rotation by 180° about x,
-    which keeps the frame right-handed) and, with ``reference_depth_mm`` = d, positions are shifted so that the
-    plane at depth d (e.g. the card) becomes psmini's reference plane z = 0: :math:`z' = d - z`. Intensities
-    become gray with the DiLiGenT weights 0.2989/0.5870/0.1140 and keep the file's (absolute) scale.
-
-    Args:
-        path: the ``.mat`` file (MATLAB level 5, read by :func:`psmini.io.read_mat`).
-        reference_depth_mm: depth along the file's optical axis of the plane that becomes z = 0, mm (default 0:
-            the origin stays at the centre of projection, and the scene lies at negative z).
-
-    Returns:
-        an :class:`~psmini.lights.LEDLights` (float32).
-
-    Raises:
-        DataFormatError: a missing or unreadable file, missing variables or shapes other than K × 3 / K.
-        CalibrationError: values the LED model refuses (zero directions, intensities <= 0, mu < 0).
-
-    Example:
-        >>> leds = load_rig_calibration_mat("../shared/data/near_ps_rig/light.mat")  # doctest: +SKIP
-        >>> leds.count  # doctest: +SKIP
-        8
-    """
-    import numpy as np
-
-    from psmini.errors import DataFormatError
-    from psmini.io.matfile import read_mat  # the file reader lives in io
-
-    variables = read_mat(path)
-    missing = [name for name in ("S", "Dir", "Phi", "mu") if name not in variables]
-    if missing:
-        raise DataFormatError(f"{path}: an LED calibration needs variables S, Dir, Phi and mu; missing {missing}")
-    positions = np.asarray(variables["S"], dtype=np.float64)
-    directions = np.asarray(variables["Dir"], dtype=np.float64)
-    phi = np.asarray(variables["Phi"], dtype=np.float64)
-    mu = np.asarray(variables["mu"], dtype=np.float64).reshape(-1)
-    count = positions.shape[0]
-    if positions.shape != (count, 3) or directions.shape != (count, 3) or mu.shape != (count,) \
-            or phi.shape[0] != count or phi.ndim != 2 or phi.shape[1] not in (1, 3):
-        raise DataFormatError(
-            f"{path}: expected S and Dir K x 3, Phi K x 3 (RGB) or K x 1, mu K x 1; got S {positions.shape}, "
-            f"Dir {directions.shape}, Phi {phi.shape}, mu {variables['mu'].shape}"
-        )
-    if not all(np.isfinite(a).all() for a in (positions, directions, phi, mu)):
-        raise DataFormatError(f"{path}: the LED calibration holds NaN or infinite values")
-    flip = np.array([1.0, -1.0, -1.0])
-    positions = positions * flip + np.array([0.0, 0.0, float(reference_depth_mm)])
-    directions = directions * flip
-    gray = phi @ np.asarray(_GRAY_WEIGHTS) if phi.shape[1] == 3 else phi[:, 0]
-    return LEDLights(*(torch.as_tensor(a, dtype=torch.float32) for a in (positions, directions, gray, mu)))

@@ -19,20 +19,26 @@ point, 1: Lambertian LED).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
+from typing import Any, ClassVar
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
 from psmini._checks import check_finite, check_shape, check_tensor
-from psmini.errors import CalibrationError, ShapeError
+from psmini.errors import CalibrationError, DataFormatError, InputError, ShapeError
 
 __all__ = [
     "ring_lights",
     "check_spans_3d",
     "as_batched_lights",
+    "LightModel",
     "DirectionalLights",
     "PointLights",
     "LEDLights",
+    "lights_to_dict",
+    "lights_from_dict",
 ]
 
 # Ratio of the smallest to the largest singular value of the light matrix below which the lights are
@@ -124,7 +130,114 @@ def _as_parameter(x: Tensor, learnable: bool) -> Tensor:
     return nn.Parameter(x.detach().clone()) if learnable else x
 
 
-class DirectionalLights(nn.Module):
+def _floats(x: Tensor) -> list:
+    return x.detach().cpu().double().tolist()
+
+
+class LightModel(nn.Module):
+    r"""What every light model is: K lights that give per-pixel light vectors and irradiance at 3-D points.
+
+    Subclasses name their JSON ``kind`` and their fields (``_FIELDS``: name, array rank, optional), say whether the
+    light varies over the field (``is_near``: point and LED models, whose positions are known) and implement
+    ``forward(points)`` → unit vectors :math:`(B, K, 3, H, W)` and irradiance :math:`(B, K, 1, H, W)`. The JSON
+    form (``capture.json``'s ``lights``, lights files, LED fits) is :meth:`to_dict` / :meth:`from_dict`; code asks
+    the model (``is_near``, ``count``) instead of probing attributes.
+    """
+
+    kind: ClassVar[str]
+    is_near: ClassVar[bool]
+    _FIELDS: ClassVar[tuple[tuple[str, int, bool], ...]]
+    _KINDS: ClassVar[dict[str, type[LightModel]]] = {}
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "kind" in cls.__dict__:  # a concrete model with its own JSON name
+            LightModel._KINDS[cls.kind] = cls
+
+    @property
+    def count(self) -> int:
+        """Number of lights K."""
+        return int(getattr(self, self._FIELDS[0][0]).shape[0])
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON object of this model: ``{"model": kind, field: values, ...}`` (see :func:`lights_to_dict`)."""
+        return {"model": self.kind, **{name: _floats(getattr(self, name)) for name, _, _ in self._FIELDS}}
+
+    @staticmethod
+    def from_dict(data: Mapping[str, Any], *, dtype: torch.dtype | None = None) -> LightModel:
+        """The model of a JSON light object; see :func:`lights_from_dict`."""
+        if not isinstance(data, Mapping):
+            raise DataFormatError(f"a light model must be a JSON object, got {type(data).__name__}")
+        cls = LightModel._KINDS.get(data.get("model"))
+        if cls is None:
+            raise DataFormatError(f"light model must be one of {sorted(LightModel._KINDS)}, got {data.get('model')!r}")
+        dtype = dtype or torch.get_default_dtype()
+        values: dict[str, Tensor | None] = {}
+        for key, ndim, optional in cls._FIELDS:
+            if data.get(key) is None:
+                if not optional:
+                    raise DataFormatError(f"light model {cls.kind!r} lacks {key!r}")
+                values[key] = None
+                continue
+            try:
+                array = np.asarray(data[key], dtype=np.float64)
+            except (TypeError, ValueError) as error:
+                raise DataFormatError(f"light model {cls.kind!r}: {key!r} must hold numbers ({error})") from error
+            if array.ndim != ndim or (ndim == 2 and array.shape[1] != 3):
+                expected = "a list of [x, y, z] triples" if ndim == 2 else "a list of numbers"
+                raise DataFormatError(f"light model {cls.kind!r}: {key!r} must be {expected}, got shape {array.shape}")
+            values[key] = torch.as_tensor(array, dtype=dtype)
+        return cls(**values)
+
+
+def lights_to_dict(lights: LightModel) -> dict[str, Any]:
+    """The JSON object of a light model (``capture.json``'s ``lights``, lights files, LED fits).
+
+    Args:
+        lights: a :class:`LightModel` (``DirectionalLights``, ``PointLights`` or ``LEDLights``).
+
+    Returns:
+        ``{"model": "directional", "directions": [[x, y, z], ...], "intensities": [...]}``,
+        ``{"model": "point", "positions_mm": ..., "intensities": ...}`` or
+        ``{"model": "led", "positions_mm": ..., "principal_directions": ..., "intensities": ..., "mu": ...}``.
+
+    Raises:
+        InputError: for anything that is not a :class:`LightModel`.
+
+    Example:
+        >>> lights_to_dict(DirectionalLights(torch.eye(3)))["model"]
+        'directional'
+    """
+    if not isinstance(lights, LightModel):
+        raise InputError(
+            f"lights must be DirectionalLights, PointLights or LEDLights from psmini.lights, got {type(lights).__name__}"
+        )
+    return lights.to_dict()
+
+
+def lights_from_dict(data: Mapping[str, Any], *, dtype: torch.dtype | None = None) -> LightModel:
+    """The light model of a JSON light object (inverse of :func:`lights_to_dict`).
+
+    Args:
+        data: a light object as in ``docs/capture-format.md``; ``intensities`` (and ``mu`` for LEDs) may be
+            omitted (ones).
+        dtype: floating dtype of the parameters (default: torch's default dtype).
+
+    Returns:
+        ``DirectionalLights``, ``PointLights`` or ``LEDLights``.
+
+    Raises:
+        DataFormatError: an unknown model, a missing key, values that are not numbers of the right shape.
+        CalibrationError: values the light model refuses (zero directions, intensities <= 0, mu < 0).
+
+    Example:
+        >>> lights_from_dict({"model": "directional", "directions": [[0, 0, 1], [1, 0, 1], [0, 1, 1]]}).count
+        3
+    """
+    return LightModel.from_dict(data, dtype=dtype)
+
+
+class DirectionalLights(LightModel):
     r"""Distant lights: one unit direction and one relative intensity per light.
 
     Args:
@@ -138,6 +251,10 @@ class DirectionalLights(nn.Module):
         >>> dirs.shape, irradiance.shape
         (torch.Size([1, 8, 3, 4, 4]), torch.Size([1, 8, 1, 4, 4]))
     """
+
+    kind = "directional"
+    is_near = False
+    _FIELDS = (("directions", 2, False), ("intensities", 1, True))
 
     def __init__(self, directions: Tensor, intensities: Tensor | None = None, learnable: bool = False) -> None:
         super().__init__()
@@ -158,11 +275,6 @@ class DirectionalLights(nn.Module):
         self.directions = _as_parameter(directions / norm, learnable)
         self.intensities = _as_parameter(intensities.to(directions.dtype), learnable)
 
-    @property
-    def count(self) -> int:
-        """Number of lights K."""
-        return int(self.directions.shape[0])
-
     def scaled_directions(self) -> Tensor:
         """Directions times intensities, shape :math:`(K, 3)`: the light matrix of least squares."""
         unit = self.directions / self.directions.norm(dim=-1, keepdim=True)
@@ -178,7 +290,7 @@ class DirectionalLights(nn.Module):
         return dirs, irradiance
 
 
-class PointLights(nn.Module):
+class PointLights(LightModel):
     r"""Isotropic point lights with inverse-square falloff (the LED model with :math:`\mu = 0`).
 
     Args:
@@ -194,6 +306,10 @@ class PointLights(nn.Module):
         0.01
     """
 
+    kind = "point"
+    is_near = True
+    _FIELDS = (("positions_mm", 2, False), ("intensities", 1, True))
+
     def __init__(self, positions_mm: Tensor, intensities: Tensor | None = None, learnable: bool = False) -> None:
         super().__init__()
         check_shape(positions_mm, ["K", "3"], "positions_mm")
@@ -208,11 +324,6 @@ class PointLights(nn.Module):
             raise CalibrationError(f"intensities must be positive and finite, got {intensities.tolist()}")
         self.positions_mm = _as_parameter(positions_mm, learnable)
         self.intensities = _as_parameter(intensities.to(positions_mm.dtype), learnable)
-
-    @property
-    def count(self) -> int:
-        """Number of lights K."""
-        return int(self.positions_mm.shape[0])
 
     def _offsets(self, points: Tensor) -> tuple[Tensor, Tensor]:
         """Vectors from the points to the lights, (B, K, 3, H, W), and their lengths (B, K, 1, H, W)."""
@@ -247,6 +358,9 @@ class LEDLights(PointLights):
         >>> dirs.shape
         torch.Size([1, 3, 3, 2, 2])
     """
+
+    kind = "led"
+    _FIELDS = (("positions_mm", 2, False), ("principal_directions", 2, False), ("intensities", 1, True), ("mu", 1, True))
 
     def __init__(
         self,

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from data_synth.rig import RigConfig, render_card, rig_lights
-from psmini.calibration.lightsfile import read_lights_file
+from psmini.io import load_rig_calibration_mat, read_lights_file
 from psmini.commands._calibrate_leds import register_leds
 from psmini.errors import CalibrationError, DataFormatError, InputError, ShapeError
 from psmini.io import lights_from_dict, read_mat, write_capture
@@ -21,7 +21,6 @@ from psmini.ledcal import (
     card_shading,
     eliminate_gain,
     fit_leds,
-    load_rig_calibration_mat,
     nominal_leds,
 )
 from psmini.lights import DirectionalLights, LEDLights

@@ -1,9 +1,11 @@
+import json
 import math
 
 import pytest
 import torch
 
-from psmini import CalibrationError, DirectionalLights, LEDLights, PointLights, ShapeError, check_spans_3d, ring_lights
+from psmini import (CalibrationError, DataFormatError, DirectionalLights, InputError, LEDLights, LightModel, PointLights,
+                    ShapeError, check_spans_3d, lights_from_dict, lights_to_dict, ring_lights)
 from tests.conftest import BaseTester
 
 
@@ -109,3 +111,37 @@ class TestDirectional(BaseTester):
     def test_bad_points_raise(self):
         with pytest.raises(ShapeError, match="points"):
             DirectionalLights(ring_lights(4, 45.0))(torch.zeros(1, 2, 4, 4))
+
+
+class TestLightModel:
+    """The one light-model type: what the pipeline asks (count, is_near) and the JSON form."""
+
+    def models(self):
+        ring = ring_lights(8, 58.0, dtype=torch.float64)
+        return [
+            DirectionalLights(ring, torch.linspace(0.8, 1.2, 8, dtype=torch.float64)),
+            PointLights(ring * 18.6, torch.linspace(0.8, 1.2, 8, dtype=torch.float64)),
+            LEDLights(ring * 18.6, -ring, torch.linspace(0.8, 1.2, 8, dtype=torch.float64),
+                      torch.linspace(0.5, 2.0, 8, dtype=torch.float64)),
+        ]
+
+    def test_kinds_and_nearness(self):
+        kinds = [(m.kind, m.is_near, m.count) for m in self.models()]
+        assert kinds == [("directional", False, 8), ("point", True, 8), ("led", True, 8)]
+        assert all(isinstance(m, LightModel) for m in self.models())
+
+    def test_json_round_trip_renders_the_same(self):
+        points = torch.randn(1, 3, 4, 5, dtype=torch.float64) * 2 - torch.tensor([0, 0, 1.0]).view(1, 3, 1, 1)
+        for model in self.models():
+            back = lights_from_dict(json.loads(json.dumps(lights_to_dict(model))), dtype=torch.float64)
+            assert type(back) is type(model)
+            for got, want in zip(back(points), model(points)):
+                torch.testing.assert_close(got, want)
+
+    def test_bad_json_raises(self):
+        with pytest.raises(DataFormatError, match="must be one of"):
+            lights_from_dict({"model": "laser", "directions": [[0, 0, 1]]})
+        with pytest.raises(DataFormatError, match="lacks 'principal_directions'"):
+            lights_from_dict({"model": "led", "positions_mm": [[0, 0, 10]] * 3})
+        with pytest.raises(InputError, match="got Linear"):
+            lights_to_dict(torch.nn.Linear(2, 2))

@@ -7,15 +7,13 @@
 - :mod:`~psmini.calibration.triangulate`: LED positions from two or more placements;
 - :mod:`~psmini.calibration.mirror`: the above end to end (:func:`calibrate_sphere`, :func:`triangulate_leds`);
 - :mod:`~psmini.calibration.reference`: the flat-field (card) reference, averaged, dark-subtracted, smoothed;
-- :mod:`~psmini.calibration.lightsfile`: the lights file (``docs/lights-file.md``).
 """
 
 from __future__ import annotations
 
 from psmini.calibration.highlights import Highlights, locate_highlights
-from psmini.calibration.lightsfile import LightsFile, read_lights_file, with_lights_file, write_lights_file
 from psmini.calibration.mirror import SphereCalibration, calibrate_sphere, card_distance_from_spheres, triangulate_leds
-from psmini.calibration.reference import CardReference, card_reference, polynomial_surface, write_flatfield_capture
+from psmini.calibration.reference import CardReference, card_reference, polynomial_surface
 from psmini.calibration.sphere import (
     SphereSilhouette,
     find_sphere,
@@ -49,9 +47,4 @@ __all__ = [
     "CardReference",
     "card_reference",
     "polynomial_surface",
-    "write_flatfield_capture",
-    "LightsFile",
-    "read_lights_file",
-    "write_lights_file",
-    "with_lights_file",
 ]

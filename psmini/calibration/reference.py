@@ -21,8 +21,6 @@ frame, are not trusted: they get a reference of 0, which :func:`psmini.flatfield
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -30,7 +28,7 @@ from torch import Tensor, nn
 from psmini._checks import check_finite, check_positive, check_tensor
 from psmini.errors import InputError, ShapeError
 
-__all__ = ["CardReference", "card_reference", "polynomial_surface", "write_flatfield_capture", "SMOOTHING_METHODS"]
+__all__ = ["CardReference", "card_reference", "polynomial_surface", "SMOOTHING_METHODS"]
 
 SMOOTHING_METHODS = ("polynomial", "gaussian", "mean")
 
@@ -196,51 +194,3 @@ def card_reference(
     difference = torch.where(valid, card - smooth, torch.zeros_like(card))
     residual = (difference.square().sum(dim=(-2, -1)) / valid.sum(dim=(-2, -1))).sqrt()
     return CardReference(smooth, mean_dark, valid, repeats, residual)
-
-
-def write_flatfield_capture(
-    folder: str | Path,
-    card: CardReference,
-    lights: nn.Module,
-    *,
-    card_albedo: float,
-    pixel_pitch_mm: float,
-    metadata: dict[str, Any] | None = None,
-    overwrite: bool = False,
-) -> Path:
-    """Write a reference as a capture folder of kind ``"flatfield"`` (``docs/capture-format.md``).
-
-    The images stored are the smooth reference plus the averaged dark frame, with that dark frame beside them,
-    so that the reader's ``reference - reference_dark`` gives back the smooth reference exactly (and no other
-    dark frame is subtracted from it). Untrusted pixels store the dark level (a reference of 0); the mask holds
-    the pixels trusted under every LED. 16-bit PNGs.
-
-    Args:
-        folder: the destination folder.
-        card: the :class:`CardReference`.
-        lights: the light model the card was taken under (K lights).
-        card_albedo: the card's albedo.
-        pixel_pitch_mm: pixel size on the card, mm.
-        metadata: free-form provenance.
-        overwrite: replace an existing folder.
-
-    Returns:
-        the folder.
-
-    Raises:
-        InputError, DataFormatError: as :func:`psmini.io.write_capture`.
-
-    Example:
-        >>> write_flatfield_capture("card", card_reference(frames), lights, card_albedo=0.8,
-        ...                         pixel_pitch_mm=0.025)  # doctest: +SKIP
-    """
-    from psmini.io.capture import write_capture
-
-    dark = card.dark if card.dark is not None else torch.zeros_like(card.reference[:1])
-    images = (card.reference + dark).clamp(0, 1)
-    info = {"flatfield_reference": {"frames": card.frames, "residual": card.residual.tolist()}}
-    return write_capture(
-        folder, images, lights, pixel_pitch_mm=pixel_pitch_mm, kind="flatfield", bit_depth=16,
-        dark=dark.clamp(0, 1), mask=card.valid.all(dim=0), card_albedo=card_albedo,
-        metadata={**(metadata or {}), **info}, overwrite=overwrite,
-    )

@@ -91,7 +91,7 @@ def _load_cards(dirs: list[Path], heights: list[float] | None) -> tuple[list, li
 def run_leds(args: argparse.Namespace) -> int:
     import torch
 
-    from psmini.calibration.lightsfile import write_lights_file
+    from psmini.io.lightsfile import write_lights_file
     from psmini.ledcal import fit_leds, nominal_leds
 
     device = resolve_device(args.device)

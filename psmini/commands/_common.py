@@ -66,6 +66,6 @@ def load_sample_for(args: argparse.Namespace):
     sample = load_sample(args.folder)
     if args.lights is None:
         return sample
-    from psmini.calibration import with_lights_file
+    from psmini.io import with_lights_file
 
     return with_lights_file(sample, args.lights)

@@ -141,12 +141,8 @@ def _read_intrinsics(path: Path) -> tuple[Any, float | None]:
 def run_sphere(args: argparse.Namespace) -> int:
     import torch
 
-    from psmini.calibration import (
-        calibrate_sphere,
-        card_distance_from_spheres,
-        triangulate_leds,
-        write_lights_file,
-    )
+    from psmini.calibration import calibrate_sphere, card_distance_from_spheres, triangulate_leds
+    from psmini.io import write_lights_file
     from psmini.errors import DataFormatError, InputError
     from psmini.lights import DirectionalLights, PointLights
 
@@ -242,7 +238,8 @@ def run_sphere(args: argparse.Namespace) -> int:
 def run_flatfield(args: argparse.Namespace) -> int:
     import torch
 
-    from psmini.calibration import card_reference, read_lights_file, write_flatfield_capture
+    from psmini.calibration import card_reference
+    from psmini.io import read_lights_file, write_flatfield_capture
     from psmini.errors import DataFormatError, InputError
 
     start = time.perf_counter()

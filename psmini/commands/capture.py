@@ -91,7 +91,7 @@ def _simulated(args: argparse.Namespace) -> dict:
 
 def _hardware(args: argparse.Namespace) -> dict:
     from psmini.errors import InputError
-    from psmini.calibration import read_lights_file
+    from psmini.io import read_lights_file
     from psmini.rig import CameraSettings, CaptureSession, LEDController, RigCamera, nominal_ring_lights
 
     if args.camera is None:

@@ -26,8 +26,10 @@ from psmini.io.images import (
     rgb_to_gray,
     write_image,
 )
+from psmini.io.lightsfile import LightsFile, read_lights_file, with_lights_file, write_lights_file
 from psmini.io.load import find_samples, load_sample
 from psmini.io.matfile import read_mat
+from psmini.io.rigfiles import load_rig_calibration_mat, write_flatfield_capture
 from psmini.io.sample import Sample
 
 __all__ = [
@@ -54,6 +56,13 @@ __all__ = [
     "write_capture",
     "lights_to_dict",
     "lights_from_dict",
+    # calibration files
+    "LightsFile",
+    "read_lights_file",
+    "write_lights_file",
+    "with_lights_file",
+    "write_flatfield_capture",
+    "load_rig_calibration_mat",
     # export
     "robust_max",
     "save_albedo_png",

@@ -25,7 +25,7 @@ from torch import Tensor, nn
 from psmini.errors import DataFormatError, InputError, PsminiError
 from psmini.io._atomic import atomic_folder
 from psmini.io.images import read_gray, read_image_stack, rgb_to_gray, write_image
-from psmini.lights import DirectionalLights, LEDLights, PointLights
+from psmini.lights import LightModel, lights_from_dict, lights_to_dict
 
 __all__ = [
     "FORMAT_NAME",
@@ -33,8 +33,6 @@ __all__ = [
     "KINDS",
     "MANIFEST_NAME",
     "Capture",
-    "lights_to_dict",
-    "lights_from_dict",
     "read_manifest",
     "read_capture",
     "write_capture",
@@ -48,111 +46,6 @@ MANIFEST_NAME = "capture.json"
 KINDS = ("sample", "flatfield", "sphere", "focus")
 BIT_DEPTHS = (8, 10, 12, 16)
 _GT_SHAPES = {"normals": "(3, H, W)", "depth": "(H, W)", "albedo": "(H, W)", "mask": "(H, W)"}
-
-
-# ----------------------------------------------------------------------------------------------- lights
-
-
-def _floats(x: Tensor) -> list:
-    return x.detach().cpu().double().tolist()
-
-
-def lights_to_dict(lights: nn.Module) -> dict[str, Any]:
-    """The JSON object of a light model (``capture.json``'s ``lights``).
-
-    Args:
-        lights: a ``DirectionalLights``, ``PointLights`` or ``LEDLights`` of :mod:`psmini.lights`.
-
-    Returns:
-        ``{"model": "directional", "directions": [[x, y, z], ...], "intensities": [...]}``,
-        ``{"model": "point", "positions_mm": ..., "intensities": ...}`` or
-        ``{"model": "led", "positions_mm": ..., "principal_directions": ..., "intensities": ..., "mu": ...}``.
-
-    Raises:
-        InputError: for any other object.
-
-    Example:
-        >>> lights_to_dict(DirectionalLights(torch.eye(3)))["model"]
-        'directional'
-    """
-    if isinstance(lights, DirectionalLights):
-        return {
-            "model": "directional",
-            "directions": _floats(lights.directions),
-            "intensities": _floats(lights.intensities),
-        }
-    if isinstance(lights, LEDLights):
-        return {
-            "model": "led",
-            "positions_mm": _floats(lights.positions_mm),
-            "principal_directions": _floats(lights.principal_directions),
-            "intensities": _floats(lights.intensities),
-            "mu": _floats(lights.mu),
-        }
-    if isinstance(lights, PointLights):
-        return {
-            "model": "point",
-            "positions_mm": _floats(lights.positions_mm),
-            "intensities": _floats(lights.intensities),
-        }
-    raise InputError(
-        f"lights must be DirectionalLights, PointLights or LEDLights from psmini.lights, got {type(lights).__name__}"
-    )
-
-
-_LIGHT_KEYS = {
-    "directional": (("directions", 2), ("intensities", 1)),
-    "point": (("positions_mm", 2), ("intensities", 1)),
-    "led": (("positions_mm", 2), ("principal_directions", 2), ("intensities", 1), ("mu", 1)),
-}
-_OPTIONAL_LIGHT_KEYS = {"intensities", "mu"}
-
-
-def lights_from_dict(data: Mapping[str, Any], *, dtype: torch.dtype | None = None) -> nn.Module:
-    """The light module of a JSON light object (inverse of :func:`lights_to_dict`).
-
-    Args:
-        data: a light object as in ``docs/capture-format.md``; ``intensities`` (and ``mu`` for LEDs) may be
-            omitted (ones).
-        dtype: floating dtype of the parameters (default: torch's default dtype).
-
-    Returns:
-        ``DirectionalLights``, ``PointLights`` or ``LEDLights``.
-
-    Raises:
-        DataFormatError: an unknown model, a missing key, values that are not numbers of the right shape.
-        CalibrationError: values the light module refuses (zero directions, intensities <= 0, mu < 0).
-
-    Example:
-        >>> lights_from_dict({"model": "directional", "directions": [[0, 0, 1], [1, 0, 1], [0, 1, 1]]}).count
-        3
-    """
-    if not isinstance(data, Mapping):
-        raise DataFormatError(f"a light model must be a JSON object, got {type(data).__name__}")
-    model = data.get("model")
-    if model not in _LIGHT_KEYS:
-        raise DataFormatError(f"light model must be one of {sorted(_LIGHT_KEYS)}, got {model!r}")
-    dtype = dtype or torch.get_default_dtype()
-    values: dict[str, Tensor | None] = {}
-    for key, ndim in _LIGHT_KEYS[model]:
-        if key not in data or data[key] is None:
-            if key not in _OPTIONAL_LIGHT_KEYS:
-                raise DataFormatError(f"light model {model!r} lacks {key!r}")
-            values[key] = None
-            continue
-        try:
-            array = np.asarray(data[key], dtype=np.float64)
-        except (TypeError, ValueError) as error:
-            raise DataFormatError(f"light model {model!r}: {key!r} must hold numbers ({error})") from error
-        if array.ndim != ndim or (ndim == 2 and array.shape[1] != 3):
-            expected = "a list of [x, y, z] triples" if ndim == 2 else "a list of numbers"
-            raise DataFormatError(f"light model {model!r}: {key!r} must be {expected}, got shape {array.shape}")
-        values[key] = torch.as_tensor(array, dtype=dtype)
-    if model == "directional":
-        return DirectionalLights(values["directions"], values["intensities"])
-    if model == "point":
-        return PointLights(values["positions_mm"], values["intensities"])
-    return LEDLights(values["positions_mm"], values["principal_directions"], values["intensities"], values["mu"])
 
 
 # ------------------------------------------------------------------------------------------------ reading
@@ -186,7 +79,7 @@ class Capture:
     path: Path
     kind: str
     images: Tensor
-    lights: nn.Module | None
+    lights: LightModel | None
     bit_depth: int
     pixel_pitch_mm: float
     dark: Tensor | None = None

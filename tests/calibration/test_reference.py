@@ -2,7 +2,8 @@ import pytest
 import torch
 
 from data_synth.rig import RigConfig, render_card
-from psmini.calibration import card_reference, polynomial_surface, write_flatfield_capture
+from psmini.calibration import card_reference, polynomial_surface
+from psmini.io import write_flatfield_capture
 from psmini.errors import InputError, ShapeError
 from psmini.io import read_capture
 from psmini.lights import DirectionalLights, ring_lights
