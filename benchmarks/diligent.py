@@ -13,11 +13,11 @@ import sys
 import time
 from pathlib import Path
 
-import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks._ledger import SHARED_DATA, append_results, table  # noqa: E402
+from psmini.config import ReconstructionConfig  # noqa: E402
 from psmini.evaluation import evaluate_sample  # noqa: E402
 from psmini.io import load_sample  # noqa: E402
 
@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         start = time.perf_counter()
         sample = load_sample(folder)
         loaded = time.perf_counter()
-        scores = evaluate_sample(sample, device=torch.device(args.device))
+        scores = evaluate_sample(sample, ReconstructionConfig(device=args.device))
         solved = time.perf_counter()
         published = PUBLISHED_LEAST_SQUARES.get(folder.name)
         rows.append([

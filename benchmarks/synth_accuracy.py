@@ -33,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._ledger import append_results, best_time, table  # noqa: E402
 from data_synth import CARD_ALBEDO, FABRICS, make_fabric  # noqa: E402
 from data_synth.rig import RigConfig, distant_lights, render_capture, render_card, rig_lights  # noqa: E402
+from psmini.config import ReconstructionConfig  # noqa: E402
 from psmini.metrics import angular_error_deg, depth_error  # noqa: E402
 from psmini.pipeline import PhotometricStereo, distant_light_matrix  # noqa: E402
 
@@ -80,11 +81,11 @@ def measure(name: str, size: int, seed: int) -> dict[str, float]:
     # 3. the rig: near LEDs, flat-fielded by the card, cloth on the card and 1 mm above it
     leds = rig_lights(rig)
     card = render_card(rig, CARD_ALBEDO, seed + 1)
-    near = PhotometricStereo(leds, pixel_pitch_mm=rig.pixel_pitch_mm, saturation_level=1.0, solver="distant")
+    near = PhotometricStereo(leds, rig.pixel_pitch_mm, ReconstructionConfig(solver="distant", integrator="fc"))
     capture = render_capture(fabric, rig, seed)
     def solve():
         return near(capture.images[None], reference=card.images[None], dark=capture.dark[None],
-                    reference_dark=card.dark[None], card_albedo=CARD_ALBEDO)
+                    reference_dark=card.dark[None], card_albedo=CARD_ALBEDO, saturation_level=1.0)
 
     result = solve()
     row["psmini s"] = best_time(solve, repeat=3)

@@ -41,7 +41,8 @@ from psmini.nonlambertian import (BlinnPhongFit, NonLambertianNormals, blinn_pho
                                   nonlambertian_normals)
 from psmini.robust import (RECOMMENDED_ROBUST_METHOD, ROBUST_METHODS, RobustNormals, rank_trim_weights,
                            robust_normals, threshold_weights)
-from psmini.pipeline import PhotometricStereo, Reconstruction, distant_light_matrix, reconstruct
+from psmini.config import ReconstructionConfig
+from psmini.pipeline import NORMAL_ESTIMATORS, PhotometricStereo, Reconstruction, distant_light_matrix, reconstruct
 # psmini.render is the function once the package is imported; reach the module by `from psmini.render import ...`
 from psmini.render import Renderer, cast_shadows, normals_from_height, render, render_lambertian
 from psmini.calibration import calibrate_sphere, card_reference, triangulate_leds
@@ -105,6 +106,8 @@ __all__ = [
     "refine_depth",
     "NearLightResult",
     # pipeline
+    "ReconstructionConfig",
+    "NORMAL_ESTIMATORS",
     "PhotometricStereo",
     "Reconstruction",
     "distant_light_matrix",

@@ -43,7 +43,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
 from psmini.errors import DataFormatError, InputError, PsminiError
-from psmini.pipeline import NORMAL_METHODS
+from psmini.config import ReconstructionConfig
 from psmini.result import Reconstruction
 
 __all__ = [
@@ -120,16 +120,19 @@ def parse_outputs(outputs: str | Sequence[str] | None) -> tuple[str, ...]:
 
 @dataclass(frozen=True)
 class _Settings:
-    """What every chunk needs to know; plain picklable values, sent to worker processes and Dask workers."""
+    """What every chunk needs to know; picklable, sent to worker processes and Dask workers."""
 
-    device: str
-    dtype: torch.dtype
-    integrator: str | None
-    light_model: str
-    method: str
-    min_reference: float
+    config: ReconstructionConfig
     kinds: tuple[str, ...] = OUTPUT_KINDS
     score: bool = True
+
+    @property
+    def device(self) -> str:
+        return self.config.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.config.torch_dtype
 
 
 # ------------------------------------------------------------------------------------------------ decoding
@@ -287,11 +290,9 @@ def _solve_group(group: list[_Decoded], cards: _Cards, device: torch.device, set
     dark = None if first.dark is None else _stack([item.sample.dark for item in group], device, dtype)
     mask = None if first.mask is None else _stack([item.sample.mask.bool() for item in group], device, None)
     lights = first.lights.to(device=device, dtype=dtype)
-    model = PhotometricStereo(lights, integrator=settings.integrator, pixel_pitch_mm=first.pixel_pitch_mm,
-                              min_reference=settings.min_reference, saturation_level=first.saturation_level,
-                              solver=settings.light_model, method=settings.method)
+    model = PhotometricStereo(lights, first.pixel_pitch_mm, settings.config)
     with torch.no_grad():
-        result = model(images, reference, dark, reference_dark, mask, first.card_albedo or 1.0)
+        result = model(images, reference, dark, reference_dark, mask, first.card_albedo or 1.0, first.saturation_level)
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     share = (time.perf_counter() - start) / len(group)
@@ -436,8 +437,8 @@ def _dask_chunks(root: Path, out: Path, folders: Sequence[Path], settings: _Sett
 # ------------------------------------------------------------------------------------------------ arguments
 
 
-def _check_arguments(root: str | Path, batch_size: int, workers: int, light_model: str, method: str,
-                     device: torch.device | str, local_device: bool = True) -> tuple[Path, torch.device]:
+def _check_arguments(root: str | Path, batch_size: int, workers: int, config: ReconstructionConfig,
+                     local_device: bool = True) -> tuple[Path, torch.device]:
     root = Path(root)
     if not root.is_dir():
         raise InputError(f"ROOT {root} does not exist or is not a folder")
@@ -445,11 +446,9 @@ def _check_arguments(root: str | Path, batch_size: int, workers: int, light_mode
         raise InputError(f"batch_size must be a positive integer, got {batch_size!r}")
     if not isinstance(workers, int) or workers < 0:
         raise InputError(f"workers must be an integer >= 0, got {workers!r}")
-    if light_model not in ("distant", "near"):
-        raise InputError(f"light_model must be 'distant' or 'near', got {light_model!r}")
-    if method not in NORMAL_METHODS:
-        raise InputError(f"method must be one of {', '.join(NORMAL_METHODS)}, got {method!r}")
-    device = torch.device(device)
+    if not isinstance(config, ReconstructionConfig):
+        raise InputError(f"config must be a psmini ReconstructionConfig, got {type(config).__name__}")
+    device = torch.device(config.device)
     if local_device and device.type == "cuda" and not torch.cuda.is_available():
         raise InputError("device cuda was asked for, but torch sees no CUDA device on this machine")
     return root, device
@@ -466,15 +465,10 @@ def _samples_under(root: Path) -> list[Path]:
 
 def iter_reconstructions(
     root: str | Path,
+    config: ReconstructionConfig | None = None,
     *,
-    device: torch.device | str = "cpu",
-    dtype: torch.dtype = torch.float32,
     batch_size: int = 8,
     workers: int = 0,
-    integrator: str | None = None,
-    light_model: str = "distant",
-    method: str = "lstsq",
-    min_reference: float = 0.02,
 ) -> Iterator[tuple[str, Reconstruction]]:
     """Reconstruct every sample under ``root`` in batches and yield them one by one (for notebooks).
 
@@ -483,15 +477,10 @@ def iter_reconstructions(
 
     Args:
         root: a folder holding capture folders and DiLiGenT folders at any depth (or one of them).
-        device: where to compute.
-        dtype: floating dtype of the computation.
+        config: the :class:`~psmini.config.ReconstructionConfig` of every sample (default: the default one;
+            its ``device`` and ``dtype`` say where and how to compute).
         batch_size: samples decoded per loader batch; those sharing a size, lights and card are solved together.
         workers: decoding processes (0: decode in this process).
-        integrator: see :func:`psmini.pipeline.reconstruct`.
-        light_model: ``"distant"`` or ``"near"``, see :func:`psmini.pipeline.reconstruct`.
-        method: normal estimator of the distant solver (``"lstsq"``, ``"robust"``, ...; see
-            :data:`psmini.pipeline.NORMAL_METHODS`).
-        min_reference: see :func:`psmini.flatfield.flatfield`.
 
     Yields:
         ``(sample, reconstruction)``: the sample folder relative to ``root`` and a batch-1
@@ -499,16 +488,17 @@ def iter_reconstructions(
         within each loader batch.
 
     Raises:
-        InputError: ``root`` missing, no samples under it, bad ``batch_size``, ``workers`` or ``light_model``,
+        InputError: ``root`` missing, no samples under it, bad ``batch_size``, ``workers`` or ``config``,
             CUDA asked for and absent.
 
     Example:
         >>> for name, result in iter_reconstructions("captures", batch_size=16):  # doctest: +SKIP
         ...     print(name, result.depth.std())
     """
-    root, device = _check_arguments(root, batch_size, workers, light_model, method, device)
+    config = ReconstructionConfig() if config is None else config
+    root, _ = _check_arguments(root, batch_size, workers, config)
     folders = _samples_under(root)
-    settings = _Settings(str(device), dtype, integrator, light_model, method, min_reference)
+    settings = _Settings(config)
     for solved in _solved_stream(root, folders, settings, batch_size, workers):
         if solved.result is None:
             logger.warning("sample %s failed: %s", solved.item.rel, solved.error)
@@ -519,8 +509,8 @@ def iter_reconstructions(
 # ------------------------------------------------------------------------------------------------ writing
 
 
-def _write(out_dir: Path, result: Reconstruction, sample, outputs: tuple[str, ...], record: dict[str, Any]) -> None:
-    """Write the chosen outputs of one sample atomically; ``outputs.json`` carries its summary row."""
+def _write(out_dir: Path, result: Reconstruction, sample, outputs: tuple[str, ...], metadata: dict[str, Any]) -> None:
+    """Write the chosen outputs of one sample atomically; ``outputs.json`` carries its summary row and config."""
     from psmini.geometry import depth_to_points
     from psmini.io import save_albedo_png, save_depth, save_normal_png, save_ply, write_outputs
     from psmini.io._atomic import atomic_folder
@@ -528,7 +518,7 @@ def _write(out_dir: Path, result: Reconstruction, sample, outputs: tuple[str, ..
     _remove_stale_temporaries(out_dir)
     pitch = sample.pixel_pitch_mm
     if outputs == OUTPUT_KINDS:
-        write_outputs(out_dir, result.to("cpu"), pixel_pitch_mm=pitch, metadata={"batch": record}, overwrite=True)
+        write_outputs(out_dir, result.to("cpu"), pixel_pitch_mm=pitch, metadata=metadata, overwrite=True)
         return
     albedo, normals = result.albedo.detach().cpu(), result.normals.detach().cpu()
     depth, mask = result.depth.detach().cpu(), result.mask.detach().cpu()
@@ -548,7 +538,7 @@ def _write(out_dir: Path, result: Reconstruction, sample, outputs: tuple[str, ..
             save_ply(target / "points.ply", points, albedo, mask)
             names.append("points.ply")
         summary = {"files": names, "size": list(depth.shape[-1:-3:-1]), "pixel_pitch_mm": pitch,
-                   "metadata": {"batch": record}}
+                   "metadata": metadata}
         (target / _MARKER).write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n", encoding="utf-8")
 
 
@@ -597,16 +587,11 @@ def _write_summary(out: Path, records: list[BatchRecord], settings: dict[str, An
 def reconstruct_dataset(
     root: str | Path,
     out: str | Path,
+    config: ReconstructionConfig | None = None,
     *,
-    device: torch.device | str = "cpu",
-    dtype: torch.dtype = torch.float32,
     batch_size: int = 8,
     workers: int = 0,
-    integrator: str | None = None,
-    light_model: str = "distant",
-    method: str = "lstsq",
     outputs: str | Sequence[str] | None = None,
-    min_reference: float = 0.02,
     score: bool = True,
     progress: Callable[[BatchRecord], None] | None = None,
     scheduler: str | None = None,
@@ -632,8 +617,8 @@ def reconstruct_dataset(
         root: a folder holding capture folders and DiLiGenT folders at any depth (or one of them). With Dask,
             ``root`` and ``out`` must be the same paths on every worker (a shared file system).
         out: the output folder (created).
-        device, dtype, batch_size, integrator, light_model, method, min_reference: see
-            :func:`iter_reconstructions`. On CPU, small batches (about 4) are fastest per sample.
+        config, batch_size: see :func:`iter_reconstructions`; the resolved configuration of each sample is
+            written into its ``outputs.json``. On CPU, small batches (about 4) are fastest per sample.
         workers: local worker processes (0: everything in this process); not used with Dask.
         outputs: which of :data:`OUTPUT_KINDS` to write (a list or ``"normals,albedo,depth,ply"``); None: all.
         score: measure the errors against ground truth of the samples that have it (costs about as much as
@@ -650,7 +635,7 @@ def reconstruct_dataset(
 
     Raises:
         InputError: ``root`` missing, no samples under it, bad ``outputs``, ``batch_size``, ``workers`` or
-            ``light_model``, CUDA asked for and absent (here; on Dask workers the samples fail instead), both
+            ``config``, CUDA asked for and absent (here; on Dask workers the samples fail instead), both
             ``scheduler`` and ``client``, a bad ``local:N``, a scheduler that cannot be reached or has no worker,
             dask.distributed not installed.
         DataFormatError: ``out`` cannot be written.
@@ -665,7 +650,8 @@ def reconstruct_dataset(
     dask = scheduler is not None or client is not None
     if scheduler is not None and client is not None:
         raise InputError("give a Dask scheduler address or a client, not both")
-    root, device = _check_arguments(root, batch_size, workers, light_model, method, device, local_device=not dask)
+    config = ReconstructionConfig() if config is None else config
+    root, device = _check_arguments(root, batch_size, workers, config, local_device=not dask)
     if scheduler is not None:
         from psmini._dask import parse_scheduler
 
@@ -683,7 +669,7 @@ def reconstruct_dataset(
         else:
             todo.append(folder)
     logger.info("%d samples under %s: %d finished earlier, %d to do", len(folders), root, len(records), len(todo))
-    settings = _Settings(str(device), dtype, integrator, light_model, method, min_reference, kinds, score)
+    settings = _Settings(config, kinds, score)
     if not todo:
         stream: Iterator[BatchRecord] = iter(())
     elif dask:
@@ -696,9 +682,8 @@ def reconstruct_dataset(
         records[record.sample] = record
         if progress is not None:
             progress(record)
-    settings_row = {"root": str(root), "out": str(out), "device": str(device),
-                    "dtype": str(dtype).replace("torch.", ""), "batch_size": batch_size, "workers": workers,
-                    "light_model": light_model, "integrator": integrator, "outputs": list(kinds), "score": score,
+    settings_row = {"root": str(root), "out": str(out), "config": config.to_dict(), "batch_size": batch_size,
+                    "workers": workers, "outputs": list(kinds), "score": score,
                     "scheduler": _scheduler_name(scheduler, client)}
     return _write_summary(out, [records[_relative(root, f)] for f in folders], settings_row)
 
@@ -723,7 +708,9 @@ def _finish(out: Path, solved: _Solved, settings: _Settings) -> BatchRecord:
         record.scores = _scores(solved.result, item.sample) if settings.score else {}
         record.status, record.error = "done", ""
         record.time_s = item.decode_s + solved.compute_s
-        _write(out / item.rel, solved.result, item.sample, settings.kinds, record.row())
+        resolved = settings.config.resolved(item.sample.lights, item.sample.mask is not None)
+        _write(out / item.rel, solved.result, item.sample, settings.kinds,
+               {"batch": record.row(), "config": resolved.to_dict()})
     except PsminiError as error:
         record.status, record.error = "failed", f"{type(error).__name__}: {error}"
         logger.warning("sample %s failed: %s", item.rel, record.error)

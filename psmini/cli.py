@@ -1,14 +1,17 @@
 """The ``psmini`` command.
 
-Each sub-command lives in its own module of :mod:`psmini.commands` with two functions, ``register(subparsers)``
-and ``run(args) -> int``; this module discovers them, parses the command line and turns every
-:class:`~psmini.errors.PsminiError` into a one-line message on stderr and exit status 1.
+Each sub-command lives in its own module with two functions, ``register(subparsers)`` and ``run(args) -> int``:
+the modules of :mod:`psmini.commands`, and modules that other installed packages name in the ``psmini.commands``
+entry-point group (data_synth plugs in ``demo`` and ``synth`` this way, so psmini itself never imports its test
+bed). This module discovers them, parses the command line and turns every :class:`~psmini.errors.PsminiError`
+into a one-line message on stderr and exit status 1.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.metadata
 import logging
 import pkgutil
 import sys
@@ -28,9 +31,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"psmini {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details on stderr")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
-        if not info.name.startswith("_"):
-            importlib.import_module(f"{commands.__name__}.{info.name}").register(subparsers)
+    modules = {info.name: f"{commands.__name__}.{info.name}" for info in pkgutil.iter_modules(commands.__path__)
+               if not info.name.startswith("_")}
+    modules.update({entry.name: entry.value for entry in importlib.metadata.entry_points(group="psmini.commands")})
+    for name in sorted(modules):
+        importlib.import_module(modules[name]).register(subparsers)
     return parser
 
 

@@ -1,28 +1,59 @@
-"""Scoring a reconstruction of a loaded sample against its ground truth (used by ``psmini evaluate`` and benchmarks)."""
+"""Scoring a reconstruction of a loaded sample against its ground truth: the one rule of every entry point.
+
+``psmini evaluate``, ``psmini demo``, ``psmini batch``, the notebooks and the benchmarks all score through
+:func:`score_reconstruction`, so the same folder gives the same number everywhere.
+"""
 
 from __future__ import annotations
 
 import torch
 
+from torch import Tensor
+
+from psmini.config import ReconstructionConfig
 from psmini.metrics import depth_error, mean_angular_error, median_angular_error
 from psmini.pipeline import Reconstruction, reconstruct
 
-__all__ = ["evaluate_sample", "score_reconstruction"]
+__all__ = ["evaluate_sample", "score_reconstruction", "evaluation_mask"]
+
+
+def evaluation_mask(sample, device: torch.device | str = "cpu") -> Tensor:
+    """The pixels every score counts: where the ground truth is valid, :math:`(1, 1, H, W)` bool.
+
+    That is where the ground-truth normals are finite, within the ground truth's own mask (``gt_mask``: the cloth
+    of a synthetic capture, without the gaps between yarns) and the sample's mask (DiLiGenT's object outline).
+
+    Example:
+        >>> from psmini.io import Sample
+        >>> from psmini.lights import DirectionalLights, ring_lights
+        >>> normals = torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).repeat(1, 4, 4)
+        >>> normals[:, 0, 0] = float("nan")
+        >>> sample = Sample("s", torch.rand(8, 4, 4), DirectionalLights(ring_lights(8, 45.0)), normals_gt=normals)
+        >>> int(evaluation_mask(sample).sum())
+        15
+    """
+    mask = torch.isfinite(sample.normals_gt.to(device)).all(dim=0, keepdim=True)
+    for extra in (sample.gt_mask, sample.mask):
+        if extra is not None:
+            mask = mask & extra.to(device).bool()
+    return mask.unsqueeze(0)
 
 
 def score_reconstruction(result: Reconstruction, sample) -> dict[str, float | int | str]:
-    """Angular and depth errors of ``result`` against ``sample``'s ground truth, over its mask.
+    """Angular and depth errors of ``result`` against ``sample``'s ground truth: the one scoring rule.
 
-    The evaluation mask is the sample's mask (all pixels when it has none) intersected with the ground truth's
-    own validity; pixels the solver left out still count (with the default normal), as in the DiLiGenT protocol.
+    Every pixel of :func:`evaluation_mask` counts, solved or not: a pixel the solver left out (fewer than three
+    usable lights) counts with its default normal (0, 0, 1), as in the DiLiGenT protocol, and how many there were
+    is reported beside the error (``unsolved_pixels``, ``unsolved_share``) rather than hidden by leaving them out.
 
     Args:
         result: a batch-1 :class:`~psmini.pipeline.Reconstruction`.
         sample: the :class:`psmini.io.Sample` it was reconstructed from, with ``normals_gt``.
 
     Returns:
-        dict with ``name``, ``pixels``, ``mean_angular_error_deg``, ``median_angular_error_deg`` and, when the
-        sample has ground-truth depth, ``depth_rmse_mm`` and ``depth_mae_mm`` (after removing the mean offset).
+        dict with ``name``, ``pixels`` (scored), ``unsolved_pixels`` and ``unsolved_share`` (of the scored ones),
+        ``mean_angular_error_deg``, ``median_angular_error_deg`` and, when the sample has ground-truth depth,
+        ``depth_rmse_mm`` and ``depth_mae_mm`` (after removing the mean offset).
 
     Example:
         >>> from psmini.io import Sample
@@ -35,14 +66,15 @@ def score_reconstruction(result: Reconstruction, sample) -> dict[str, float | in
         0.0
     """
     device, dtype = result.normals.device, result.normals.dtype
-    normals_gt = sample.normals_gt.to(device=device, dtype=dtype).unsqueeze(0)
-    mask = torch.isfinite(normals_gt).all(dim=1, keepdim=True)
-    if sample.mask is not None:
-        mask = mask & sample.mask.to(device).unsqueeze(0).bool()
-    normals_gt = torch.nan_to_num(normals_gt)
+    mask = evaluation_mask(sample, device)
+    normals_gt = torch.nan_to_num(sample.normals_gt.to(device=device, dtype=dtype).unsqueeze(0))
+    pixels = int(mask.sum())
+    unsolved = int((mask & ~result.mask.bool()).sum())
     scores: dict[str, float | int | str] = {
         "name": sample.name,
-        "pixels": int(mask.sum()),
+        "pixels": pixels,
+        "unsolved_pixels": unsolved,
+        "unsolved_share": unsolved / max(pixels, 1),
         "mean_angular_error_deg": float(mean_angular_error(result.normals, normals_gt, mask)[0]),
         "median_angular_error_deg": float(median_angular_error(result.normals, normals_gt, mask)[0]),
     }
@@ -53,16 +85,10 @@ def score_reconstruction(result: Reconstruction, sample) -> dict[str, float | in
     return scores
 
 
-def evaluate_sample(
-    sample,
-    *,
-    device: torch.device | str = "cpu",
-    integrator: str | None = None,
-    light_model: str = "distant",
-    method: str = "lstsq",
-) -> dict[str, float | int | str]:
-    """Reconstruct ``sample`` (:func:`psmini.pipeline.reconstruct`, with its ``method``) and score it; see
-    :func:`score_reconstruction`.
+def evaluate_sample(sample, config: ReconstructionConfig | None = None) -> dict[str, float | int | str]:
+    """Reconstruct ``sample`` with ``config`` (:func:`psmini.pipeline.reconstruct`) and score it
+    (:func:`score_reconstruction`); the result also says which solver, estimator and integrator ran (``config``:
+    the resolved :meth:`~psmini.config.ReconstructionConfig.to_dict`).
 
     Example:
         >>> from psmini.io import Sample
@@ -74,5 +100,7 @@ def evaluate_sample(
         >>> evaluate_sample(sample)["pixels"]
         64
     """
-    result = reconstruct(sample, device=device, integrator=integrator, light_model=light_model, method=method)
-    return score_reconstruction(result, sample)
+    config = ReconstructionConfig() if config is None else config
+    scores = score_reconstruction(reconstruct(sample, config), sample)
+    scores["config"] = config.resolved(sample.lights, sample.mask is not None).to_dict()
+    return scores

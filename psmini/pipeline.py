@@ -1,9 +1,10 @@
-"""The classical pipeline in one differentiable module: flat-field → least-squares normals → gradients → depth.
+"""The one reconstruction pipeline: flat-field once → a normal solver → integration, driven by one configuration.
 
-This is the seed paper's method (Woodham's least squares with flat-fielding by a matte card, Frankot–Chellappa
-integration) on batched tensors. Light models that are not distant (points, LEDs) are used here through their
-distant approximation at the field centre, which is what a mirror sphere at the centre would measure; the
-near-light solver lives beside it.
+The solver stage is chosen by :class:`~psmini.config.ReconstructionConfig` and the light model: distant lights
+(the seed paper's method: Woodham's least squares, or a robust or non-Lambertian estimator from
+:data:`NORMAL_ESTIMATORS`, with the lights seen from the field centre) or near light (per-pixel LED vectors at the
+current depth, :mod:`psmini.nearlight`, alternating with integration until the depth settles). Everything is
+batched, differentiable and device-agnostic.
 """
 
 from __future__ import annotations
@@ -11,22 +12,36 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from psmini._checks import check_mask, check_shape, check_tensor
+from psmini._checks import check_mask, check_positive, check_shape, check_tensor
+from psmini.config import ReconstructionConfig
 from psmini.errors import InputError
 from psmini.flatfield import flatfield
 from psmini.integrate import integrate
-from psmini.lights import DirectionalLights, check_spans_3d
+from psmini.lights import DirectionalLights, LightModel, check_spans_3d
 from psmini.nearlight import near_light_photometric_stereo
 from psmini.nonlambertian import nonlambertian_normals
 from psmini.normals import albedo_normals, normals_to_gradients
 from psmini.robust import ROBUST_METHODS, robust_normals
 from psmini.result import Reconstruction
 
-__all__ = ["NORMAL_METHODS", "Reconstruction", "PhotometricStereo", "distant_light_matrix", "reconstruct"]
+__all__ = ["NORMAL_ESTIMATORS", "Reconstruction", "PhotometricStereo", "distant_light_matrix", "reconstruct"]
 
-# Normal estimators of the distant-light solver: least squares, those of :mod:`psmini.robust`, and the
-# Lambertian + specular lobe fit of :mod:`psmini.nonlambertian`.
-NORMAL_METHODS = ("lstsq", "robust") + ROBUST_METHODS + ("nonlambertian",)
+
+def _robust(method: str):
+    return lambda images, matrix, mask, weights, options: robust_normals(images, matrix, method, mask, weights,
+                                                                         **options)
+
+
+#: The registry of distant-light normal estimators: name → ``f(images, light_matrix, mask, weights, options)``
+#: returning ``(albedo, normals)``. Least squares (:func:`~psmini.normals.albedo_normals`), the robust estimators of
+#: :mod:`psmini.robust` (``robust``: the recommended one) and the Lambertian + specular lobe fit of
+#: :mod:`psmini.nonlambertian`.
+NORMAL_ESTIMATORS = {
+    "lstsq": lambda images, matrix, mask, weights, options: albedo_normals(images, matrix, mask, weights),
+    **{name: _robust(name) for name in ("robust",) + ROBUST_METHODS},
+    "nonlambertian": lambda images, matrix, mask, weights, options: nonlambertian_normals(images, matrix, mask,
+                                                                                          weights),
+}
 
 
 def distant_light_matrix(lights: nn.Module, flatfielded: bool, reference: Tensor) -> Tensor:
@@ -61,48 +76,36 @@ def distant_light_matrix(lights: nn.Module, flatfielded: bool, reference: Tensor
     return directions / facing
 
 
-def _as_light_model(lights: nn.Module | Tensor) -> nn.Module:
+def _as_light_model(lights: LightModel | Tensor) -> LightModel:
     if isinstance(lights, Tensor):
         check_spans_3d(lights)
         norms = lights.norm(dim=-1)
         return DirectionalLights(lights, norms)
-    if not isinstance(lights, nn.Module):
+    if not isinstance(lights, LightModel):
         raise InputError(f"lights must be a psmini light model or a (K, 3) tensor, got {type(lights).__name__}")
     return lights
 
 
-_SOLVERS = ("auto", "distant", "near")
-
-
 class PhotometricStereo(nn.Module):
-    """Flat-field, normals and depth in one differentiable module, for distant lights or near LEDs.
+    """Flat-field once, a normal solver, integration: the one reconstruction pipeline, as a module.
 
-    With ``solver="distant"`` the lights are used as seen from the field centre (:func:`distant_light_matrix`):
-    flat-field, least squares, integration, the classical pipeline. With ``solver="near"`` the point or LED model is
-    evaluated on the surface itself (:func:`psmini.nearlight.near_light_photometric_stereo`). ``"auto"`` picks
-    ``"near"`` for models with positions (:class:`~psmini.lights.PointLights`, :class:`~psmini.lights.LEDLights`)
-    and ``"distant"`` otherwise.
+    ``config`` chooses the solver (:meth:`~psmini.config.ReconstructionConfig.solver_for`: near light for point
+    and LED models, the classical distant-light pipeline for directions, unless forced), the estimator of the
+    distant solver (:data:`NORMAL_ESTIMATORS`) and the integrator. The distant solver uses the light model as seen
+    from the field centre (:func:`distant_light_matrix`); the near solver evaluates it on the surface itself
+    (:func:`psmini.nearlight.near_light_photometric_stereo`).
 
     Args:
-        lights: a light model of :mod:`psmini.lights`, or a :math:`(K, 3)` tensor of directions scaled by
+        lights: a :class:`~psmini.lights.LightModel`, or a :math:`(K, 3)` tensor of directions scaled by
             intensity.
-        integrator: integration method of :func:`psmini.integrate.integrate`; ``None``: ``"fc"``
-            (Frankot–Chellappa) for distant lights, ``"masked"`` for near ones.
-        pixel_pitch_mm: size of one pixel on the cloth, mm; ``None`` integrates in pixel units (distant only).
-        min_reference: see :func:`psmini.flatfield.flatfield`.
-        saturation_level: raw level at which an observation counts as saturated and is dropped; ``None`` keeps all.
-        solver: ``"auto"``, ``"distant"`` or ``"near"``.
-        method: normal estimator of the distant solver, one of :data:`NORMAL_METHODS`: ``"lstsq"`` (least squares,
-            :func:`psmini.normals.albedo_normals`) or a robust one of :func:`psmini.robust.robust_normals`
-            (``"robust"``: the recommended one), or ``"nonlambertian"``
-            (:func:`psmini.nonlambertian.nonlambertian_normals`, a Lambertian + Blinn–Phong fit started from the
-            robust one). The near solver takes ``"lstsq"`` only.
-        **near_options: passed to :func:`~psmini.nearlight.near_light_photometric_stereo` (e.g. ``card_height_mm``,
-            ``estimate_offset``, ``max_iterations``).
+        pixel_pitch_mm: size of one pixel on the cloth, mm; ``None`` integrates in pixel units (distant lights
+            only). There is no default: a made-up pitch would silently scale every depth.
+        config: the :class:`~psmini.config.ReconstructionConfig` (its ``device`` and ``dtype`` are for the
+            entry points that load data; this module computes where its inputs are).
 
     Raises:
-        InputError: for an unknown solver or method, ``"near"`` without light positions or pixel pitch, or
-            ``"near"`` with a method other than ``"lstsq"``.
+        InputError: a configuration that does not fit the lights (near light without positions), near light
+            without a pixel pitch.
 
     Example:
         >>> from psmini.lights import LEDLights, ring_lights
@@ -110,40 +113,24 @@ class PhotometricStereo(nn.Module):
         >>> ps(torch.rand(2, 8, 32, 32)).depth.shape
         torch.Size([2, 1, 32, 32])
         >>> ring = ring_lights(8, 58.0)
-        >>> PhotometricStereo(LEDLights(ring * 18.6, -ring)).solver                 # LEDs: near light
+        >>> PhotometricStereo(LEDLights(ring * 18.6, -ring), pixel_pitch_mm=0.025).solver   # LEDs: near light
         'near'
     """
 
     def __init__(
-        self,
-        lights: nn.Module | Tensor,
-        integrator: str | None = None,
-        pixel_pitch_mm: float | None = 0.025,
-        min_reference: float = 0.02,
-        saturation_level: float | None = None,
-        solver: str = "auto",
-        method: str = "lstsq",
-        **near_options,
+        self, lights: LightModel | Tensor, pixel_pitch_mm: float | None, config: ReconstructionConfig | None = None
     ) -> None:
         super().__init__()
-        if solver not in _SOLVERS:
-            raise InputError(f"solver must be one of {', '.join(_SOLVERS)}, got {solver!r}")
+        self.config = ReconstructionConfig() if config is None else config
+        if not isinstance(self.config, ReconstructionConfig):
+            raise InputError(f"config must be a ReconstructionConfig, got {type(self.config).__name__}")
         self.lights = _as_light_model(lights)
-        has_positions = hasattr(self.lights, "positions_mm")
-        self.solver = ("near" if has_positions else "distant") if solver == "auto" else solver
-        if self.solver == "near" and (not has_positions or pixel_pitch_mm is None):
-            raise InputError(
-                f"the near-light solver needs a point or LED model and a pixel pitch; got {type(self.lights).__name__} "
-                f"and pixel_pitch_mm={pixel_pitch_mm}"
-            )
-        if method not in NORMAL_METHODS:
-            raise InputError(f"method must be one of {', '.join(NORMAL_METHODS)}, got {method!r}")
-        if self.solver == "near" and method != "lstsq":
-            raise InputError(f"method {method!r} is for distant lights; the near-light solver has its own estimator")
-        self.method = method
-        self.integrator = integrator or ("masked" if self.solver == "near" else "fc")
-        self.pixel_pitch_mm, self.min_reference, self.saturation_level = pixel_pitch_mm, min_reference, saturation_level
-        self.near_options = near_options
+        self.solver = self.config.solver_for(self.lights)
+        if pixel_pitch_mm is not None:
+            check_positive(pixel_pitch_mm, "pixel_pitch_mm")
+        elif self.solver == "near":
+            raise InputError("the near-light solver needs the pixel pitch (mm per pixel on the cloth); got None")
+        self.pixel_pitch_mm = pixel_pitch_mm
 
     def forward(
         self,
@@ -153,63 +140,52 @@ class PhotometricStereo(nn.Module):
         reference_dark: Tensor | None = None,
         mask: Tensor | None = None,
         card_albedo: float = 1.0,
+        saturation_level: float | None = None,
     ) -> Reconstruction:
-        """Reconstruct ``images`` :math:`(B, K, H, W)`; see :func:`psmini.flatfield.flatfield` for the rest."""
+        """Reconstruct ``images`` :math:`(B, K, H, W)`; see :func:`psmini.flatfield.flatfield` for the rest.
+
+        ``saturation_level``: raw level at which an observation counts as saturated and is dropped (``None``
+        keeps all). Returns a :class:`Reconstruction` whose depth is in mm, or pixel units without a pitch.
+        """
+        config = self.config
+        integrator = config.integrator_for(self.solver, mask is not None)
         if self.solver == "near":
             return near_light_photometric_stereo(
                 images, self.lights, self.pixel_pitch_mm, reference=reference, dark=dark,
                 reference_dark=reference_dark, card_albedo=card_albedo, mask=mask,
-                saturation_level=self.saturation_level, min_reference=self.min_reference,
-                integrator=self.integrator, **self.near_options,
+                saturation_level=saturation_level, min_reference=config.min_reference,
+                integrator=integrator, **config.near,
             )
         sizes = check_shape(images, ["B", "K", "H", "W"], "images")
         mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
-        flat = flatfield(
-            images, reference, dark, reference_dark, card_albedo, self.min_reference, self.saturation_level
-        )
+        flat = flatfield(images, reference, dark, reference_dark, card_albedo, config.min_reference, saturation_level)
         matrix = distant_light_matrix(self.lights, reference is not None, images)
         weights = None if bool(flat.valid.all()) else flat.valid
-        if self.method == "lstsq":
-            albedo, normals = albedo_normals(flat.images, matrix, mask, weights)
-        elif self.method == "nonlambertian":
-            albedo, normals = nonlambertian_normals(flat.images, matrix, mask, weights)
-        else:
-            albedo, normals = robust_normals(flat.images, matrix, self.method, mask, weights)
+        estimator = "lstsq" if config.estimator == "auto" else config.estimator
+        albedo, normals = NORMAL_ESTIMATORS[estimator](flat.images, matrix, mask, weights, config.estimator_options)
         solved = albedo > 0
         p, q = normals_to_gradients(normals)  # 0 where not solved: the normal there is (0, 0, 1)
-        depth = integrate(p, q, method=self.integrator, pixel_pitch_mm=self.pixel_pitch_mm or 1.0, mask=solved)
+        depth = integrate(p, q, integrator, self.pixel_pitch_mm or 1.0, solved, **config.integrator_options)
         return Reconstruction(albedo, normals, p, q, depth, solved)
 
 
-def reconstruct(
-    sample,
-    *,
-    device: torch.device | str = "cpu",
-    dtype: torch.dtype = torch.float32,
-    integrator: str | None = None,
-    light_model: str = "distant",
-    min_reference: float = 0.02,
-    method: str = "lstsq",
-) -> Reconstruction:
-    """Reconstruct one loaded sample (:func:`psmini.io.load_sample`).
+def reconstruct(sample, config: ReconstructionConfig | None = None) -> Reconstruction:
+    """Reconstruct one loaded sample (:func:`psmini.io.load_sample`) with ``config``.
+
+    The pixel pitch, mask, card, dark frames and saturation level come from the sample: a DiLiGenT folder has no
+    pitch, so its depth is in pixel units (and its mask makes ``auto`` integrate over the object only).
 
     Args:
         sample: a :class:`psmini.io.Sample` (DiLiGenT or capture folder).
-        device: where to compute.
-        dtype: floating dtype of the computation.
-        integrator: integration method; ``None`` takes the model's default (``"fc"`` for distant lights,
-            ``"masked"`` for near lights).
-        light_model: the :class:`PhotometricStereo` solver: ``"distant"`` (the classical pipeline, lights seen
-            from the field centre), ``"near"`` (near-light photometric stereo with the sample's point or LED model;
-            needs a pixel pitch) or ``"auto"`` (near for point and LED models).
-        min_reference: see :func:`psmini.flatfield.flatfield`.
-        method: normal estimator of the distant solver (see :class:`PhotometricStereo`).
+        config: the :class:`~psmini.config.ReconstructionConfig` (default: ``ReconstructionConfig()``, near light
+            for LED and point models, least squares for distant lights); its ``device`` and ``dtype`` say where
+            and how to compute.
 
     Returns:
-        :class:`Reconstruction` with batch size 1, on ``device``.
+        :class:`Reconstruction` with batch size 1, on the config's device.
 
     Raises:
-        InputError: for an unknown ``light_model`` or ``method``, or ``"near"`` without positions or pixel pitch.
+        InputError: a configuration that does not fit the sample (see :class:`PhotometricStereo`).
 
     Example:
         >>> from psmini.io import Sample
@@ -219,20 +195,14 @@ def reconstruct(
         torch.Size([1, 3, 16, 16])
     """
     check_tensor(sample.images, "sample.images")
+    config = ReconstructionConfig() if config is None else config
+    device, dtype = torch.device(config.device), config.torch_dtype
 
     def batch(x: Tensor | None) -> Tensor | None:
         return None if x is None else x.to(device=device, dtype=dtype).unsqueeze(0)
 
     mask = None if sample.mask is None else sample.mask.to(device).unsqueeze(0)
-    model = PhotometricStereo(
-        sample.lights.to(device=device, dtype=dtype),
-        integrator=integrator,
-        pixel_pitch_mm=sample.pixel_pitch_mm,
-        min_reference=min_reference,
-        saturation_level=sample.saturation_level,
-        solver=light_model,
-        method=method,
-    )
+    model = PhotometricStereo(sample.lights.to(device=device, dtype=dtype), sample.pixel_pitch_mm, config)
     return model(
         batch(sample.images),
         reference=batch(sample.reference),
@@ -240,4 +210,5 @@ def reconstruct(
         reference_dark=batch(sample.reference_dark),
         mask=mask,
         card_albedo=sample.card_albedo or 1.0,
+        saturation_level=sample.saturation_level,
     )

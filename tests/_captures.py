@@ -5,6 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 from data_synth.rig import write_synthetic_capture
+from psmini.config import ReconstructionConfig
+
+# The batch machinery is what these tests exercise: the fast classical solver (near light, the default for these
+# LED captures, has its own tests and costs seconds per sample on a CPU)
+DISTANT = ReconstructionConfig(solver="distant")
 
 # the good captures of :func:`write_capture_tree`, relative to its root
 GOOD = ["lotA/jute", "lotA/twill", "lotB/cotton"]

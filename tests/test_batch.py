@@ -1,3 +1,4 @@
+import dataclasses
 import json
 import os
 import shutil
@@ -11,8 +12,9 @@ import psmini.errors
 import psmini.io
 from psmini.batch import iter_reconstructions, parse_outputs, reconstruct_dataset
 from psmini.cli import main
+from psmini.config import ReconstructionConfig
 from psmini.errors import InputError
-from tests._captures import GOOD, write_capture_tree
+from tests._captures import DISTANT, GOOD, write_capture_tree
 from psmini.io import load_sample
 from psmini.pipeline import reconstruct
 
@@ -31,7 +33,7 @@ def _fresh(tree, tmp_path):
 
 class TestReconstructDataset:
     def test_statuses_and_summary_files(self, tree, tmp_path):
-        summary = reconstruct_dataset(tree, tmp_path / "out", batch_size=4)
+        summary = reconstruct_dataset(tree, tmp_path / "out", DISTANT, batch_size=4)
         statuses = {row["sample"]: row["status"] for row in summary["samples"]}
         assert statuses == {**{name: "done" for name in GOOD}, "lotC/broken": "failed"}
         assert summary["counts"] == {"done": 3, "skipped": 0, "failed": 1}
@@ -51,9 +53,9 @@ class TestReconstructDataset:
                 assert row["batch_size"] == (2 if row["sample"].startswith("lotA") else 1)
 
     def test_outputs_equal_single_sample_reconstruction(self, tree, tmp_path):
-        reconstruct_dataset(tree, tmp_path / "out", batch_size=8)
+        reconstruct_dataset(tree, tmp_path / "out", DISTANT, batch_size=8)
         for name in GOOD:
-            expected = reconstruct(load_sample(tree / name))
+            expected = reconstruct(load_sample(tree / name), DISTANT)
             depth = np.load(tmp_path / "out" / name / "depth.npy")
             inside = expected.mask[0, 0].numpy()
             np.testing.assert_allclose(depth[inside], expected.depth[0, 0].numpy()[inside], atol=1e-5)
@@ -62,8 +64,8 @@ class TestReconstructDataset:
             assert set(files) == {"albedo.png", "normals.png", "depth.npy", "depth.png", "depth.json", "points.ply"}
 
     def test_workers_give_the_same_outputs(self, tree, tmp_path):
-        reconstruct_dataset(tree, tmp_path / "serial", batch_size=3, workers=0)
-        summary = reconstruct_dataset(tree, tmp_path / "workers", batch_size=3, workers=2)
+        reconstruct_dataset(tree, tmp_path / "serial", DISTANT, batch_size=3, workers=0)
+        summary = reconstruct_dataset(tree, tmp_path / "workers", DISTANT, batch_size=3, workers=2)
         assert summary["counts"] == {"done": 3, "skipped": 0, "failed": 1}
         for name in GOOD:
             np.testing.assert_array_equal(np.load(tmp_path / "serial" / name / "depth.npy"),
@@ -79,14 +81,14 @@ class TestReconstructDataset:
             return capture
 
         monkeypatch.setattr(psmini.io, "read_capture", counting)
-        reconstruct_dataset(tree, tmp_path / "out", batch_size=2)
+        reconstruct_dataset(tree, tmp_path / "out", DISTANT, batch_size=2)
         cards = sorted(path for kind, path in decoded if kind == "flatfield")
         assert [p.rsplit("/", 2)[-2] for p in cards] == ["lotA", "lotB"]
 
     def test_resume_skips_finished_samples(self, tree, tmp_path):
-        first = reconstruct_dataset(tree, tmp_path / "out")
+        first = reconstruct_dataset(tree, tmp_path / "out", DISTANT)
         stamps = {name: (tmp_path / "out" / name / "outputs.json").stat().st_mtime_ns for name in GOOD}
-        second = reconstruct_dataset(tree, tmp_path / "out")
+        second = reconstruct_dataset(tree, tmp_path / "out", DISTANT)
         assert second["counts"] == {"done": 0, "skipped": 3, "failed": 1}
         assert stamps == {name: (tmp_path / "out" / name / "outputs.json").stat().st_mtime_ns for name in GOOD}
         # the skipped rows keep the errors the first run measured
@@ -108,7 +110,7 @@ class TestReconstructDataset:
 
         monkeypatch.setattr(batch, "_write", dying_after_one)
         with pytest.raises(KeyboardInterrupt):
-            reconstruct_dataset(tree, tmp_path / "out", batch_size=1)
+            reconstruct_dataset(tree, tmp_path / "out", DISTANT, batch_size=1)
         assert written == ["jute"]
 
         def counting(out_dir, *args):
@@ -116,7 +118,7 @@ class TestReconstructDataset:
             written.append(out_dir.name)
 
         monkeypatch.setattr(batch, "_write", counting)
-        summary = reconstruct_dataset(tree, tmp_path / "out", batch_size=1)
+        summary = reconstruct_dataset(tree, tmp_path / "out", DISTANT, batch_size=1)
         assert sorted(written) == ["cotton", "jute", "twill"]  # every good sample written exactly once
         assert {r["sample"]: r["status"] for r in summary["samples"]} == {
             "lotA/jute": "skipped", "lotA/twill": "done", "lotB/cotton": "done", "lotC/broken": "failed"}
@@ -126,7 +128,7 @@ class TestReconstructDataset:
             assert np.isfinite(np.load(tmp_path / "out" / name / "depth.npy")).any()
 
     def test_selected_outputs_only(self, tree, tmp_path):
-        summary = reconstruct_dataset(tree, tmp_path / "out", outputs="depth,normals", score=False)
+        summary = reconstruct_dataset(tree, tmp_path / "out", DISTANT, outputs="depth,normals", score=False)
         assert all(row["mean_angular_error_deg"] == "" for row in summary["samples"])
         folder = tmp_path / "out" / "lotB" / "cotton"
         assert {p.name for p in folder.iterdir()} == {"normals.png", "depth.npy", "depth.png", "depth.json",
@@ -138,7 +140,7 @@ class TestReconstructDataset:
     def test_sample_whose_card_is_missing_fails_alone(self, tree, tmp_path):
         root = _fresh(tree, tmp_path)
         shutil.rmtree(root / "lotB" / "card")
-        summary = reconstruct_dataset(root, tmp_path / "out")
+        summary = reconstruct_dataset(root, tmp_path / "out", DISTANT)
         statuses = {row["sample"]: row["status"] for row in summary["samples"]}
         assert statuses["lotB/cotton"] == "failed" and statuses["lotA/jute"] == "done"
 
@@ -149,27 +151,27 @@ class TestReconstructDataset:
         with pytest.raises(InputError, match="no sample folders"):
             reconstruct_dataset(tmp_path / "empty", tmp_path / "out")
         with pytest.raises(InputError, match="subset of normals,albedo,depth,ply"):
-            reconstruct_dataset(tree, tmp_path / "out", outputs="normals,mesh")
+            reconstruct_dataset(tree, tmp_path / "out", DISTANT, outputs="normals,mesh")
         with pytest.raises(InputError, match="batch_size"):
-            reconstruct_dataset(tree, tmp_path / "out", batch_size=0)
+            reconstruct_dataset(tree, tmp_path / "out", DISTANT, batch_size=0)
         with pytest.raises(InputError, match="workers"):
-            reconstruct_dataset(tree, tmp_path / "out", workers=-1)
-        with pytest.raises(InputError, match="light_model"):
-            reconstruct_dataset(tree, tmp_path / "out", light_model="far")
+            reconstruct_dataset(tree, tmp_path / "out", DISTANT, workers=-1)
+        with pytest.raises(InputError, match="ReconstructionConfig"):
+            reconstruct_dataset(tree, tmp_path / "out", {"solver": "far"})
         assert not (tmp_path / "out").exists()
 
 
 class TestIterReconstructions:
     def test_yields_each_readable_sample(self, tree):
-        results = dict(iter_reconstructions(tree, batch_size=4))
+        results = dict(iter_reconstructions(tree, DISTANT, batch_size=4))
         assert sorted(results) == GOOD
-        expected = reconstruct(load_sample(tree / "lotA" / "twill"))
+        expected = reconstruct(load_sample(tree / "lotA" / "twill"), DISTANT)
         torch.testing.assert_close(results["lotA/twill"].normals, expected.normals, atol=1e-5, rtol=1e-5)
         assert results["lotA/twill"].depth.shape == (1, 1, 64, 64)
 
     def test_near_light_model(self, tree):
-        results = dict(iter_reconstructions(tree / "lotB", light_model="near"))
-        expected = reconstruct(load_sample(tree / "lotB" / "cotton"), light_model="near")
+        results = dict(iter_reconstructions(tree / "lotB", ReconstructionConfig(solver="near")))
+        expected = reconstruct(load_sample(tree / "lotB" / "cotton"), ReconstructionConfig(solver="near"))
         torch.testing.assert_close(results["cotton"].depth, expected.depth, atol=1e-4, rtol=1e-4)
 
     def test_errors(self, tmp_path):
@@ -188,10 +190,10 @@ def test_parse_outputs():
 class TestCommand:
     def test_batch_then_resume(self, tree, tmp_path, capsys):
         out = tmp_path / "out"
-        assert main(["batch", str(tree), "--out", str(out), "--workers", "0", "--no-progress", "--json"]) == 1
+        assert main(["batch", str(tree), "--light-model", "distant", "--out", str(out), "--workers", "0", "--no-progress", "--json"]) == 1
         report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
         assert report["counts"] == {"done": 3, "skipped": 0, "failed": 1}
-        assert main(["batch", str(tree / "lotA"), "--out", str(out / "lotA"), "--workers", "0", "--json"]) == 0
+        assert main(["batch", str(tree / "lotA"), "--light-model", "distant", "--out", str(out / "lotA"), "--workers", "0", "--json"]) == 0
         captured = capsys.readouterr()
         assert json.loads(captured.out.strip().splitlines()[-1])["counts"] == {"done": 0, "skipped": 2, "failed": 0}
         assert "2sample" in captured.err.replace(" ", "")  # the progress bar (on stderr)
@@ -202,24 +204,27 @@ class TestCommand:
         (tmp_path / "empty").mkdir()
         assert main(["batch", str(tmp_path / "empty"), "--out", str(tmp_path / "out")]) == 1
         assert "no sample folders" in capsys.readouterr().err
-        assert main(["batch", str(tree), "--out", str(tmp_path / "out"), "--outputs", "depth,mesh"]) == 1
+        assert main(["batch", str(tree), "--light-model", "distant", "--out", str(tmp_path / "out"), "--outputs", "depth,mesh"]) == 1
         assert "normals,albedo,depth,ply" in capsys.readouterr().err
         assert not (tmp_path / "out").exists()
 
 
 def test_robust_method_through_batch(tmp_path):
-    """--method reaches the solver: the robust estimator gives a different (and valid) reconstruction."""
+    """The estimator reaches the solver: the robust estimator gives a different (and valid) reconstruction, and
+    every sample's outputs.json records the resolved configuration."""
     from data_synth.rig import write_synthetic_capture
-    from psmini.batch import reconstruct_dataset
 
     root = tmp_path / "captures"
     write_synthetic_capture(root, "jute", seed=0, size=48)
-    plain = reconstruct_dataset(root, tmp_path / "plain", score=True)
-    robust = reconstruct_dataset(root, tmp_path / "robust", method="robust", score=True)
+    distant = ReconstructionConfig(solver="distant")
+    plain = reconstruct_dataset(root, tmp_path / "plain", distant, score=True)
+    robust = reconstruct_dataset(root, tmp_path / "robust", dataclasses.replace(distant, estimator="robust"),
+                                 score=True)
     (row_plain,), (row_robust,) = [[r for r in s["samples"] if r["status"] == "done"] for s in (plain, robust)]
     assert row_robust["mean_angular_error_deg"] != row_plain["mean_angular_error_deg"]
-    with pytest.raises(InputError, match="method must be one of"):
-        reconstruct_dataset(root, tmp_path / "bad", method="median")
+    assert robust["settings"]["config"]["estimator"] == "robust"
+    recorded = json.loads((tmp_path / "robust" / "jute" / "outputs.json").read_text())["metadata"]["config"]
+    assert (recorded["solver"], recorded["estimator"], recorded["integrator"]) == ("distant", "robust", "fc")
 
 
 def test_card_cache_decodes_a_rewritten_card_again_and_keeps_at_most_limit(tree, tmp_path, monkeypatch):

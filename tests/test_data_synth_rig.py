@@ -17,6 +17,7 @@ from data_synth.rig import (
 )
 from psmini.errors import DataFormatError, InputError
 from psmini.metrics import angular_error_deg, mean_angular_error
+from psmini.config import ReconstructionConfig
 from psmini.pipeline import PhotometricStereo
 
 IDEAL = dict(noise=False, bit_depth=16, vignetting=0.0, ambient=0.0)
@@ -89,7 +90,7 @@ def test_flatfielding_cancels_near_light_for_a_flat_fabric():
     config = RigConfig(size=48, **IDEAL)
     card = render_card(config, albedo=CARD_ALBEDO)
     patch = render_card(config, albedo=0.4, seed=3)
-    result = PhotometricStereo(rig_lights(config), pixel_pitch_mm=config.pixel_pitch_mm, solver="distant")(
+    result = PhotometricStereo(rig_lights(config), config.pixel_pitch_mm, ReconstructionConfig(solver="distant"))(
         patch.images[None], reference=card.images[None], dark=patch.dark[None], reference_dark=card.dark[None],
         card_albedo=CARD_ALBEDO)
     assert float(mean_angular_error(result.normals, patch.normals[None])) < 0.01

@@ -7,7 +7,9 @@ from psmini import CalibrationError, DirectionalLights, InputError, LEDLights, S
 from psmini.flatfield import flatfield
 from psmini.integrate import frankot_chellappa
 from psmini.normals import albedo_normals, normals_to_gradients
-from psmini.pipeline import PhotometricStereo, distant_light_matrix
+from psmini.config import ReconstructionConfig
+from psmini.integrate import masked_least_squares
+from psmini.pipeline import NORMAL_ESTIMATORS, PhotometricStereo, distant_light_matrix
 from tests._analytic import analytic_sphere, render
 from tests.conftest import BaseTester
 
@@ -71,38 +73,68 @@ class TestPhotometricStereo(BaseTester):
 
     def test_wrong_count_raise(self):
         with pytest.raises(ShapeError, match="number of lights"):
-            PhotometricStereo(ring_lights(8, 55.0))(torch.rand(1, 6, 8, 8))
+            PhotometricStereo(ring_lights(8, 55.0), None)(torch.rand(1, 6, 8, 8))
 
     def test_coplanar_raise(self):
         with pytest.raises(CalibrationError, match="coplanar"):
-            PhotometricStereo(ring_lights(8, 90.0))(torch.rand(1, 8, 8, 8))
+            PhotometricStereo(ring_lights(8, 90.0), None)(torch.rand(1, 8, 8, 8))
 
     def test_nan_raise(self):
         images = torch.rand(1, 8, 8, 8)
         images[0, 0, 0, 0] = math.nan
         with pytest.raises(InputError, match="finite"):
-            PhotometricStereo(ring_lights(8, 55.0))(images)
+            PhotometricStereo(ring_lights(8, 55.0), None)(images)
 
     def test_bad_lights_raise(self):
         with pytest.raises(InputError, match="light model"):
-            PhotometricStereo("ring")
+            PhotometricStereo("ring", None)
 
     def test_solver_choice(self):
         ring = ring_lights(8, 58.0)
         leds = LEDLights(ring * 18.6, -ring)
-        assert PhotometricStereo(leds).solver == "near" and PhotometricStereo(ring).solver == "distant"
-        assert PhotometricStereo(leds, solver="distant").solver == "distant"
+        assert PhotometricStereo(leds, 0.025).solver == "near" and PhotometricStereo(ring, None).solver == "distant"
+        assert PhotometricStereo(leds, 0.025, ReconstructionConfig(solver="distant")).solver == "distant"
         with pytest.raises(InputError, match="solver must be"):
-            PhotometricStereo(leds, solver="far")
+            ReconstructionConfig(solver="far")
         with pytest.raises(InputError, match="point or LED model"):
-            PhotometricStereo(ring, solver="near")
+            PhotometricStereo(ring, None, ReconstructionConfig(solver="near"))
         with pytest.raises(InputError, match="pixel pitch"):
             PhotometricStereo(leds, pixel_pitch_mm=None)
+        with pytest.raises(InputError, match="ReconstructionConfig"):
+            PhotometricStereo(ring, None, {"solver": "distant"})
+
+    def test_pixel_pitch_has_no_default(self):
+        with pytest.raises(TypeError, match="pixel_pitch_mm"):
+            PhotometricStereo(ring_lights(8, 55.0))
+        with pytest.raises(InputError, match="pixel_pitch_mm"):
+            PhotometricStereo(ring_lights(8, 55.0), -0.1)
+
+    def test_mask_makes_auto_integrate_over_it(self, device, dtype):
+        """With an outline (DiLiGenT), auto integrates over the outline only: the result equals masked least
+        squares over the solved pixels, and the background does not move the object's relief."""
+        normals, inside, albedo = analytic_sphere(32, device=device, dtype=dtype)
+        lights = ring_lights(8, 30.0, device=device, dtype=dtype)
+        images = render(normals, albedo, lights)
+        result = PhotometricStereo(lights, None)(images, mask=inside)
+        p, q = normals_to_gradients(result.normals)
+        self.assert_close(result.depth, masked_least_squares(p, q, 1.0, mask=result.mask))
+        forced = PhotometricStereo(lights, None, ReconstructionConfig(integrator="fc"))(images, mask=inside)
+        assert not torch.allclose(forced.depth, result.depth)
+
+    def test_estimator_registry(self, device, dtype):
+        normals, inside, albedo = analytic_sphere(24, device=device, dtype=dtype)
+        lights = ring_lights(12, 40.0, device=device, dtype=dtype)
+        images = render(normals, albedo, lights)
+        for name in NORMAL_ESTIMATORS:
+            result = PhotometricStereo(lights, None, ReconstructionConfig(estimator=name))(images, mask=inside)
+            lit = inside & (result.mask)
+            error = torch.rad2deg(torch.acos((result.normals * normals).sum(1, keepdim=True).clamp(-1, 1)))[lit]
+            assert float(error.median()) < 1.0, name
 
     def test_light_below_card_raise(self):
         lights = DirectionalLights(torch.tensor([[0.5, 0, 0.8], [-0.5, 0, 0.8], [0, 0.5, -0.8]]))
         with pytest.raises(InputError, match="above the card"):
-            PhotometricStereo(lights)(torch.rand(1, 3, 4, 4), reference=torch.ones(3, 4, 4))
+            PhotometricStereo(lights, None)(torch.rand(1, 3, 4, 4), reference=torch.ones(3, 4, 4))
 
     def test_gradcheck_whole_pipeline(self):
         lights = ring_lights(8, 45.0, dtype=torch.float64)

@@ -37,25 +37,71 @@ def emit_json(payload: dict[str, Any]) -> None:
     sys.stdout.flush()
 
 
+def add_config_flags(parser: argparse.ArgumentParser) -> None:
+    """The flags of a :class:`~psmini.config.ReconstructionConfig`, the same for every reconstructing command
+    (``reconstruct``, ``evaluate``, ``batch``, ``demo``); :func:`config_from_args` turns them into one."""
+    from psmini.config import ESTIMATORS, SOLVERS
+
+    parser.add_argument("--light-model", "--solver", dest="solver", choices=SOLVERS, default="auto",
+                        help="auto (default): near-light photometric stereo when the folder's lights have positions "
+                        "(LEDs, point lights), the classical distant-light pipeline for directions; distant or near "
+                        "forces one")
+    parser.add_argument("--estimator", "--method", dest="estimator", choices=ESTIMATORS, default="auto",
+                        help="normal estimator of the distant solver: auto (= lstsq, least squares), robust (the "
+                        "recommended robust one), trimmed, threshold, huber, cauchy, tukey, l1, rpca "
+                        "(psmini.robust), nonlambertian (Lambertian + Blinn-Phong lobe)")
+    parser.add_argument("--integrator", default="auto", choices=["auto", *sorted(INTEGRATION_METHODS)],
+                        help="integration method; auto (default): masked least squares when the folder has a mask "
+                        "or near light runs, Frankot-Chellappa otherwise; bilateral keeps depth discontinuities")
+    parser.add_argument("--integrator-option", action="append", default=[], metavar="KEY=VALUE",
+                        help="an option of the integrator (VALUE as JSON), e.g. boundary=\"periodic\" for fc")
+    parser.add_argument("--near-option", action="append", default=[], metavar="KEY=VALUE",
+                        help="an option of the near-light solver (VALUE as JSON), e.g. max_iterations=3")
+    parser.add_argument("--min-reference", type=float, default=0.02, metavar="F",
+                        help="card pixels darker than F x the LED's brightest card pixel are not trusted (default 0.02)")
+    parser.add_argument("--dtype", choices=["float32", "float64"], default="float32",
+                        help="floating dtype of the computation (default float32)")
+    add_device_flag(parser)
+
+
+def _options(pairs: list[str], flag: str) -> dict[str, Any]:
+    options: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise InputError(f"{flag} takes KEY=VALUE, got {pair!r}")
+        try:
+            options[key] = json.loads(value)
+        except ValueError:
+            options[key] = value  # a bare word is a string
+    return options
+
+
+def config_from_args(args: argparse.Namespace):
+    """The :class:`~psmini.config.ReconstructionConfig` of :func:`add_config_flags`'s flags (built once per run).
+
+    Raises:
+        InputError: a malformed option, options of another method, CUDA asked for and absent.
+    """
+    from psmini.config import ReconstructionConfig
+
+    resolve_device(args.device)
+    return ReconstructionConfig(
+        solver=args.solver, estimator=args.estimator, integrator=args.integrator,
+        integrator_options=_options(args.integrator_option, "--integrator-option"),
+        near=_options(args.near_option, "--near-option"), min_reference=args.min_reference, device=args.device,
+        dtype=args.dtype,
+    )
+
+
 def add_reconstruction_flags(parser: argparse.ArgumentParser) -> None:
-    """The folder argument and the flags every reconstructing command shares (``reconstruct``, ``evaluate``)."""
+    """The folder argument and the flags every command reconstructing one folder shares (``reconstruct``,
+    ``evaluate``)."""
     parser.add_argument("folder", type=Path, metavar="DIR", help="DiLiGenT object folder or psmini capture folder")
-    parser.add_argument("--integrator", default=None, choices=sorted(INTEGRATION_METHODS),
-                        help="integration method (default: fc, Frankot-Chellappa, for distant lights; masked least "
-                        "squares for near lights; bilateral keeps depth discontinuities)")
     parser.add_argument("--lights", type=Path, metavar="FILE",
                         help="lights file (docs/lights-file.md, from 'psmini calibrate sphere') to use instead of "
                         "the folder's own lights")
-    parser.add_argument("--light-model", choices=["distant", "near"], default="distant",
-                        help="distant: classical least squares with the lights seen from the field centre (default); "
-                        "near: near-light photometric stereo with the folder's LED or point-light positions")
-    from psmini.pipeline import NORMAL_METHODS
-
-    parser.add_argument("--method", choices=NORMAL_METHODS, default="lstsq",
-                        help="normal estimator for distant lights: lstsq (least squares, default); robust (the "
-                        "recommended robust one); trimmed, threshold, huber, cauchy, tukey, l1, rpca (psmini.robust); or "
-                        "nonlambertian (Lambertian + Blinn-Phong lobe, psmini.nonlambertian)")
-    add_device_flag(parser)
+    add_config_flags(parser)
     add_json_flag(parser)
 
 

@@ -5,9 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from psmini.commands._common import add_device_flag, add_json_flag, emit_json, resolve_device
-from psmini.integrate import METHODS as INTEGRATION_METHODS
-from psmini.pipeline import NORMAL_METHODS
+from psmini.commands._common import add_config_flags, add_json_flag, config_from_args, emit_json
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -27,12 +25,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--workers", type=int, default=2, metavar="W",
                         help="local worker processes: on CPU each decodes, solves and writes whole batches, on CUDA "
                         "they decode; 0 does everything in this process (default 2; not used with --scheduler)")
-    parser.add_argument("--light-model", choices=["distant", "near"], default="distant",
-                        help="distant: classical least squares (default); near: near-light photometric stereo")
-    parser.add_argument("--method", default="lstsq", choices=NORMAL_METHODS,
-                        help="normal estimator of the distant solver (default: lstsq; robust: the recommended robust one)")
-    parser.add_argument("--integrator", default=None, choices=sorted(INTEGRATION_METHODS), help="integration method (default: fc for distant, masked "
-                        "least squares for near lights)")
     parser.add_argument("--outputs", default=",".join(_kinds()), metavar="LIST",
                         help="comma-separated outputs to write, of normals,albedo,depth,ply (default: all)")
     parser.add_argument("--no-score", action="store_true",
@@ -44,7 +36,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "the same paths on every worker")
     parser.add_argument("--scheduler-timeout", type=float, default=10.0, metavar="S",
                         help="seconds to wait for the scheduler and its first worker (default 10)")
-    add_device_flag(parser)
+    add_config_flags(parser)
     add_json_flag(parser)
     parser.set_defaults(run=run)
 
@@ -61,8 +53,9 @@ def run(args: argparse.Namespace) -> int:
     from psmini.batch import parse_outputs, reconstruct_dataset
 
     outputs = parse_outputs(args.outputs)  # before any work: a typo fails at once
-    # with a cluster the workers' devices count, not this machine's
-    device = args.device if args.scheduler else resolve_device(args.device)
+    if args.scheduler:  # with a cluster the workers' devices count, not this machine's
+        args = argparse.Namespace(**{**vars(args), "device": "cpu"}) if args.device == "cuda" else args
+    config = config_from_args(args)
     bar = tqdm(unit="sample", disable=args.no_progress, dynamic_ncols=True)
 
     def progress(record) -> None:
@@ -70,9 +63,8 @@ def run(args: argparse.Namespace) -> int:
         bar.set_postfix_str(f"{record.status} {record.sample}", refresh=False)
 
     try:
-        summary = reconstruct_dataset(args.root, args.out, device=device, batch_size=args.batch_size,
-                                      workers=args.workers, integrator=args.integrator, light_model=args.light_model,
-                                      method=args.method, outputs=outputs, score=not args.no_score, progress=progress,
+        summary = reconstruct_dataset(args.root, args.out, config, batch_size=args.batch_size, workers=args.workers,
+                                      outputs=outputs, score=not args.no_score, progress=progress,
                                       scheduler=args.scheduler, scheduler_timeout_s=args.scheduler_timeout)
     finally:
         bar.close()

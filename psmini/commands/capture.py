@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib.metadata
 import time
 from pathlib import Path
 
@@ -68,25 +69,14 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _simulated(args: argparse.Namespace) -> dict:
-    from data_synth import CARD_ALBEDO
+    """Hand ``--simulate`` to the installed rig simulator (data_synth's, through the ``psmini.rig_simulators`` group)."""
+    from psmini.errors import InputError
 
-    from psmini.rig import CaptureSession, LEDController, RigCamera, SimulatedRig, write_with_card
-
-    with SimulatedRig(args.fabric, args.seed, args.size, fault=args.fault, pixel_pitch_mm=args.pixel_pitch) as rig, \
-            LEDController(rig.port, handshake_timeout_s=args.handshake_timeout,
-                          command_timeout_s=args.command_timeout) as leds, \
-            RigCamera(0, open_capture=rig.open_capture, frame_size=rig.frame_size, crop_size=rig.size) as camera:
-        session = CaptureSession(leds, camera, rig.lights, pixel_pitch_mm=rig.pixel_pitch_mm,
-                                 frames_per_led=args.frames, metadata={"simulated": True, "fault": args.fault})
-        rig.place("card")
-        card = session.acquire("flatfield")
-        rig.place("sample")
-        sample = session.acquire("sample")
-        render = rig.scene.render("sample")
-        write_with_card(args.out, session, sample, card, card_albedo=CARD_ALBEDO, gt=render["gt"],
-                        metadata={"fabric": render["fabric"], "seed": args.seed}, overwrite=args.overwrite)
-        return {"out": str(args.out), "kind": "sample", "leds": leds.led_count, "firmware": str(leds.identity),
-                "simulated": True, "fabric": args.fabric, "camera": camera.report}
+    simulators = list(importlib.metadata.entry_points(group="psmini.rig_simulators"))
+    if not simulators:
+        raise InputError("--simulate needs a rig simulator; none is installed (data_synth, installed with psmini from "
+                         "its repository, provides one)")
+    return simulators[0].load()(args)
 
 
 def _hardware(args: argparse.Namespace) -> dict:

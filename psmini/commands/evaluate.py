@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from psmini.commands._common import add_reconstruction_flags, emit_json, load_sample_for, resolve_device
+from psmini.commands._common import add_reconstruction_flags, config_from_args, emit_json, load_sample_for
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -24,16 +24,17 @@ def run(args: argparse.Namespace) -> int:
     from psmini.errors import DataFormatError
     from psmini.evaluation import evaluate_sample
 
-    device = resolve_device(args.device)
+    config = config_from_args(args)
     start = time.perf_counter()
     sample = load_sample_for(args)
     if sample.normals_gt is None:
         raise DataFormatError(f"{args.folder} has no ground-truth normals (Normal_gt.mat or gt/normals.npy) to evaluate against")
-    scores = evaluate_sample(sample, device=device, integrator=args.integrator, light_model=args.light_model,
-                             method=args.method)
+    scores = evaluate_sample(sample, config)
+    scores["solver"] = scores["config"]["solver"]
     scores["time_s"] = time.perf_counter() - start
-    print(f"{sample.name}: mean angular error {scores['mean_angular_error_deg']:.3f} deg, "
-          f"median {scores['median_angular_error_deg']:.3f} deg over {scores['pixels']} pixels")
+    print(f"{sample.name} ({scores['solver']}-light solver): mean angular error "
+          f"{scores['mean_angular_error_deg']:.3f} deg, median {scores['median_angular_error_deg']:.3f} deg over "
+          f"{scores['pixels']} pixels ({scores['unsolved_pixels']} of them unsolved)")
     if "depth_rmse_mm" in scores:
         print(f"{sample.name}: depth RMSE {scores['depth_rmse_mm']:.4f} mm, MAE {scores['depth_mae_mm']:.4f} mm "
               "(after removing the mean offset)")

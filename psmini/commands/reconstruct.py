@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from psmini.commands._common import add_reconstruction_flags, emit_json, load_sample_for, resolve_device
+from psmini.commands._common import add_reconstruction_flags, config_from_args, emit_json, load_sample_for
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -26,17 +26,19 @@ def run(args: argparse.Namespace) -> int:
     from psmini.io import write_outputs
     from psmini.pipeline import reconstruct
 
-    device = resolve_device(args.device)
+    config = config_from_args(args)
     start = time.perf_counter()
     sample = load_sample_for(args)
-    result = reconstruct(sample, device=device, integrator=args.integrator, light_model=args.light_model,
-                         method=args.method)
+    resolved = config.resolved(sample.lights, sample.mask is not None)
+    result = reconstruct(sample, config)
     elapsed = time.perf_counter() - start
-    written = write_outputs(args.out, result, pixel_pitch_mm=sample.pixel_pitch_mm, overwrite=args.overwrite)
+    written = write_outputs(args.out, result, pixel_pitch_mm=sample.pixel_pitch_mm, overwrite=args.overwrite,
+                            metadata={"config": resolved.to_dict()})
     print(f"reconstructed {sample.name} ({sample.images.shape[0]} images, {sample.images.shape[-1]}x"
-          f"{sample.images.shape[-2]}) on {device} in {elapsed:.2f} s")
+          f"{sample.images.shape[-2]}) with the {resolved.solver}-light solver on {config.device} in {elapsed:.2f} s")
     for path in written:
         print(f"  wrote {path}")
     if args.json:
-        emit_json({"name": sample.name, "out": str(args.out), "files": [str(p) for p in written], "time_s": elapsed})
+        emit_json({"name": sample.name, "out": str(args.out), "files": [str(p) for p in written], "time_s": elapsed,
+                   "solver": resolved.solver, "config": resolved.to_dict()})
     return 0

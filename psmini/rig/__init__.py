@@ -1,4 +1,4 @@
-"""The rig adapter: LED controller firmware and protocol, camera, capture sessions, and a simulated rig.
+"""The rig adapter: LED controller firmware and protocol, camera and capture sessions.
 
 The Arduino sketch ships as package data (``firmware/psmini_leds/psmini_leds.ino``, see :func:`firmware_path`);
 its protocol is specified in ``docs/rig-protocol.md``. This subpackage imports pyserial and OpenCV; the core
@@ -13,7 +13,6 @@ from psmini.rig.camera import CameraSettings, FrameCheck, RigCamera
 from psmini.rig.controller import LEDController, open_port
 from psmini.rig.protocol import DeviceState, Identity
 from psmini.rig.session import Acquisition, CaptureSession, led_azimuths, nominal_ring_lights, write_with_card
-from psmini.rig.simulator import FAULTS, PtyLink, SimulatedCapture, SimulatedDevice, SimulatedRig, serve_url
 
 __all__ = [
     "firmware_path",
@@ -29,12 +28,6 @@ __all__ = [
     "nominal_ring_lights",
     "led_azimuths",
     "write_with_card",
-    "SimulatedRig",
-    "SimulatedDevice",
-    "SimulatedCapture",
-    "PtyLink",
-    "serve_url",
-    "FAULTS",
 ]
 
 

@@ -2,7 +2,7 @@
 
 :class:`RigCamera` drives anything shaped like :class:`cv2.VideoCapture` (``isOpened``, ``read``, ``grab``,
 ``set``, ``get``, ``release``): the real webcam through ``cv2.VideoCapture(index, backend)``, the simulated
-camera of :mod:`psmini.rig.simulator`, or a test's fake, all through the ``open_capture`` argument.
+camera of :mod:`data_synth.simulated_rig`, or a test's fake, all through the ``open_capture`` argument.
 
 OpenCV's exposure, gain and white-balance controls are backend-specific (V4L2 takes ``AUTO_EXPOSURE = 1`` for
 manual, DirectShow 0.25) and a camera may ignore a value silently, so every setting is set, read back and
@@ -238,7 +238,7 @@ class RigCamera:
         RigError: for an unknown backend or bad sizes.
 
     Example:
-        >>> from psmini.rig.simulator import SimulatedRig
+        >>> from data_synth.simulated_rig import SimulatedRig
         >>> with SimulatedRig(size=32) as rig, RigCamera(0, open_capture=rig.open_capture,
         ...                                                frame_size=rig.frame_size, crop_size=32) as camera:
         ...     camera.read().shape

@@ -14,6 +14,7 @@ if even that fails, the firmware's watchdog switches them off after its timeout.
 
 from __future__ import annotations
 
+import importlib.metadata
 import logging
 import time
 from types import TracebackType
@@ -40,9 +41,12 @@ __all__ = ["LEDController", "open_port"]
 
 logger = logging.getLogger(__name__)
 
-# The simulator's URL scheme (psminisim://) is served by psmini.rig.urlhandler.protocol_psminisim.
-if "psmini.rig.urlhandler" not in serial.protocol_handler_packages:
-    serial.protocol_handler_packages.append("psmini.rig.urlhandler")
+# Other packages serve URL schemes of their own (the simulated rig of data_synth: psminisim://) by naming a
+# pyserial handler package in the "psmini.serial_url_handlers" entry-point group; the rig adapter itself
+# depends on none of them.
+for _entry in importlib.metadata.entry_points(group="psmini.serial_url_handlers"):
+    if _entry.value not in serial.protocol_handler_packages:
+        serial.protocol_handler_packages.append(_entry.value)
 
 #: Read slice, s: how long one read of the port may block while a deadline is watched.
 _POLL_S = 0.01
@@ -92,7 +96,7 @@ class LEDController:
         RigError: for bad arguments.
 
     Example:
-        >>> from psmini.rig.simulator import SimulatedDevice, serve_url
+        >>> from data_synth.simulated_rig import SimulatedDevice, serve_url
         >>> with LEDController(serve_url(SimulatedDevice()), handshake_timeout_s=0.5) as leds:
         ...     leds.on(3)
         ...     leds.state().lit

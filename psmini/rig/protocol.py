@@ -1,6 +1,6 @@
 """The line protocol of the psmini-leds firmware: constants, commands, and the parsing of its lines.
 
-Shared by the host (:mod:`psmini.rig.controller`) and the simulated device (:mod:`psmini.rig.simulator`), and
+Shared by the host (:mod:`psmini.rig.controller`) and the simulated device (:mod:`data_synth.simulated_rig`), and
 kept in step with the Arduino sketch ``psmini/rig/firmware/psmini_leds/psmini_leds.ino`` (a test compares the
 constants). The full specification is ``docs/rig-protocol.md``; in short, ASCII lines at 115200 baud, one
 reply line per command line::

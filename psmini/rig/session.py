@@ -138,7 +138,7 @@ class CaptureSession:
         RigError: when the light model's K differs from the firmware's LED count, or bad arguments.
 
     Example:
-        >>> from psmini.rig.simulator import SimulatedRig
+        >>> from data_synth.simulated_rig import SimulatedRig
         >>> with SimulatedRig(size=32, pixel_pitch_mm=0.1) as rig, LEDController(rig.port, handshake_timeout_s=1) as leds, \\
         ...         RigCamera(0, open_capture=rig.open_capture, frame_size=rig.frame_size, crop_size=32) as camera:
         ...     CaptureSession(leds, camera, rig.lights, pixel_pitch_mm=0.025).acquire().images.shape

@@ -38,9 +38,14 @@ def test_demo_reconstructs_and_scores(tmp_path, capsys):
     assert (out / "capture" / "cotton" / "capture.json").is_file()
     assert np.load(out / "depth.npy").shape == (64, 64)
     assert 0.0 < report["mean_angular_error_deg"] < 10.0
-    # the written reconstruction is the near-light one, and it beats the distant-light pipeline
-    assert report["light_model"] == "near"
-    assert report["mean_angular_error_deg"] == report["errors_deg"]["near"] < report["errors_deg"]["distant"]
+    # with no flag the rig's LEDs pick the near-light solver, which beats the classical pipeline
+    assert report["solver"] == "near" and report["config"]["integrator"] == "masked"
+    assert report["mean_angular_error_deg"] == report["errors_deg"]["near"] < report["errors_deg"]["distant (classical)"]
+    # the one scoring rule: `psmini evaluate` on the demo's capture gives the demo's figure
+    assert main(["evaluate", str(out / "capture" / "cotton"), "--json"]) == 0
+    evaluated = _last_json(capsys)
+    assert evaluated["solver"] == "near" and evaluated["pixels"] == report["scores"]["pixels"]
+    assert abs(evaluated["mean_angular_error_deg"] - report["mean_angular_error_deg"]) < 1e-6
     # an earlier demo is replaced; any other folder is refused
     assert main(["demo", "--out", str(out), "--size", "32"]) == 0
     other = tmp_path / "mine"

@@ -10,7 +10,7 @@ import serial
 from psmini.errors import RigError
 from psmini.rig.controller import LEDController
 from psmini.rig.protocol import Identity
-from psmini.rig.simulator import PtyLink, SimulatedDevice, serve_url
+from data_synth.simulated_rig import PtyLink, SimulatedDevice, serve_url
 
 FAST = {"handshake_timeout_s": 0.5, "command_timeout_s": 0.2}
 

@@ -12,7 +12,7 @@ import pytest
 
 from psmini.rig import firmware_path
 from psmini.rig import protocol
-from psmini.rig.simulator import SimulatedDevice
+from data_synth.simulated_rig import SimulatedDevice
 
 SKETCH = firmware_path()
 HOST = Path(__file__).parent / "firmware_host"

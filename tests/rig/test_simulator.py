@@ -11,7 +11,7 @@ import serial
 
 from psmini.errors import RigError
 from psmini.rig.protocol import MAX_LINE
-from psmini.rig.simulator import PtyLink, SimulatedCapture, SimulatedDevice, SimulatedScene, device_for_url, serve_url
+from data_synth.simulated_rig import PtyLink, SimulatedCapture, SimulatedDevice, SimulatedScene, device_for_url, serve_url
 
 
 class Clock:

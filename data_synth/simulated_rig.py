@@ -6,7 +6,7 @@ renders a :mod:`data_synth` fabric under whichever LED is lit, with faults to in
   READY banner after ``boot_s``.
 - :class:`PtyLink` serves a device on a real pseudo-terminal (``pty.openpty`` and a thread), so the host goes
   through the operating system's serial path; :func:`serve_url` serves it as ``psminisim://NAME`` for
-  :func:`serial.serial_for_url` (handled by :mod:`psmini.rig.urlhandler.protocol_psminisim`).
+  :func:`serial.serial_for_url` (handled by :mod:`data_synth.urlhandler.protocol_psminisim`).
 - :class:`SimulatedCapture` looks like :class:`cv2.VideoCapture` to :class:`~psmini.rig.camera.RigCamera`:
   640×480 BGR frames whose centre 400×400 is :func:`data_synth.rig.render_capture`'s image for the lit LED
   (each LED rendered once and cached), delayed by a driver queue of ``buffer_frames`` frames like a webcam's.
@@ -21,6 +21,7 @@ Faults (:data:`FAULTS`), starting after ``fault_after`` command lines (device) o
 
 from __future__ import annotations
 
+import argparse
 import collections
 import itertools
 import logging
@@ -49,6 +50,7 @@ from psmini.rig.protocol import (
 )
 
 __all__ = [
+    "simulated_capture",
     "FAULTS",
     "DEVICE_FAULTS",
     "CAMERA_FAULTS",
@@ -637,3 +639,33 @@ class SimulatedRig:
 
     def __exit__(self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None) -> None:
         self.close()
+
+
+def simulated_capture(args: argparse.Namespace) -> dict:
+    """``psmini capture --simulate``: capture the card, then the fabric, on a :class:`SimulatedRig`; write OUT.
+
+    Args:
+        args: the parsed ``psmini capture`` command line (``out``, ``fabric``, ``seed``, ``size``, ``fault``,
+            ``pixel_pitch``, ``frames``, timeouts, ``overwrite``).
+
+    Returns:
+        the command's summary (``out``, ``kind``, ``leds``, ``firmware``, ``simulated``, ``fabric``, ``camera``).
+    """
+    from data_synth import CARD_ALBEDO
+    from psmini.rig import CaptureSession, LEDController, RigCamera, write_with_card
+
+    with SimulatedRig(args.fabric, args.seed, args.size, fault=args.fault, pixel_pitch_mm=args.pixel_pitch) as rig, \
+            LEDController(rig.port, handshake_timeout_s=args.handshake_timeout,
+                          command_timeout_s=args.command_timeout) as leds, \
+            RigCamera(0, open_capture=rig.open_capture, frame_size=rig.frame_size, crop_size=rig.size) as camera:
+        session = CaptureSession(leds, camera, rig.lights, pixel_pitch_mm=rig.pixel_pitch_mm,
+                                 frames_per_led=args.frames, metadata={"simulated": True, "fault": args.fault})
+        rig.place("card")
+        card = session.acquire("flatfield")
+        rig.place("sample")
+        sample = session.acquire("sample")
+        render = rig.scene.render("sample")
+        write_with_card(args.out, session, sample, card, card_albedo=CARD_ALBEDO, gt=render["gt"],
+                        metadata={"fabric": render["fabric"], "seed": args.seed}, overwrite=args.overwrite)
+        return {"out": str(args.out), "kind": "sample", "leds": leds.led_count, "firmware": str(leds.identity),
+                "simulated": True, "fabric": args.fabric, "camera": camera.report}

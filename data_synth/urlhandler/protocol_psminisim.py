@@ -1,6 +1,6 @@
-"""``psminisim://`` for :func:`serial.serial_for_url`: a :class:`~psmini.rig.simulator.SimulatedDevice` as a port.
+"""``psminisim://`` for :func:`serial.serial_for_url`: a :class:`~data_synth.simulated_rig.SimulatedDevice` as a port.
 
-``psminisim://NAME`` reaches a device served with :func:`psmini.rig.simulator.serve_url`;
+``psminisim://NAME`` reaches a device served with :func:`data_synth.simulated_rig.serve_url`;
 ``psminisim://?leds=8&fault=garbage&after=4`` makes a fresh one. Opening the port resets the device (as DTR
 resets a Nano); an unplugged device makes reads and writes fail as a pulled cable does.
 """
@@ -23,7 +23,7 @@ class Serial(SerialBase):
         super().__init__(*args, **kwargs)
 
     def open(self) -> None:
-        from psmini.rig.simulator import device_for_url
+        from data_synth.simulated_rig import device_for_url
 
         if self.is_open:
             raise SerialException("port already open")

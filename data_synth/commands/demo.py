@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shutil
 import tempfile
 import time
 from pathlib import Path
 
-from psmini.commands._common import add_device_flag, add_json_flag, emit_json, resolve_device
+from psmini.commands._common import add_config_flags, add_json_flag, config_from_args, emit_json
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -28,9 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--fabric", choices=list(FABRICS), default="jute", help="fabric to synthesise (default: jute)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the fabric and the noise (default: 0)")
     parser.add_argument("--size", type=int, default=400, help="side of the square crop, pixels (default: 400)")
-    parser.add_argument("--light-model", choices=["near", "distant"], default="near",
-                        help="light model of the written reconstruction (default: near)")
-    add_device_flag(parser)
+    add_config_flags(parser)
     add_json_flag(parser)
     parser.set_defaults(run=run)
 
@@ -55,11 +54,12 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from data_synth.rig import write_synthetic_capture
+    from psmini.evaluation import score_reconstruction
     from psmini.io import load_sample, write_outputs
-    from psmini.metrics import mean_angular_error
     from psmini.pipeline import reconstruct
 
-    device = resolve_device(args.device)
+    config = config_from_args(args)
+    classical = dataclasses.replace(config, solver="distant", estimator="auto", near={})
     out: Path = args.out
     replace = _is_previous_demo(out)
     start = time.perf_counter()
@@ -72,18 +72,17 @@ def run(args: argparse.Namespace) -> int:
         sample = load_sample(sample_dir)
         progress.update()
         progress.set_postfix_str("reconstructing")
-        gt_mask = sample.gt_mask if sample.gt_mask is not None else sample.mask
-        mask = None if gt_mask is None else gt_mask.unsqueeze(0).to(device)
-        results, errors = {}, {}
-        for model in ("distant", "near"):
-            results[model] = reconstruct(sample, device=device, light_model=model)
-            truth = sample.normals_gt.unsqueeze(0).to(results[model].normals)
-            errors[model] = float(mean_angular_error(results[model].normals, truth, mask)[0])
-        result, error = results[args.light_model], errors[args.light_model]
+        resolved = config.resolved(sample.lights, sample.mask is not None)
+        result = reconstruct(sample, config)
+        scores = score_reconstruction(result, sample)  # the one scoring rule, as `psmini evaluate` has it
+        baseline = score_reconstruction(reconstruct(sample, classical), sample)
+        error = scores["mean_angular_error_deg"]
+        errors = {resolved.solver: error, "distant (classical)": baseline["mean_angular_error_deg"]}
         progress.update()
         progress.set_postfix_str("writing")
         metadata = {"demo": True, "fabric": args.fabric, "seed": args.seed, "size": args.size,
-                    "light_model": args.light_model, "mean_angular_error_deg": error}
+                    "config": resolved.to_dict(), "scores": scores,
+                    "classical_mean_angular_error_deg": baseline["mean_angular_error_deg"]}
         written = write_outputs(out, result, pixel_pitch_mm=sample.pixel_pitch_mm, metadata=metadata,
                                 overwrite=replace)
         # keep the synthetic capture beside the results, so that `psmini reconstruct` can be tried on it
@@ -94,15 +93,16 @@ def run(args: argparse.Namespace) -> int:
     print(f"  {out / 'capture' / args.fabric}  (8 LED images, dark frame, gt/)")
     print(f"  {out / 'capture' / 'card'}  (flat-field card)")
     method = {"near": "near-light photometric stereo with the rig's LEDs",
-              "distant": "distant lights: flat-field, least squares, Frankot-Chellappa"}[args.light_model]
-    print(f"reconstructed ({method}) and wrote:")
+              "distant": "distant lights: flat-field, least squares"}[resolved.solver]
+    print(f"reconstructed ({method}, {resolved.integrator} integration) and wrote:")
     for path in written:
         print(f"  {path}")
-    print(f"mean angular error against ground truth over the cloth: near light {errors['near']:.2f} deg, "
-          f"distant lights {errors['distant']:.2f} deg; total {elapsed:.1f} s")
+    print(f"mean angular error against ground truth over the cloth ({scores['pixels']} pixels, "
+          f"{scores['unsolved_pixels']} unsolved): {resolved.solver} light {error:.2f} deg; the classical "
+          f"distant-light pipeline {baseline['mean_angular_error_deg']:.2f} deg; total {elapsed:.1f} s")
     if args.json:
         emit_json({"fabric": args.fabric, "out": str(out), "files": [str(p) for p in written],
                    "capture": str(out / "capture" / args.fabric), "mean_angular_error_deg": error,
-                   "light_model": args.light_model, "errors_deg": errors,
-                   "time_s": elapsed})
+                   "solver": resolved.solver, "config": resolved.to_dict(), "errors_deg": errors,
+                   "scores": scores, "time_s": elapsed})
     return 0

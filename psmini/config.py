@@ -1,0 +1,205 @@
+"""One configuration of a reconstruction: built once by every entry point, passed on unchanged, written with results.
+
+:class:`ReconstructionConfig` says everything that decides a reconstruction besides the data: which solver
+(distant or near light), which normal estimator with which options, which integrator with which options, the
+near-light options, the flat-field threshold, device and dtype. ``psmini reconstruct``, ``evaluate``, ``batch``
+and ``demo`` build it from the same flags (:func:`psmini.commands._common.config_from_args`), the Python entry
+points (:func:`psmini.reconstruct`, :func:`psmini.evaluate_sample`, :func:`psmini.batch.reconstruct_dataset`,
+:class:`psmini.PhotometricStereo`) take it as it is, and every output folder's ``outputs.json`` and every batch
+summary records :meth:`ReconstructionConfig.to_dict` of the resolved configuration, so a result says how it was made.
+
+A bad configuration (an unknown solver or estimator, options of another integrator, near light asked of
+directional lights) raises :class:`~psmini.errors.InputError` when it is built or resolved, before any work.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from psmini.errors import InputError
+from psmini.integrate import METHODS as INTEGRATION_METHODS
+from psmini.lights import LightModel
+from psmini.nearlight import near_light_photometric_stereo
+from psmini.robust import ROBUST_METHODS
+
+__all__ = ["SOLVERS", "ESTIMATORS", "ReconstructionConfig"]
+
+#: ``auto`` picks ``near`` for light models with positions (point lights, LEDs) and ``distant`` for directions.
+SOLVERS = ("auto", "distant", "near")
+
+#: Normal estimators: ``auto`` (the solver's own: least squares for distant lights, the near solver's shadow- and
+#: highlight-rejecting least squares for near ones), ``lstsq``, the robust estimators of :mod:`psmini.robust`
+#: (``robust`` names the recommended one) and ``nonlambertian`` (:mod:`psmini.nonlambertian`); all but ``auto``
+#: are distant-light estimators.
+ESTIMATORS = ("auto", "lstsq", "robust") + ROBUST_METHODS + ("nonlambertian",)
+
+_DTYPES = {"float32": torch.float32, "float64": torch.float64}
+# options of the near solver that the pipeline itself supplies (from the sample and the other fields)
+_NEAR_SUPPLIED = {"images", "light_model", "pixel_pitch_mm", "reference", "dark", "reference_dark", "card_albedo",
+                  "mask", "saturation_level", "min_reference", "integrator"}
+# options of an integrator that the pipeline itself supplies
+_INTEGRATOR_SUPPLIED = {"p", "q", "pixel_pitch_mm", "mask"}
+
+
+def _accepted(func: Any, supplied: set[str]) -> set[str]:
+    return set(inspect.signature(func).parameters) - supplied
+
+
+@dataclass(frozen=True)
+class ReconstructionConfig:
+    """Everything that decides a reconstruction; built once, passed on unchanged, written with every result.
+
+    Attributes:
+        solver: ``"auto"``, ``"distant"`` or ``"near"`` (:data:`SOLVERS`). ``auto`` lets the light model decide:
+            point and LED models (their positions known) → near-light photometric stereo; directions → the
+            classical distant-light pipeline.
+        estimator: normal estimator, one of :data:`ESTIMATORS` (default ``auto``: least squares for distant
+            lights, the near solver's own robust least squares for near ones).
+        estimator_options: keyword options of the estimator (:func:`psmini.robust.robust_normals` for the robust
+            ones), checked against it.
+        integrator: ``"auto"`` or a name of :data:`psmini.integrate.METHODS`. ``auto``: masked least squares when
+            the sample has a mask or the solver is near (the unsolved crevices of cloth are holes in the domain),
+            Frankot–Chellappa over the full rectangle otherwise.
+        integrator_options: keyword options of that integrator, checked against it (so options of another
+            integrator are refused).
+        near: keyword options of the near-light solver (:func:`psmini.nearlight.near_light_photometric_stereo`,
+            e.g. ``max_iterations``, ``card_height_mm``), checked against it.
+        min_reference: card pixels darker than this fraction of the LED's brightest card pixel are not trusted
+            (:func:`psmini.flatfield.flatfield`).
+        device: where to compute (``"cpu"``, ``"cuda"``, ``"cuda:1"``).
+        dtype: ``"float32"`` or ``"float64"``.
+
+    Raises:
+        InputError: an unknown solver, estimator, integrator or dtype; options the named method does not take;
+            an estimator other than ``auto`` with the near solver.
+
+    Example:
+        >>> config = ReconstructionConfig(estimator="robust")
+        >>> config.to_dict()["estimator"]
+        'robust'
+        >>> ReconstructionConfig.from_dict(config.to_dict()) == config
+        True
+    """
+
+    solver: str = "auto"
+    estimator: str = "auto"
+    estimator_options: Mapping[str, Any] = field(default_factory=dict)
+    integrator: str = "auto"
+    integrator_options: Mapping[str, Any] = field(default_factory=dict)
+    near: Mapping[str, Any] = field(default_factory=dict)
+    min_reference: float = 0.02
+    device: str = "cpu"
+    dtype: str = "float32"
+
+    def __post_init__(self) -> None:
+        self._check_name("solver", self.solver, SOLVERS)
+        self._check_name("estimator", self.estimator, ESTIMATORS)
+        self._check_name("integrator", self.integrator, ("auto",) + tuple(sorted(INTEGRATION_METHODS)))
+        self._check_name("dtype", self.dtype, tuple(_DTYPES))
+        if self.solver == "near" and self.estimator != "auto":
+            raise InputError(f"estimator {self.estimator!r} is for distant lights; the near-light solver has its own "
+                             "(leave estimator='auto')")
+        if not (isinstance(self.min_reference, (int, float)) and 0 <= self.min_reference < 1):
+            raise InputError(f"min_reference must be a number in [0, 1), got {self.min_reference!r}")
+        try:
+            torch.device(self.device)
+        except (RuntimeError, TypeError) as error:
+            raise InputError(f"device must name a torch device (cpu, cuda, cuda:1), got {self.device!r}") from error
+        self._check_options("integrator_options", self.integrator_options, self._integrators(), _INTEGRATOR_SUPPLIED)
+        if self.estimator_options:
+            if self.estimator in ("auto", "lstsq", "nonlambertian"):
+                raise InputError(f"estimator {self.estimator!r} takes no options, got {sorted(self.estimator_options)}")
+            from psmini.robust import robust_normals
+
+            self._check_options("estimator_options", self.estimator_options, [robust_normals],
+                                {"intensities", "lights", "method", "mask", "weights"})
+        self._check_options("near", self.near, [near_light_photometric_stereo], _NEAR_SUPPLIED)
+        if self.near and self.solver == "distant":
+            raise InputError(f"near-light options {sorted(self.near)} were given but the solver is 'distant'")
+
+    @staticmethod
+    def _check_name(what: str, value: Any, allowed: tuple[str, ...]) -> None:
+        if value not in allowed:
+            raise InputError(f"{what} must be one of {', '.join(allowed)}, got {value!r}")
+
+    def _integrators(self) -> list[Any]:
+        if self.integrator == "auto":  # options must suit every integrator auto may pick
+            return [INTEGRATION_METHODS["masked"], INTEGRATION_METHODS["fc"]]
+        return [INTEGRATION_METHODS[self.integrator]]
+
+    @staticmethod
+    def _check_options(what: str, options: Any, funcs: list[Any], supplied: set[str]) -> None:
+        if not isinstance(options, Mapping):
+            raise InputError(f"{what} must be a mapping of keyword options, got {type(options).__name__}")
+        for func in funcs:
+            unknown = sorted(set(options) - _accepted(func, supplied))
+            if unknown:
+                raise InputError(f"{what}: {func.__name__} takes {sorted(_accepted(func, supplied))}, got unknown "
+                                 f"{unknown}")
+
+    @property
+    def torch_dtype(self) -> torch.dtype:
+        """The torch dtype of :attr:`dtype`."""
+        return _DTYPES[self.dtype]
+
+    def solver_for(self, lights: LightModel) -> str:
+        """The solver that runs for ``lights``: ``"near"`` or ``"distant"``.
+
+        Raises:
+            InputError: ``"near"`` asked of a light model without positions (directional lights).
+
+        Example:
+            >>> from psmini.lights import DirectionalLights, ring_lights
+            >>> ReconstructionConfig().solver_for(DirectionalLights(ring_lights(8, 55.0)))
+            'distant'
+        """
+        if not isinstance(lights, LightModel):
+            raise InputError(f"lights must be a psmini LightModel, got {type(lights).__name__}")
+        if self.solver == "auto":
+            return "near" if lights.is_near else "distant"
+        if self.solver == "near" and not lights.is_near:
+            raise InputError(f"the near-light solver needs light positions (a point or LED model); the lights are "
+                             f"{type(lights).__name__} (give solver='distant', or a lights file with positions)")
+        return self.solver
+
+    def integrator_for(self, solver: str, has_mask: bool) -> str:
+        """The integrator that runs: :attr:`integrator`, or for ``auto`` masked least squares with a mask or near
+        light and Frankot–Chellappa otherwise."""
+        if self.integrator != "auto":
+            return self.integrator
+        return "masked" if has_mask or solver == "near" else "fc"
+
+    def resolved(self, lights: LightModel, has_mask: bool) -> ReconstructionConfig:
+        """This configuration with ``auto`` replaced by what runs for ``lights`` (what results record).
+
+        Example:
+            >>> from psmini.lights import LEDLights, ring_lights
+            >>> ring = ring_lights(8, 58.0)
+            >>> resolved = ReconstructionConfig().resolved(LEDLights(ring * 18.6, -ring), has_mask=False)
+            >>> resolved.solver, resolved.integrator
+            ('near', 'masked')
+        """
+        solver = self.solver_for(lights)
+        estimator = self.estimator if self.estimator != "auto" else ("lstsq" if solver == "distant" else "auto")
+        return dataclasses.replace(self, solver=solver, estimator=estimator,
+                                   integrator=self.integrator_for(solver, has_mask))
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-ready dict of every field (what ``outputs.json`` and batch summaries record)."""
+        return {f.name: (dict(getattr(self, f.name)) if isinstance(getattr(self, f.name), Mapping)
+                         else getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> ReconstructionConfig:
+        """The configuration of :meth:`to_dict`'s dict (unknown keys raise :class:`InputError`)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise InputError(f"a reconstruction configuration has the keys {sorted(names)}, got unknown {unknown}")
+        return cls(**data)
