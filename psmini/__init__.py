@@ -46,7 +46,7 @@ from psmini.pipeline import NORMAL_ESTIMATORS, PhotometricStereo, Reconstruction
 # psmini.render is the function once the package is imported; reach the module by `from psmini.render import ...`
 from psmini.render import Renderer, cast_shadows, normals_from_height, render, render_lambertian
 from psmini.calibration import calibrate_sphere, card_reference, triangulate_leds
-from psmini.ledcal import LEDFit, fit_leds
+from psmini.ledcal import LEDFit, LEDFitOptions, fit_leds
 
 __all__ = [
     "__version__",
@@ -121,6 +121,7 @@ __all__ = [
     # LED calibration from card images
     "fit_leds",
     "LEDFit",
+    "LEDFitOptions",
     # calibration
     "calibrate_sphere",
     "triangulate_leds",

@@ -51,6 +51,7 @@ from psmini.lights import DirectionalLights, LEDLights, PointLights, lights_from
 
 __all__ = [
     "LEDFit",
+    "LEDFitOptions",
     "fit_leds",
     "nominal_leds",
     "card_shading",
@@ -466,6 +467,57 @@ def _run_stage(stage: str, unknowns: _Unknowns, data: tuple[Tensor, Tensor, Tens
     return record
 
 
+@dataclass(frozen=True)
+class LEDFitOptions:
+    r"""Options of :func:`fit_leds`; the defaults are those ``benchmarks/nearlight.py`` measures.
+
+    Attributes:
+        nominal_distance_mm: distance from the field centre at which directional starts place the LEDs
+            (``None``: the nominal rig's, 18.7 mm).
+        mu_init: :math:`\mu` of starts that have none (point or directional lights).
+        max_size: the images are averaged over square blocks down to at most this many pixels a side.
+        huber_delta: Huber threshold, as a fraction of the mean card reading.
+        optimizer: ``"lbfgs"`` (strong Wolfe line search; default) or ``"adam"``.
+        iterations: maximum optimiser iterations (L-BFGS iterations or Adam steps) of the ``point`` and ``led``
+            stages.
+        learning_rate: Adam's step size (unused by L-BFGS).
+        tolerance: L-BFGS stops a stage when the loss changes by less than this relative amount in one step.
+
+    Raises:
+        InputError: an unknown optimizer, ``max_size`` < 2, a non-positive ``huber_delta`` or
+            ``nominal_distance_mm``, or iterations that are not one count >= 0 per stage.
+
+    Example:
+        >>> LEDFitOptions(iterations=(50, 50)).to_dict()["iterations"]
+        [50, 50]
+    """
+
+    nominal_distance_mm: float | None = None
+    mu_init: float = 1.0
+    max_size: int = 32
+    huber_delta: float = 0.05
+    optimizer: str = "lbfgs"
+    iterations: tuple[int, int] = (200, 400)
+    learning_rate: float = 0.01
+    tolerance: float = 1e-10
+
+    def __post_init__(self) -> None:
+        if self.optimizer not in ("lbfgs", "adam"):
+            raise InputError(f"optimizer must be 'lbfgs' or 'adam', got {self.optimizer!r}")
+        if not isinstance(self.max_size, int) or self.max_size < 2:
+            raise InputError(f"max_size must be an integer >= 2, got {self.max_size!r}")
+        check_positive(self.huber_delta, "huber_delta")
+        if len(self.iterations) != len(STAGES) or any(not isinstance(n, int) or n < 0 for n in self.iterations):
+            raise InputError(
+                f"iterations must hold {len(STAGES)} counts >= 0 (stages {STAGES}), got {self.iterations!r}")
+        if self.nominal_distance_mm is not None:
+            check_positive(self.nominal_distance_mm, "nominal_distance_mm")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The options as a JSON-ready dict."""
+        return {**{f: getattr(self, f) for f in self.__dataclass_fields__}, "iterations": list(self.iterations)}
+
+
 def fit_leds(
     card_images: Tensor | Sequence[Tensor],
     heights_mm: float | Sequence[float] | Tensor,
@@ -475,23 +527,16 @@ def fit_leds(
     card_albedo: float | Sequence[float] = 1.0,
     dark: Tensor | Sequence[Tensor | None] | None = None,
     saturation_level: float | None = None,
-    nominal_distance_mm: float | None = None,
-    mu_init: float = 1.0,
-    max_size: int = 32,
-    huber_delta: float = 0.05,
-    optimizer: str = "lbfgs",
-    iterations: tuple[int, int] = (200, 400),
-    learning_rate: float = 0.01,
-    tolerance: float = 1e-10,
+    options: LEDFitOptions | None = None,
 ) -> LEDFit:
     r"""Fit LED positions, principal directions, intensities and :math:`\mu` to images of a matte card.
 
     The camera's per-pixel gain × vignetting is eliminated in closed form (see the module's docstring), so the
     result does not depend on it, and intensities are relative: they are scaled to average 1. Two stages, each
     started from the previous: ``point`` (positions and intensities, the beams held at the start's) and ``led``
-    (every parameter). Each stage runs up to ``iterations`` optimiser iterations; L-BFGS (the default) projects onto
+    (every parameter). Each stage runs up to ``options.iterations`` optimiser iterations; L-BFGS (the default) projects onto
     the constraints every 20 iterations and stops when the loss no longer changes, Adam projects after every step. The fit runs in float64 on the images' device, on images averaged down to at most
-    ``max_size`` pixels a side.
+    ``options.max_size`` pixels a side.
 
     Args:
         card_images: the card under each LED at N heights: shape :math:`(N, K, H, W)` or a list of N
@@ -501,8 +546,8 @@ def fit_leds(
         init: the start. ``"nominal"`` (the psmini rig: K LEDs on a 31.6 mm ring, 10 mm up, pointing at the
             field centre, :math:`\mu = 1`); an object with ``ring_diameter_mm`` and ``led_height_mm`` (such as
             ``data_synth.rig.RigConfig``); an ``LEDLights`` or ``PointLights`` (positions; point lights get beams
-            toward the field centre and ``mu_init``); a ``DirectionalLights`` or a :math:`(K, 3)` tensor of
-            directions (a mirror-sphere calibration: positions along them at ``nominal_distance_mm``); or a light
+            toward the field centre and ``options.mu_init``); a ``DirectionalLights`` or a :math:`(K, 3)` tensor of
+            directions (a mirror-sphere calibration: positions along them at ``options.nominal_distance_mm``); or a light
             object of ``docs/capture-format.md``.
         card_albedo: the card's albedo, or one per height when different cards were used (only ratios between
             heights matter: one overall scale goes into the gain).
@@ -512,16 +557,8 @@ def fit_leds(
             ``1.0`` for images decoded from 8- or 16-bit files: a clipped reading looks darker than the LED
             really is, and about 1% of clipped 8-bit card readings near the field's edge pulled the fitted
             positions 2.1 mm off (``psmini calibrate leds`` passes it).
-        nominal_distance_mm: distance from the field centre at which directional starts place the LEDs
-            (default: the nominal rig's, 18.7 mm).
-        mu_init: :math:`\mu` of starts that have none (point or directional lights).
-        max_size: the images are averaged over square blocks down to at most this many pixels a side.
-        huber_delta: Huber threshold, as a fraction of the mean card reading.
-        optimizer: ``"lbfgs"`` (strong Wolfe line search; default) or ``"adam"``.
-        iterations: maximum optimiser iterations (L-BFGS iterations or Adam steps) of the ``point`` and ``led``
-            stages.
-        learning_rate: Adam's step size (unused by L-BFGS).
-        tolerance: L-BFGS stops a stage when the loss changes by less than this relative amount in one step.
+        options: the :class:`LEDFitOptions` (start distance and mu, pooling, Huber threshold, optimiser,
+            iterations); ``None``: the defaults.
 
     Returns:
         an :class:`LEDFit`.
@@ -538,29 +575,26 @@ def fit_leds(
         >>> config = RigConfig(size=40, pixel_pitch_mm=0.25, noise=False, bit_depth=16)
         >>> cards = [render_card(config, height_mm=h) for h in (0.0, 1.0)]
         >>> images, dark = torch.stack([c.images for c in cards]), torch.stack([c.dark for c in cards])
-        >>> fit = fit_leds(images, [0.0, 1.0], 0.25, dark=dark, saturation_level=1.0, iterations=(50, 50))
+        >>> fit = fit_leds(images, [0.0, 1.0], 0.25, dark=dark, saturation_level=1.0,
+        ...                options=LEDFitOptions(iterations=(50, 50)))
         >>> fit.positions_mm.shape, fit.residual_rms < 1e-3
         (torch.Size([8, 3]), True)
     """
+    options = LEDFitOptions() if options is None else options
+    if not isinstance(options, LEDFitOptions):
+        raise InputError(f"options must be an LEDFitOptions, got {type(options).__name__}")
     images = _stack_images(card_images)
     count, leds, height, width = images.shape
     pitch = check_positive(pixel_pitch_mm, "pixel_pitch_mm")
     heights = _per_height(heights_mm, count, "heights_mm", positive=False)
     albedo = _per_height(card_albedo, count, "card_albedo", positive=True)
-    if optimizer not in ("lbfgs", "adam"):
-        raise InputError(f"optimizer must be 'lbfgs' or 'adam', got {optimizer!r}")
-    if not isinstance(max_size, int) or max_size < 2:
-        raise InputError(f"max_size must be an integer >= 2, got {max_size!r}")
-    check_positive(huber_delta, "huber_delta")
-    if len(iterations) != len(STAGES) or any(not isinstance(s, int) or s < 0 for s in iterations):
-        raise InputError(f"iterations must hold {len(STAGES)} counts >= 0 (stages {STAGES}), got {iterations!r}")
     if count * leds < 2:
         raise CalibrationError(f"the fit needs at least two card images in all (the gain absorbs one), got {count * leds}")
     check_finite(images, "card_images")
     dark_frames = _stack_dark(dark, images)
-    distance = nominal_distance_mm if nominal_distance_mm is not None else math.hypot(
+    distance = options.nominal_distance_mm if options.nominal_distance_mm is not None else math.hypot(
         NOMINAL_RING_DIAMETER_MM / 2, NOMINAL_LED_HEIGHT_MM)
-    lights = _start_lights(init, leds, check_positive(distance, "nominal_distance_mm"), mu_init)
+    lights = _start_lights(init, leds, distance, options.mu_init)
     start = LEDLights(*(t.detach().clone() for t in (lights.positions_mm, lights.principal_directions,
                                                      lights.intensities, lights.mu)))
 
@@ -574,7 +608,7 @@ def fit_leds(
     work = work / albedo.to(device)[:, None, None, None]
     _check_signal(work, valid)
 
-    pooled, pooled_valid, centres = _downsample(work, valid, pitch, max_size)
+    pooled, pooled_valid, centres = _downsample(work, valid, pitch, options.max_size)
     scale = pooled[pooled_valid].mean()
     pooled = pooled / scale
     size = pooled.shape[-2:]
@@ -583,8 +617,9 @@ def fit_leds(
     weights = pooled_valid.to(torch.float64)
     unknowns = _Unknowns(lights).to(device)
     data = (pooled, points, weights)
-    records = [_run_stage(stage, unknowns, data, huber_delta, max_steps, optimizer, learning_rate, tolerance)
-               for stage, max_steps in zip(STAGES, iterations)]
+    records = [_run_stage(stage, unknowns, data, options.huber_delta, max_steps, options.optimizer,
+                          options.learning_rate, options.tolerance)
+               for stage, max_steps in zip(STAGES, options.iterations)]
     with torch.no_grad():
         lights = unknowns.lights()
     return _result(lights, data, float(scale), heights, start, records, images.dtype)

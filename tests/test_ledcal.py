@@ -20,6 +20,7 @@ from psmini.ledcal import (
     card_loss,
     card_shading,
     eliminate_gain,
+    LEDFitOptions,
     fit_leds,
     nominal_leds,
 )
@@ -122,8 +123,8 @@ class TestFitLeds(BaseTester):
     def test_directional_start_places_leds_at_the_nominal_distance(self):
         images, dark = _cards(CLEAN.replace(size=16, pixel_pitch_mm=10.0 / 16))
         directions = torch.tensor([[math.cos(a), math.sin(a), 1.0] for a in torch.arange(8) * math.pi / 4])
-        fit = fit_leds(images - dark, HEIGHTS, 10.0 / 16, DirectionalLights(directions), iterations=(0, 0),
-                       nominal_distance_mm=20.0)
+        fit = fit_leds(images - dark, HEIGHTS, 10.0 / 16, DirectionalLights(directions),
+                       options=LEDFitOptions(iterations=(0, 0), nominal_distance_mm=20.0))
         expected = directions / directions.norm(dim=-1, keepdim=True) * 20.0
         self.assert_close(fit.start.positions_mm, expected, atol=1e-5, rtol=0)
         self.assert_close(fit.start.principal_directions, -expected / 20.0, atol=1e-6, rtol=0)
@@ -137,7 +138,7 @@ class TestFitLeds(BaseTester):
 
     def test_cuda(self, cuda_device):
         images, dark = _cards(CLEAN.replace(size=16, pixel_pitch_mm=10.0 / 16))
-        fit = fit_leds(images.to(cuda_device) - dark.to(cuda_device), HEIGHTS, 10.0 / 16, iterations=(5, 5))
+        fit = fit_leds(images.to(cuda_device) - dark.to(cuda_device), HEIGHTS, 10.0 / 16, options=LEDFitOptions(iterations=(5, 5)))
         assert fit.positions_mm.device.type == "cuda" and fit.gain.device.type == "cuda"
 
 
@@ -182,7 +183,7 @@ class TestErrors:
         with pytest.raises(ShapeError, match="dark"):
             fit_leds(self.images, HEIGHTS, 1.0, dark=torch.zeros(3, 1, 8, 8))
         with pytest.raises(InputError, match="optimizer"):
-            fit_leds(self.images, HEIGHTS, 1.0, optimizer="sgd")
+            fit_leds(self.images, HEIGHTS, 1.0, options=LEDFitOptions(optimizer="sgd"))
         with pytest.raises(CalibrationError, match="above the card plane"):
             fit_leds(self.images, HEIGHTS, 1.0, LEDLights(-nominal_leds(8).positions_mm, nominal_leds(8).positions_mm))
         with pytest.raises(InputError, match="init must be"):

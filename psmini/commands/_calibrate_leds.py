@@ -92,7 +92,7 @@ def run_leds(args: argparse.Namespace) -> int:
     import torch
 
     from psmini.io.lightsfile import write_lights_file
-    from psmini.ledcal import fit_leds, nominal_leds
+    from psmini.ledcal import LEDFitOptions, fit_leds, nominal_leds
 
     device = resolve_device(args.device)
     captures, heights = _load_cards(list(args.dirs), args.heights_mm)
@@ -104,8 +104,9 @@ def run_leds(args: argparse.Namespace) -> int:
     dark = [None if capture.dark is None else capture.dark.to(device) for capture in captures]
     start = time.perf_counter()
     fit = fit_leds(images, heights, captures[0].pixel_pitch_mm, init, card_albedo=[c.card_albedo for c in captures],
-                   dark=dark, saturation_level=1.0, nominal_distance_mm=args.nominal_distance_mm,
-                   max_size=args.max_size, optimizer=args.optimizer)
+                   dark=dark, saturation_level=1.0,
+                   options=LEDFitOptions(nominal_distance_mm=args.nominal_distance_mm, max_size=args.max_size,
+                                         optimizer=args.optimizer))
     elapsed = time.perf_counter() - start
     record = fit.to_dict()
     leds = [{"name": f"led_{k}", "residual_rms": record["residuals"]["per_led"][k]} for k in range(count)]

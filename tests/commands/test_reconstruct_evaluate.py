@@ -74,3 +74,47 @@ def test_evaluate_without_ground_truth_fails_cleanly(tmp_path, capsys):
             (copy / item.name).symlink_to(item)
     assert main(["evaluate", str(copy)]) == 1
     assert "ground-truth normals" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("flags", "match"),
+    [
+        (["--integrator", "fc", "--integrator-option", "iterations=3"], "frankot_chellappa takes"),
+        (["--light-model", "near", "--estimator", "tukey"], "near-light solver has its own"),
+        (["--light-model", "distant", "--near-option", "max_iterations=2"], "solver is 'distant'"),
+        (["--near-option", "max_iterations"], "KEY=VALUE"),
+    ],
+)
+@pytest.mark.parametrize("command", ["reconstruct", "evaluate", "batch"])
+def test_bad_configuration_fails_before_any_work(tmp_path, capsys, command, flags, match):
+    """A bad configuration is refused with one named error before the folder is even looked at."""
+    out = ["--out", str(tmp_path / "out")] if command != "evaluate" else []
+    assert main([command, str(tmp_path / "nowhere"), *out, *flags]) == 1
+    err = capsys.readouterr().err
+    assert match.split()[0] in err and "nowhere" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_near_light_asked_of_directional_lights_fails(tmp_path, capsys):
+    """DiLiGenT's lights are directions: near light is refused, naming what is missing."""
+    folder = shared_data("DiLiGenT", "ball")
+    assert main(["evaluate", str(folder), "--light-model", "near"]) == 1
+    assert "needs light positions" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_diligent_from_python_without_pitch_is_in_pixels_over_the_mask():
+    """DiLiGenT has no pixel pitch: depth in pixel units, integrated over the object's outline only."""
+    from psmini.config import ReconstructionConfig
+    from psmini.io import load_sample
+    from psmini.pipeline import reconstruct
+
+    sample = load_sample(shared_data("DiLiGenT", "cat"))
+    assert sample.pixel_pitch_mm is None
+    result = reconstruct(sample)
+    assert ReconstructionConfig().resolved(sample.lights, True).integrator == "masked"
+    outside = ~sample.mask.bool().unsqueeze(0)
+    assert float(result.depth[outside].abs().max()) == 0.0  # nothing integrated off the outline
+    inside = result.depth[~outside]
+    # the cat stands a few hundred pixels deep (its outline is ~400 px tall), not the ~2 mm a made-up pitch gave
+    assert 20.0 < float(inside.max() - inside.min()) < 400.0
