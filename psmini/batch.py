@@ -61,8 +61,8 @@ logger = logging.getLogger(__name__)
 OUTPUT_KINDS = ("normals", "albedo", "depth", "ply")
 #: Columns of ``summary.csv`` (and keys of each entry of ``summary.json``'s ``samples``).
 SUMMARY_FIELDS = (
-    "sample", "status", "time_s", "decode_s", "compute_s", "write_s", "batch_size", "mean_angular_error_deg",
-    "median_angular_error_deg", "depth_rmse_mm", "depth_mae_mm", "error",
+    "sample", "status", "solver", "time_s", "decode_s", "compute_s", "write_s", "batch_size", "mean_angular_error_deg",
+    "median_angular_error_deg", "unsolved_share", "depth_rmse_mm", "depth_mae_mm", "error",
 )
 _MARKER = "outputs.json"
 
@@ -74,6 +74,7 @@ class BatchRecord:
     Attributes:
         sample: the sample folder relative to the root (its output folder relative to ``out``).
         status: ``"done"`` (reconstructed in this run), ``"skipped"`` (finished by an earlier run) or ``"failed"``.
+        solver: the solver that ran (``"near"`` or ``"distant"``, as the configuration resolved for its lights).
         time_s: decode + its share of the batch computation + write, seconds.
         decode_s, compute_s, write_s: the parts of ``time_s``.
         batch_size: how many samples were solved together with it.
@@ -83,6 +84,7 @@ class BatchRecord:
 
     sample: str
     status: str
+    solver: str = ""
     time_s: float = 0.0
     decode_s: float = 0.0
     compute_s: float = 0.0
@@ -558,8 +560,9 @@ def _previous_record(out: Path, rel: str) -> BatchRecord:
         kept = json.loads((out / rel / _MARKER).read_text(encoding="utf-8")).get("metadata", {}).get("batch", {})
     except (OSError, ValueError):
         kept = {}
-    scores = {k: kept[k] for k in SUMMARY_FIELDS if k.endswith(("_deg", "_mm")) and isinstance(kept.get(k), float)}
-    return BatchRecord(rel, "skipped", scores=scores)
+    scores = {k: kept[k] for k in SUMMARY_FIELDS
+              if k.endswith(("_deg", "_mm", "_share")) and isinstance(kept.get(k), float)}
+    return BatchRecord(rel, "skipped", solver=str(kept.get("solver", "")), scores=scores)
 
 
 def _scores(result: Reconstruction, sample) -> dict[str, float]:
@@ -568,7 +571,8 @@ def _scores(result: Reconstruction, sample) -> dict[str, float]:
     if sample.normals_gt is None:
         return {}
     scores = score_reconstruction(result, sample)
-    return {k: float(v) for k, v in scores.items() if k.endswith(("_deg", "_mm")) and math.isfinite(float(v))}
+    return {k: float(v) for k, v in scores.items()
+            if k.endswith(("_deg", "_mm", "_share")) and math.isfinite(float(v))}
 
 
 def _write_summary(out: Path, records: list[BatchRecord], settings: dict[str, Any]) -> dict[str, Any]:
@@ -705,10 +709,11 @@ def _finish(out: Path, solved: _Solved, settings: _Settings) -> BatchRecord:
         return record
     start = time.perf_counter()
     try:
+        resolved = settings.config.resolved(item.sample.lights, item.sample.mask is not None)
+        record.solver = resolved.solver
         record.scores = _scores(solved.result, item.sample) if settings.score else {}
         record.status, record.error = "done", ""
         record.time_s = item.decode_s + solved.compute_s
-        resolved = settings.config.resolved(item.sample.lights, item.sample.mask is not None)
         _write(out / item.rel, solved.result, item.sample, settings.kinds,
                {"batch": record.row(), "config": resolved.to_dict()})
     except PsminiError as error:

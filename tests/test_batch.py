@@ -193,6 +193,7 @@ class TestCommand:
         assert main(["batch", str(tree), "--light-model", "distant", "--out", str(out), "--workers", "0", "--no-progress", "--json"]) == 1
         report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
         assert report["counts"] == {"done": 3, "skipped": 0, "failed": 1}
+        assert report["solvers"] == ["distant"] and report["config"]["solver"] == "distant"
         assert main(["batch", str(tree / "lotA"), "--light-model", "distant", "--out", str(out / "lotA"), "--workers", "0", "--json"]) == 0
         captured = capsys.readouterr()
         assert json.loads(captured.out.strip().splitlines()[-1])["counts"] == {"done": 0, "skipped": 2, "failed": 0}

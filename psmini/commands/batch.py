@@ -76,5 +76,6 @@ def run(args: argparse.Namespace) -> int:
           f"summary in {args.out / 'summary.csv'} and {args.out / 'summary.json'}")
     if args.json:
         emit_json({"out": str(args.out), "counts": counts, "summary_csv": str(args.out / "summary.csv"),
-                   "summary_json": str(args.out / "summary.json")})
+                   "summary_json": str(args.out / "summary.json"), "config": config.to_dict(),
+                   "solvers": sorted({row["solver"] for row in summary["samples"] if row.get("solver")})})
     return 1 if counts["failed"] else 0
