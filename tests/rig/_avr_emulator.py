@@ -130,6 +130,7 @@ class EmulatedBoard:
         self.pin_events: list[tuple[int, int]] = [(0, 0)]  # (cycle, mask)
         self.rx: list[tuple[int, int]] = []  # bytes the AVR received: (cycle, byte)
         self.tx: list[tuple[int, int]] = []  # bytes the AVR sent
+        self.other_pins: list[tuple[int, str, int]] = []  # writes to pins other than D2..D9: (cycle, pin, value)
         self.opens: list[int] = []
         self.closes: list[int] = []
         self.starts: list[int] = []
@@ -155,6 +156,8 @@ class EmulatedBoard:
                 elif kind in ("K", "A"):
                     self.clock, self.pending = int(fields[0]), int(fields[1])
                     self._answers += kind == "A"
+                elif kind == "U":
+                    self.other_pins.append((int(fields[0]), fields[1], int(fields[2])))
                 elif kind == "O":
                     self.opens.append(int(fields[0]))
                 elif kind == "C":

@@ -13,6 +13,7 @@
  * - The emulated clock never runs ahead of the wall clock (times --speed): timeouts of the host stay meaningful.
  * - Events go to stdout, one line each, stamped with the emulated cycle (16 MHz) since the bridge started:
  *     P <cycle> <mask>           the LED pins D2..D9 (bit i = LED i = D(2+i)) after a change
+ *     U <cycle> <port><bit> <0|1>  any other port pin written (PB2..PB5, PC0..PC5): none should ever be
  *     R <cycle> <hex byte>       a byte fully received by the AVR's UART (its stop bit ended)
  *     T <cycle> <hex byte>       a byte the AVR's UART started to send
  *     O <cycle>                  the host opened the port (the AVR was reset)
@@ -102,6 +103,13 @@ static void pin_changed(struct avr_irq_t *irq, uint32_t value, void *param) {
         pins = next;
         printf("P %llu %u\n", (unsigned long long)now_cycles(), pins);
     }
+}
+
+static void other_pin_changed(struct avr_irq_t *irq, uint32_t value, void *param) {
+    (void)irq;
+    uintptr_t pin = (uintptr_t)param; /* port letter << 8 | bit */
+    printf("U %llu %c%u %u\n", (unsigned long long)now_cycles(), (char)(pin >> 8), (unsigned)(pin & 0xFF),
+           value ? 1u : 0u);
 }
 
 static void uart_output(struct avr_irq_t *irq, uint32_t value, void *param) {
@@ -267,6 +275,16 @@ int main(int argc, char **argv) {
                                 (void *)(uintptr_t)led);
     }
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUTPUT), uart_output, NULL);
+    /* every other port pin (PD0 and PD1 are the UART's RX and TX), so that a stray pin shows */
+    const char *others[] = {"B2345", "C012345"};
+    for (int p = 0; p < 2; p++) {
+        char port = others[p][0];
+        for (const char *bit = others[p] + 1; *bit; bit++) {
+            uintptr_t pin = ((uintptr_t)(unsigned char)port << 8) | (uintptr_t)(*bit - '0');
+            avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ(port), *bit - '0'), other_pin_changed,
+                                    (void *)pin);
+        }
+    }
     for (avr_io_t *io = avr->io_port; io != NULL; io = io->next) {
         if (io->kind != NULL && strcmp(io->kind, "uart") == 0) {
             uart = (avr_uart_t *)io;
