@@ -284,13 +284,15 @@ TWIN_SCENARIOS = {
     "long-line": [("send", b"ON 1\n"), ("send", FAULTS["long-line"]), ("send", b"STATE?\n")],
     "non-ascii": [("send", b"ON 1\n"), ("send", FAULTS["non-ascii"]), ("send", b"STATE?\n")],
     "mid-reply": [("send", b"ON 6\n"), ("mid", b"STATE?\n", b"ON 2\n"), ("send", b"STATE?\n")],
-    "watchdog": [("send", b"WDT 300\n"), ("send", b"ON 4\n"), ("wait", 100), ("send", b"PING\n"), ("wait", 150),
-                 ("wait", 300), ("send", b"STATE?\n"), ("send", b"ALL\n"), ("wait", 400), ("send", b"STATE?\n")],
+    # the twin's clock is the wall clock: margins of 200 ms or more around the 500 ms timeout
+    "watchdog": [("send", b"WDT 500\n"), ("send", b"ON 4\n"), ("wait", 150), ("send", b"PING\n"), ("wait", 250),
+                 ("wait", 500), ("send", b"STATE?\n"), ("send", b"ALL\n"), ("wait", 700), ("send", b"STATE?\n")],
 }
 
 
 def transcript(port: str, steps: list[tuple], settle, pins, wait) -> list[tuple[str, bytes, int]]:
-    """Run ``steps`` on a port: per step, the replies it brought and the LED pins after it."""
+    """Run ``steps`` on a port: per step, the replies it brought (``settle(link)`` reads them once the device
+    is done) and the LED pins after it."""
     result = []
     with open_raw(port) as link:
         result.append(("open", read_line(link), pins()))
@@ -307,20 +309,31 @@ def transcript(port: str, steps: list[tuple], settle, pins, wait) -> list[tuple[
             else:
                 link.write(step[1])
                 got = b""
-            settle()
-            got += read_for(link, 0.03)
+            got += settle(link)
             result.append((repr(step)[:60], got, pins()))
     return result
 
 
 def board_transcript(emulator, steps):
     with EmulatedBoard(*emulator) as board:
-        return transcript(board.port, steps, board.settle, lambda: board.pins, board.wait_ms)
+        def settle(link: serial.Serial) -> bytes:
+            board.settle()
+            return read_for(link, 0.03)
+
+        return transcript(board.port, steps, settle, lambda: board.pins, board.wait_ms)
 
 
 def twin_transcript(steps):
     with SimulatedRig(size=16, boot_s=0.0) as rig:
-        return transcript(rig.port, steps, lambda: time.sleep(0.03), lambda: mask_of(rig.device.lit),
+        def settle(link: serial.Serial) -> bytes:  # until 40 ms pass without a byte
+            data = b""
+            while True:
+                chunk = read_for(link, 0.04)
+                if not chunk:
+                    return data
+                data += chunk
+
+        return transcript(rig.port, steps, settle, lambda: mask_of(rig.device.lit),
                           lambda wait_ms: time.sleep(wait_ms / 1000))
 
 
