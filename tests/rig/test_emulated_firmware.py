@@ -22,7 +22,6 @@ from psmini.rig.protocol import MAX_LINE, WATCHDOG_DEFAULT_MS
 from psmini.rig.session import CaptureSession
 from psmini.rig.simulator import SimulatedCapture, SimulatedRig
 from tests.rig._avr_emulator import (
-    HZ,
     EmulatedBoard,
     build_bridge,
     build_firmware,
@@ -265,7 +264,8 @@ def test_capture_session_follows_the_emulated_pins(board):
     assert images.shape[0] == 8
     codes = render["codes"].astype(np.float64) / 255
     np.testing.assert_allclose(images.reshape(codes.shape), codes, atol=0.5 / 255)  # each frame under its own LED
-    np.testing.assert_allclose(np.asarray(acquisition.dark).reshape(codes.shape[1:]), render["dark"] / 255, atol=0.5 / 255)
+    dark = np.asarray(acquisition.dark).reshape(codes.shape[1:])
+    np.testing.assert_allclose(dark, render["dark"] / 255, atol=0.5 / 255)
     # the pins went dark, then LED 0 .. 7 one at a time, then dark
     shown = [lit_of(mask) for cycle, mask in board.pin_events if cycle >= start]
     lit = [state for index, state in enumerate(shown) if index == 0 or state != shown[index - 1]]
@@ -274,12 +274,14 @@ def test_capture_session_follows_the_emulated_pins(board):
 
 # ------------------------------------------------------------------------------------------ the Python twin
 
-#: scenarios as steps: ("send", bytes), ("mid", first, second) or ("wait", ms); the port is opened first
+#: scenarios as steps: ("send", bytes), ("mid", first, second), ("wait", ms) or ("reopen",) (close the port, open
+#: it again: the board resets); the port is opened first
 TWIN_SCENARIOS = {
     "commands": [("send", c) for c in (b"PING\n", b"ID?\n", b"ON 0\n", b"ON 7\n", b"ON 007\r\n", b"ALL\n",
                                        b"STATE?\n", b"OFF\n", b"WDT 60000\n", b"ID?\n", b"ON 8\n", b"ON -1\n",
                                        b"ON \n", b"ON 123456\n", b"WDT 99\n", b"WDT 60001\n", b"ping\n", b"BLINK\n",
                                        b"\n", b"\r\n", b"O", b"N 4", b"\n", b"STATE?\n")],
+    "reopen": [("send", b"WDT 500\n"), ("send", b"ON 3\n"), ("reopen",), ("send", b"STATE?\n"), ("send", b"ID?\n")],
     "burst": [("send", b"WDT 300\n"), ("send", FAULTS["burst"]), ("send", b"STATE?\n")],
     "long-line": [("send", b"ON 1\n"), ("send", FAULTS["long-line"]), ("send", b"STATE?\n")],
     "non-ascii": [("send", b"ON 1\n"), ("send", FAULTS["non-ascii"]), ("send", b"STATE?\n")],
@@ -294,10 +296,16 @@ def transcript(port: str, steps: list[tuple], settle, pins, wait) -> list[tuple[
     """Run ``steps`` on a port: per step, the replies it brought (``settle(link)`` reads them once the device
     is done) and the LED pins after it."""
     result = []
-    with open_raw(port) as link:
+    link = open_raw(port)
+    try:
         result.append(("open", read_line(link), pins()))
         for step in steps:
-            if step[0] == "wait":
+            if step[0] == "reopen":
+                link.close()
+                time.sleep(0.05)  # the twin's pty thread polls every 2 ms for the host's close
+                link = open_raw(port)
+                got = read_line(link)
+            elif step[0] == "wait":
                 wait(step[1])
                 got = b""
             elif step[0] == "mid":
@@ -311,6 +319,8 @@ def transcript(port: str, steps: list[tuple], settle, pins, wait) -> list[tuple[
                 got = b""
             got += settle(link)
             result.append((repr(step)[:60], got, pins()))
+    finally:
+        link.close()
     return result
 
 
@@ -342,8 +352,8 @@ def test_the_python_twin_agrees_with_the_firmware(emulator, name):
     firmware, twin = board_transcript(emulator, TWIN_SCENARIOS[name]), twin_transcript(TWIN_SCENARIOS[name])
     assert len(firmware) == len(twin)
     for (step, ours, our_pins), (_, theirs, their_pins) in zip(firmware, twin):
-        assert (ours, our_pins) == (theirs, their_pins), f"{name}, step {step}: firmware {ours!r} pins {our_pins:08b}, " \
-                                                          f"SimulatedRig {theirs!r} pins {their_pins:08b}"
+        assert (ours, our_pins) == (theirs, their_pins), (
+            f"{name}, step {step}: firmware {ours!r} pins {our_pins:08b}, SimulatedRig {theirs!r} pins {their_pins:08b}")
         assert not ours or documented(ours)
 
 
