@@ -224,7 +224,7 @@ class EmulatedBoard:
 
     @property
     def lit(self) -> int | str | None:
-        """What the pins show, in :class:`~psmini.rig.simulator.SimulatedDevice`'s terms (for the simulated
+        """What the pins show, in :class:`~data_synth.simulated_rig.SimulatedDevice`'s terms (for the simulated
         camera): None, an LED index or ``"all"``."""
         return lit_of(self.pins)
 
