@@ -169,6 +169,7 @@ class TestIterReconstructions:
         torch.testing.assert_close(results["lotA/twill"].normals, expected.normals, atol=1e-5, rtol=1e-5)
         assert results["lotA/twill"].depth.shape == (1, 1, 64, 64)
 
+    @pytest.mark.slow
     def test_near_light_model(self, tree):
         results = dict(iter_reconstructions(tree / "lotB", ReconstructionConfig(solver="near")))
         expected = reconstruct(load_sample(tree / "lotB" / "cotton"), ReconstructionConfig(solver="near"))

@@ -115,12 +115,14 @@ class TestFailures:
             reconstruct_dataset(tree, tmp_path / "out", DISTANT, scheduler="tcp://127.0.0.1:8786")
 
 
+@pytest.mark.slow
 def test_importing_psmini_does_not_import_dask():
     code = "import sys, psmini, psmini.batch, psmini.cli; print(sorted(m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed')))"
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "[]"
 
 
 class TestCommand:
+    @pytest.mark.slow
     def test_local_cluster_from_the_command_line(self, tree, tmp_path, capsys):
         out = tmp_path / "out"
         code = main(["batch", str(tree / "lotA"), "--light-model", "distant", "--out", str(out), "--scheduler", "local:1", "--no-score",

@@ -67,6 +67,7 @@ def clean_fit() -> tuple[LEDFit, LEDLights]:
 
 
 class TestFitLeds(BaseTester):
+    @pytest.mark.slow
     def test_recovers_noise_free_cards(self, clean_fit):
         fit, truth = clean_fit
         position, intensity, mu = _errors(fit, truth)
@@ -88,6 +89,7 @@ class TestFitLeds(BaseTester):
         corner_ratio = float(gain[0, 0] / centre.mean())
         assert corner_ratio == pytest.approx(1 - CLEAN.vignetting, abs=0.03)
 
+    @pytest.mark.slow
     def test_recovers_cards_with_default_noise(self):
         images, dark = _cards(NOISY)
         fit = fit_leds(list(images), list(HEIGHTS), NOISY.pixel_pitch_mm, _perturbed_start(NOISY), dark=list(dark),
@@ -270,6 +272,7 @@ class TestCommand:
         register_leds(parser.add_subparsers(dest="target"))
         return parser
 
+    @pytest.mark.slow
     def test_fits_card_captures(self, tmp_path, capsys):
         config = CLEAN.replace(size=32, pixel_pitch_mm=10.0 / 32)
         folders = []

@@ -54,6 +54,7 @@ def test_rgb8_with_mask_orthographic(tmp_path, capsys, spheres):
     assert json.loads(out.read_text())["lights"]["model"] == "directional"
 
 
+@pytest.mark.slow
 def test_placements_positions_and_reconstruct_with_lights(tmp_path, capsys, spheres):
     folders = []
     for i, render in enumerate(spheres):

@@ -29,6 +29,7 @@ def test_synth_directional_and_errors(tmp_path, capsys):
         main(["synth", "denim", "--out", str(tmp_path)])
 
 
+@pytest.mark.slow
 def test_demo_reconstructs_and_scores(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--size", "64", "--fabric", "cotton", "--json"]) == 0

@@ -32,6 +32,7 @@ def ball():
 
 
 class TestRealData:
+    @pytest.mark.slow
     def test_shapes_and_types(self, ball):
         assert ball.images.shape == (96, 512, 612) and ball.images.dtype == torch.float32
         assert ball.mask.shape == (1, 512, 612) and ball.mask.dtype == torch.bool

@@ -88,6 +88,7 @@ class TestLoadCapture:
 
 
 class TestLoadDiligent:
+    @pytest.mark.slow
     def test_diligent_folder(self):
         sample = load_sample(shared_data("DiLiGenT", "cat"))
         assert sample.images.shape == (96, 512, 612) and sample.normals_gt.shape == (3, 512, 612)

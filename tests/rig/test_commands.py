@@ -15,6 +15,7 @@ def last_json(capsys) -> dict:
     return json.loads(capsys.readouterr().out.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
 def test_capture_simulate_then_reconstruct_and_evaluate(tmp_path, capsys):
     out = tmp_path / "cotton"
     assert main(["capture", "--simulate", "--fabric", "cotton", "--out", str(out), "--json", *SMALL]) == 0

@@ -132,6 +132,7 @@ def avr_toolchain() -> str:
     return builder
 
 
+@pytest.mark.slow
 def test_sketch_compiles_for_the_arduino_nano(tmp_path):
     builder = avr_toolchain()
     build = tmp_path / "build"

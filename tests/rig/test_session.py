@@ -41,6 +41,7 @@ def capture_with_card(rig: SimulatedRig, out: Path, frames_per_led: int = 1) -> 
         return write_with_card(out, session, sample, card, card_albedo=CARD_ALBEDO, gt=rig.scene.render("sample")["gt"])
 
 
+@pytest.mark.slow
 def test_simulated_capture_reconstructs_like_data_synth(tmp_path):
     size, pitch, seed = 128, 0.05, 3
     with SimulatedRig("twill", seed, size, pixel_pitch_mm=pitch) as rig:
