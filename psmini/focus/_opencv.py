@@ -1,0 +1,449 @@
+"""OpenCV fast paths of the focus operators, for frames that need no gradient on the CPU.
+
+Each function here computes exactly the formula of its torch twin in :mod:`psmini.focus.operators` or
+:mod:`psmini.focus.measures` (same valid region, same normalisation) on a ``(B, h, w)`` CPU region of dtype
+uint8, uint16 or float32 that does not require grad, one frame at a time, and returns a ``(B,)`` float32 tensor.
+Integer frames are processed in their own units and the score is rescaled at the end (a quadratic score by
+``1/255²``, a linear one by ``1/255``, a ratio not at all), so no converted copy of the frame is made where a
+formula allows. Fused OpenCV reductions do most of the work: ``cv2.norm(a, b, NORM_L2SQR)`` on two shifted views
+of a frame is a sum of squared differences with no temporary at all.
+
+OpenCV is imported lazily (the first time a measure takes this path); without it, or with
+``psmini.focus._opencv.enabled = False``, the torch path runs. ``tests/test_focus_operators.py`` checks that both
+paths give the same value for every operator.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor
+
+enabled = True
+"""Use OpenCV for no-grad CPU frames (set False to force the torch path, e.g. to time it)."""
+
+_cv2 = None
+_DTYPES = (torch.uint8, torch.uint16, torch.float32)
+_SCALE = {torch.uint8: 1.0 / 255.0, torch.uint16: 1.0 / 65535.0, torch.float32: 1.0}
+
+
+def _opencv():
+    global _cv2, enabled
+    if _cv2 is None:
+        try:
+            import cv2
+        except ImportError:  # the torch path stays
+            enabled = False
+            return None
+        _cv2 = cv2
+    return _cv2
+
+
+def usable(region: Tensor) -> bool:
+    """True when ``region`` can take the OpenCV path: CPU, uint8/uint16/float32, no grad, OpenCV importable."""
+    return (
+        enabled
+        and region.device.type == "cpu"
+        and region.dtype in _DTYPES
+        and not (region.requires_grad and torch.is_grad_enabled())
+        and _opencv() is not None
+    )
+
+
+def _each(region: Tensor):
+    """(frame as a 2-D numpy array (a view when possible), scale to [0, 1]) for each frame of the region."""
+    scale = _SCALE[region.dtype]
+    array = region.detach().numpy()
+    for frame in array:
+        if frame.strides[-1] != frame.itemsize or frame.strides[0] < 0:
+            frame = np.ascontiguousarray(frame)
+        yield frame, scale
+
+
+def _out(values: list[float]) -> Tensor:
+    return torch.tensor(values, dtype=torch.float32)
+
+
+def _float(frame: np.ndarray) -> np.ndarray:
+    return frame if frame.dtype == np.float32 else frame.astype(np.float32)
+
+
+# --------------------------------------------------------------------------------------------- the seven
+
+
+def brenner(region: Tensor) -> Tensor:
+    """mean of max(|g(i,j+2) - g(i,j)|, |g(i+2,j) - g(i,j)|)² (absdiff + max + norm, fused, no float copy)."""
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        h, w = f.shape
+        centre = f[:-2, :-2]
+        largest = cv2.max(cv2.absdiff(centre, f[:-2, 2:]), cv2.absdiff(centre, f[2:, :-2]))
+        out.append(cv2.norm(largest, cv2.NORM_L2SQR) * s * s / ((h - 2) * (w - 2)))
+    return _out(out)
+
+
+def image_contrast(region: Tensor) -> Tensor:
+    """Nanda & Cutler's 8-neighbour contrast: each unordered pair differenced once, two window sums each."""
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        h, w = f.shape
+        total = 0.0
+        for du, dv in ((0, 1), (1, 0), (1, 1), (1, -1)):
+            c0, c1 = max(0, -dv), w - max(0, dv)
+            diff = cv2.absdiff(f[0 : h - du, c0:c1], f[du:h, c0 + dv : c1 + dv])
+            for row, col in ((1, 1 - c0), (1 - du, 1 - dv - c0)):
+                total += cv2.sumElems(diff[row : row + h - 2, col : col + w - 2])[0]
+        out.append(total * s / ((h - 2) * (w - 2)))
+    return _out(out)
+
+
+def _haar_rows(f: np.ndarray):
+    """Sums and differences of horizontal neighbours, float32 (h, w-1)."""
+    cv2 = _cv2
+    return cv2.add(f[:, :-1], f[:, 1:], dtype=cv2.CV_32F), cv2.subtract(f[:, :-1], f[:, 1:], dtype=cv2.CV_32F)
+
+
+def wavelet_sum(region: Tensor) -> Tensor:
+    """Σ|LH| + |HL| + |HH| of the undecimated Haar transform, from row sums and differences."""
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        h, w = f.shape
+        sums, diffs = _haar_rows(f)
+        lh = cv2.norm(sums[:-1], sums[1:], cv2.NORM_L1)
+        hh = cv2.norm(diffs[:-1], diffs[1:], cv2.NORM_L1)
+        hl = cv2.norm(cv2.add(diffs[:-1], diffs[1:]), cv2.NORM_L1)
+        out.append(0.5 * (lh + hl + hh) * s / ((h - 1) * (w - 1)))
+    return _out(out)
+
+
+def _haar_moments(f: np.ndarray):
+    """Per band (LH, HL, HH, LL): (sum, sum of squares) over every 2 × 2 window, in the frame's units."""
+    cv2 = _cv2
+    sums, diffs = _haar_rows(f)
+    added = cv2.add(diffs[:-1], diffs[1:])
+    s_top, s_bottom = cv2.sumElems(sums[:-1])[0], cv2.sumElems(sums[1:])[0]
+    d_top, d_bottom = cv2.sumElems(diffs[:-1])[0], cv2.sumElems(diffs[1:])[0]
+    lh = (0.5 * (s_top - s_bottom), 0.25 * cv2.norm(sums[:-1], sums[1:], cv2.NORM_L2SQR))
+    hl = (0.5 * (d_top + d_bottom), 0.25 * cv2.norm(added, cv2.NORM_L2SQR))
+    hh = (0.5 * (d_top - d_bottom), 0.25 * cv2.norm(diffs[:-1], diffs[1:], cv2.NORM_L2SQR))
+    ll = (0.5 * (s_top + s_bottom), 0.25 * cv2.norm(cv2.add(sums[:-1], sums[1:]), cv2.NORM_L2SQR))
+    return lh, hl, hh, ll
+
+
+def wavelet_variance(region: Tensor) -> Tensor:
+    out = []
+    for f, s in _each(region):
+        n = (f.shape[0] - 1) * (f.shape[1] - 1)
+        bands = _haar_moments(f)[:3]
+        out.append(sum(max(sq / n - (total / n) ** 2, 0.0) for total, sq in bands) * s * s)
+    return _out(out)
+
+
+def wavelet_ratio(region: Tensor) -> Tensor:
+    out = []
+    for f, _ in _each(region):
+        lh, hl, hh, ll = _haar_moments(f)
+        high = lh[1] + hl[1] + hh[1]
+        out.append(high / ll[1] if ll[1] > 0 else 0.0)
+    return _out(out)
+
+
+def _gaussian_taps(sigma: float):
+    from psmini.focus.measures import _gaussian_taps
+
+    smooth, slope = _gaussian_taps(sigma)
+    return np.asarray(smooth, np.float32), np.asarray(slope, np.float32)
+
+
+def _gaussian_gradients(f: np.ndarray, sigma: float):
+    """Gaussian-derivative responses on the valid grid (correlation, as the torch path), float32."""
+    cv2 = _cv2
+    smooth, slope = _gaussian_taps(sigma)
+    r = len(smooth) // 2
+    src = _float(f)
+    gx = cv2.sepFilter2D(src, cv2.CV_32F, slope, smooth, borderType=cv2.BORDER_REPLICATE)
+    gy = cv2.sepFilter2D(src, cv2.CV_32F, smooth, slope, borderType=cv2.BORDER_REPLICATE)
+    return gx[r:-r, r:-r], gy[r:-r, r:-r]
+
+
+def gaussian_derivative(region: Tensor, sigma: float) -> Tensor:
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        gx, gy = _gaussian_gradients(f, sigma)
+        out.append((cv2.norm(gx, cv2.NORM_L2SQR) + cv2.norm(gy, cv2.NORM_L2SQR)) * s * s / gx.size)
+    return _out(out)
+
+
+def _sobel(f: np.ndarray):
+    cv2 = _cv2
+    gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3)[1:-1, 1:-1]
+    gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3)[1:-1, 1:-1]
+    return gx, gy
+
+
+def tenengrad(region: Tensor) -> Tensor:
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        gx, gy = _sobel(f)
+        out.append((cv2.norm(gx, cv2.NORM_L2SQR) + cv2.norm(gy, cv2.NORM_L2SQR)) * s * s / gx.size)
+    return _out(out)
+
+
+def _variance(x: np.ndarray) -> float:
+    _, std = _cv2.meanStdDev(x)
+    return float(std[0, 0]) ** 2
+
+
+def tenengrad_variance(region: Tensor) -> Tensor:
+    out = []
+    for f, s in _each(region):
+        gx, gy = _sobel(f)
+        out.append(_variance(_cv2.magnitude(gx, gy)) * s * s)
+    return _out(out)
+
+
+def _laplacian(f: np.ndarray) -> np.ndarray:
+    cv2 = _cv2
+    return cv2.Laplacian(f, cv2.CV_32F, ksize=1)[1:-1, 1:-1]
+
+
+def variance_of_laplacian(region: Tensor) -> Tensor:
+    return _out([_variance(_laplacian(f)) * s * s for f, s in _each(region)])
+
+
+def laplacian_energy(region: Tensor) -> Tensor:
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        lap = _laplacian(f)
+        out.append(cv2.norm(lap, cv2.NORM_L2SQR) * s * s / lap.size)
+    return _out(out)
+
+
+_DIAGONALS = (np.array([[1, 0, 0], [0, -2, 0], [0, 0, 1]], np.float32), np.array([[0, 0, 1], [0, -2, 0], [1, 0, 0]], np.float32))
+
+
+def modified_laplacian(region: Tensor, diagonal: bool) -> Tensor:
+    """LAPM (threshold 0 only: the caller keeps the torch path otherwise) and LAPD."""
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        src = _float(f)
+        total = cv2.norm(cv2.Sobel(src, cv2.CV_32F, 2, 0, ksize=1)[1:-1, 1:-1], cv2.NORM_L1)
+        total += cv2.norm(cv2.Sobel(src, cv2.CV_32F, 0, 2, ksize=1)[1:-1, 1:-1], cv2.NORM_L1)
+        if diagonal:
+            for kernel in _DIAGONALS:
+                total += math.sqrt(0.5) * cv2.norm(cv2.filter2D(src, cv2.CV_32F, kernel)[1:-1, 1:-1], cv2.NORM_L1)
+        out.append(total * s / ((f.shape[0] - 2) * (f.shape[1] - 2)))
+    return _out(out)
+
+
+def normalized_variance(region: Tensor, eps: float) -> Tensor:
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        mean, std = cv2.meanStdDev(f)
+        out.append(float(std[0, 0]) ** 2 * s * s / max(float(mean[0, 0]) * s, eps))
+    return _out(out)
+
+
+# ------------------------------------------------------------------------------------------ the new ones
+
+
+def gradient_energy(region: Tensor) -> Tensor:
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        centre = f[:-1, :-1]
+        total = cv2.norm(centre, f[:-1, 1:], cv2.NORM_L2SQR) + cv2.norm(centre, f[1:, :-1], cv2.NORM_L2SQR)
+        out.append(total * s * s / centre.size)
+    return _out(out)
+
+
+def thresholded_gradient(region: Tensor) -> Tensor:
+    """GRAT with threshold 0 (the caller keeps the torch path otherwise)."""
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        centre = f[:-1, :-1]
+        total = cv2.norm(centre, f[:-1, 1:], cv2.NORM_L1) + cv2.norm(centre, f[1:, :-1], cv2.NORM_L1)
+        out.append(total * s / centre.size)
+    return _out(out)
+
+
+def squared_gradient(region: Tensor) -> Tensor:
+    """GRAS with threshold 0 (the caller keeps the torch path otherwise)."""
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        centre = f[:-1, :-1]
+        largest = cv2.max(cv2.absdiff(centre, f[:-1, 1:]), cv2.absdiff(centre, f[1:, :-1]))
+        out.append(cv2.norm(largest, cv2.NORM_L2SQR) * s * s / centre.size)
+    return _out(out)
+
+
+def absolute_central_moment(region: Tensor) -> Tensor:
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        if f.dtype == np.uint8:  # Shirvaikar's histogram form, exact for 256 levels
+            hist = cv2.calcHist([f], [0], None, [256], [0, 256]).reshape(-1).astype(np.float64)
+            levels = np.arange(256.0)
+            mean = float(hist @ levels) / f.size
+            out.append(float(hist @ np.abs(levels - mean)) * s / f.size)
+        else:
+            mean = cv2.mean(f)[0]
+            out.append(cv2.norm(cv2.subtract(_float(f), mean), cv2.NORM_L1) * s / f.size)
+    return _out(out)
+
+
+def gray_level_variance(region: Tensor) -> Tensor:
+    return _out([_variance(f) * s * s for f, s in _each(region)])
+
+
+def gray_level_local_variance(region: Tensor, window: int) -> Tensor:
+    cv2 = _cv2
+    out = []
+    r = window // 2
+    for f, s in _each(region):
+        src = cv2.subtract(_float(f), cv2.mean(f)[0])  # centred: fewer digits lost in E[g²] - E[g]²
+        mean = cv2.blur(src, (window, window), borderType=cv2.BORDER_REPLICATE)[r:-r, r:-r]
+        squares = cv2.sqrBoxFilter(src, cv2.CV_32F, (window, window), borderType=cv2.BORDER_REPLICATE)[r:-r, r:-r]
+        local = np.maximum(cv2.subtract(squares, cv2.multiply(mean, mean)), np.float32(0.0))
+        out.append(_variance(local) * s**4)
+    return _out(out)
+
+
+def histogram_entropy(region: Tensor, bins: int) -> Tensor:
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        if f.dtype == np.uint8 and bins == 256:
+            hist = cv2.calcHist([f], [0], None, [256], [0, 256]).reshape(-1)
+        else:  # levels round(g (bins - 1)): bins centred on the levels, values clamped into [0, 1]
+            g = cv2.multiply(_float(f), s) if s != 1.0 else f
+            low, high, _, _ = cv2.minMaxLoc(g)
+            if low < 0 or high > 1:
+                g = np.clip(g, 0.0, 1.0)
+            half = 0.5 / (bins - 1)
+            hist = cv2.calcHist([g], [0], None, [bins], [-half, 1.0 + half]).reshape(-1)
+        p = hist[hist > 0].astype(np.float64) / f.size
+        out.append(float(-(p * np.log2(p)).sum()))
+    return _out(out)
+
+
+def histogram_range(region: Tensor) -> Tensor:
+    out = []
+    for f, s in _each(region):
+        low, high, _, _ = _cv2.minMaxLoc(f)
+        out.append((high - low) * s)
+    return _out(out)
+
+
+def dct_energy_ratio(region: Tensor, block: int, eps: float) -> Tensor:
+    """Tile means of g and g² by area resampling; AC/DC energy = σ²/μ² per tile (Parseval)."""
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        nh, nw = f.shape[0] // block, f.shape[1] // block
+        src = _float(f[: nh * block, : nw * block])
+        mean = cv2.resize(src, (nw, nh), interpolation=cv2.INTER_AREA).astype(np.float64)
+        squares = cv2.resize(cv2.multiply(src, src), (nw, nh), interpolation=cv2.INTER_AREA).astype(np.float64)
+        variance = np.maximum(squares - mean * mean, 0.0)
+        out.append(float((variance / np.maximum(mean * s, eps) ** 2).mean()) * s * s)
+    return _out(out)
+
+
+def dct_reduced_energy_ratio(region: Tensor, block: int, eps: float) -> Tensor:
+    """The 3 × 3 lowest DCT coefficients of every tile as two small matrix products."""
+    from psmini.focus.operators import _REDUCED
+
+    x = np.arange(block)
+    basis = np.cos(np.pi * (2 * x + 1) * np.arange(3)[:, None] / (2 * block)) * math.sqrt(2.0 / block)
+    basis[0] = math.sqrt(1.0 / block)
+    basis = basis.astype(np.float32)
+    out = []
+    for f, s in _each(region):
+        nh, nw = f.shape[0] // block, f.shape[1] // block
+        tiles = _float(f[: nh * block, : nw * block]).reshape(nh, block, nw * block)
+        columns = (basis @ tiles).reshape(nh, 3, nw, block)  # (nh, u, nw, x)
+        coefficients = columns @ basis.T  # (nh, u, nw, v)
+        low = sum(coefficients[:, u, :, v].astype(np.float64) ** 2 for u, v in _REDUCED)
+        dc = np.maximum(coefficients[:, 0, :, 0].astype(np.float64) * s, block * eps)
+        out.append(float((low * s * s / dc**2).mean()))
+    return _out(out)
+
+
+_CURVATURE = (
+    np.array([[-1, 0, 1]] * 3, np.float32) / 6,
+    np.array([[-1, 0, 1]] * 3, np.float32).T / 6,
+    np.array([[1, 0, 1]] * 3, np.float32) / 2 - np.float32(1 / 3),
+    np.array([[1, 0, 1]] * 3, np.float32).T / 2 - np.float32(1 / 3),
+)
+
+
+def curvature(region: Tensor) -> Tensor:
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        src = _float(f)
+        total = sum(cv2.norm(cv2.filter2D(src, cv2.CV_32F, k)[1:-1, 1:-1], cv2.NORM_L1) for k in _CURVATURE)
+        out.append(total * s / ((f.shape[0] - 2) * (f.shape[1] - 2)))
+    return _out(out)
+
+
+def helmli_mean(region: Tensor, window: int, eps: float) -> Tensor:
+    cv2 = _cv2
+    out = []
+    r = window // 2
+    for f, s in _each(region):
+        src = cv2.multiply(_float(f), s) if s != 1.0 else f
+        mean = cv2.blur(src, (window, window), borderType=cv2.BORDER_REPLICATE)[r:-r, r:-r]
+        centre = src[r:-r, r:-r]
+        high, low = cv2.max(mean, centre), cv2.min(mean, centre)
+        ok = low > eps
+        ratio = cv2.divide(high, np.where(ok, low, np.float32(1.0)))
+        out.append(float(np.where(ok, ratio - np.float32(1.0), np.float32(0.0)).sum(dtype=np.float64)) / centre.size)
+    return _out(out)
+
+
+def steerable_filters(region: Tensor, sigma: float) -> Tensor:
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        gx, gy = _gaussian_gradients(f, sigma)
+        largest = cv2.max(np.abs(gx), np.abs(gy))
+        diagonal = cv2.max(np.abs(cv2.add(gx, gy)), np.abs(cv2.subtract(gx, gy)))
+        largest = cv2.max(largest, cv2.multiply(diagonal, math.sqrt(0.5)))
+        out.append(cv2.sumElems(largest)[0] * s / gx.size)
+    return _out(out)
+
+
+def spatial_frequency(region: Tensor) -> Tensor:
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        h, w = f.shape
+        rows = cv2.norm(f[:, 1:], f[:, :-1], cv2.NORM_L2SQR) / (h * (w - 1))
+        cols = cv2.norm(f[1:], f[:-1], cv2.NORM_L2SQR) / ((h - 1) * w)
+        out.append(math.sqrt(rows + cols) * s)
+    return _out(out)
+
+
+def vollath_f4(region: Tensor) -> Tensor:
+    cv2 = _cv2
+    out = []
+    for f, s in _each(region):
+        h, w = f.shape
+        g = cv2.subtract(_float(f), cv2.mean(f)[0])
+        rows = cv2.sumElems(cv2.multiply(g[:, :-2], cv2.subtract(g[:, 1:-1], g[:, 2:])))[0] / (h * (w - 2))
+        cols = cv2.sumElems(cv2.multiply(g[:-2], cv2.subtract(g[1:-1], g[2:])))[0] / ((h - 2) * w)
+        out.append((rows + cols) * s * s)
+    return _out(out)
