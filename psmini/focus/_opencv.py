@@ -16,6 +16,7 @@ paths give the same value for every operator.
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 import torch
@@ -55,7 +56,7 @@ def usable(region: Tensor) -> bool:
 def _each(region: Tensor):
     """(frame as a 2-D numpy array (a view when possible), scale to [0, 1]) for each frame of the region."""
     scale = _SCALE[region.dtype]
-    array = region.detach().numpy()
+    array = region.numpy() if not region.requires_grad else region.detach().numpy()
     for frame in array:
         if frame.strides[-1] != frame.itemsize or frame.strides[0] < 0:
             frame = np.ascontiguousarray(frame)
@@ -63,7 +64,7 @@ def _each(region: Tensor):
 
 
 def _out(values: list[float]) -> Tensor:
-    return torch.tensor(values, dtype=torch.float32)
+    return torch.from_numpy(np.array(values, dtype=np.float32))
 
 
 def _float(frame: np.ndarray) -> np.ndarray:
@@ -74,15 +75,59 @@ def _float(frame: np.ndarray) -> np.ndarray:
 
 
 def brenner(region: Tensor) -> Tensor:
-    """mean of max(|g(i,j+2) - g(i,j)|, |g(i+2,j) - g(i,j)|)² (absdiff + max + norm, fused, no float copy)."""
+    """mean of max(|g(i,j+2) - g(i,j)|, |g(i+2,j) - g(i,j)|)²: absdiff + max + norm(NORM_L2SQR), fused.
+
+    A C-contiguous frame is read as one long row (``absdiff`` and ``max`` then run without a per-row loop, into
+    two reused buffers); the two columns per row whose right neighbour wraps into the next row are left out by
+    the final norm's strided view. A strided region takes the same calls on 2-D views.
+    """
     cv2 = _cv2
     out = []
     for f, s in _each(region):
         h, w = f.shape
-        centre = f[:-2, :-2]
-        largest = cv2.max(cv2.absdiff(centre, f[:-2, 2:]), cv2.absdiff(centre, f[2:, :-2]))
-        out.append(cv2.norm(largest, cv2.NORM_L2SQR) * s * s / ((h - 2) * (w - 2)))
+        if f.flags.c_contiguous:
+            n = (h - 2) * w
+            flat = f.reshape(1, -1)
+            centre = flat[:, :n]
+            first, second = _buffers(n, f.dtype)
+            cv2.absdiff(centre, flat[:, 2 : n + 2], dst=first)
+            cv2.absdiff(centre, flat[:, 2 * w : 2 * w + n], dst=second)
+            cv2.max(first, second, dst=first)
+            total = cv2.norm(first.reshape(h - 2, w)[:, : w - 2], cv2.NORM_L2SQR)
+        else:
+            centre = f[:-2, :-2]
+            total = cv2.norm(cv2.max(cv2.absdiff(centre, f[:-2, 2:]), cv2.absdiff(centre, f[2:, :-2])), cv2.NORM_L2SQR)
+        out.append(total * s * s / ((h - 2) * (w - 2)))
     return _out(out)
+
+
+_scratch = threading.local()
+
+
+def _buffers(n: int, dtype: np.dtype) -> tuple[np.ndarray, np.ndarray]:
+    """Two (1, n) scratch rows, kept per thread for the last size asked (no fresh pages for every frame)."""
+    key = (n, dtype)
+    if getattr(_scratch, "key", None) != key:
+        _scratch.key = key
+        _scratch.value = (np.empty((1, n), dtype), np.empty((1, n), dtype))
+    return _scratch.value
+
+
+def brenner_uint8_frames(frames: Tensor) -> Tensor | None:
+    """Brenner of a plain (B, H, W) uint8 CPU batch with the fewest checks possible, or None when not plain."""
+    if (
+        enabled
+        and frames.dtype is torch.uint8
+        and frames.ndim == 3
+        and frames.is_cpu
+        and frames.shape[0] > 0
+        and frames.shape[1] > 2
+        and frames.shape[2] > 2
+        and not frames.requires_grad
+        and (_cv2 is not None or _opencv() is not None)
+    ):
+        return brenner(frames)
+    return None
 
 
 def image_contrast(region: Tensor) -> Tensor:
@@ -165,9 +210,8 @@ def _gaussian_gradients(f: np.ndarray, sigma: float):
     cv2 = _cv2
     smooth, slope = _gaussian_taps(sigma)
     r = len(smooth) // 2
-    src = _float(f)
-    gx = cv2.sepFilter2D(src, cv2.CV_32F, slope, smooth, borderType=cv2.BORDER_REPLICATE)
-    gy = cv2.sepFilter2D(src, cv2.CV_32F, smooth, slope, borderType=cv2.BORDER_REPLICATE)
+    gx = cv2.sepFilter2D(f, cv2.CV_32F, slope, smooth, borderType=cv2.BORDER_REPLICATE)
+    gy = cv2.sepFilter2D(f, cv2.CV_32F, smooth, slope, borderType=cv2.BORDER_REPLICATE)
     return gx[r:-r, r:-r], gy[r:-r, r:-r]
 
 
@@ -235,7 +279,7 @@ def modified_laplacian(region: Tensor, diagonal: bool) -> Tensor:
     cv2 = _cv2
     out = []
     for f, s in _each(region):
-        src = _float(f)
+        src = f  # integer frames are filtered as they are, into float32 (no converted copy)
         total = cv2.norm(cv2.Sobel(src, cv2.CV_32F, 2, 0, ksize=1)[1:-1, 1:-1], cv2.NORM_L1)
         total += cv2.norm(cv2.Sobel(src, cv2.CV_32F, 0, 2, ksize=1)[1:-1, 1:-1], cv2.NORM_L1)
         if diagonal:
@@ -300,7 +344,7 @@ def absolute_central_moment(region: Tensor) -> Tensor:
             out.append(float(hist @ np.abs(levels - mean)) * s / f.size)
         else:
             mean = cv2.mean(f)[0]
-            out.append(cv2.norm(cv2.subtract(_float(f), mean), cv2.NORM_L1) * s / f.size)
+            out.append(cv2.norm(cv2.subtract(f, mean, dtype=cv2.CV_32F), cv2.NORM_L1) * s / f.size)
     return _out(out)
 
 
@@ -313,7 +357,7 @@ def gray_level_local_variance(region: Tensor, window: int) -> Tensor:
     out = []
     r = window // 2
     for f, s in _each(region):
-        src = cv2.subtract(_float(f), cv2.mean(f)[0])  # centred: fewer digits lost in E[g²] - E[g]²
+        src = cv2.subtract(f, cv2.mean(f)[0], dtype=cv2.CV_32F)  # centred: fewer digits lost in E[g²] - E[g]²
         mean = cv2.blur(src, (window, window), borderType=cv2.BORDER_REPLICATE)[r:-r, r:-r]
         squares = cv2.sqrBoxFilter(src, cv2.CV_32F, (window, window), borderType=cv2.BORDER_REPLICATE)[r:-r, r:-r]
         local = np.maximum(cv2.subtract(squares, cv2.multiply(mean, mean)), np.float32(0.0))
@@ -393,7 +437,7 @@ def curvature(region: Tensor) -> Tensor:
     cv2 = _cv2
     out = []
     for f, s in _each(region):
-        src = _float(f)
+        src = f
         total = sum(cv2.norm(cv2.filter2D(src, cv2.CV_32F, k)[1:-1, 1:-1], cv2.NORM_L1) for k in _CURVATURE)
         out.append(total * s / ((f.shape[0] - 2) * (f.shape[1] - 2)))
     return _out(out)
@@ -404,13 +448,15 @@ def helmli_mean(region: Tensor, window: int, eps: float) -> Tensor:
     out = []
     r = window // 2
     for f, s in _each(region):
-        src = cv2.multiply(_float(f), s) if s != 1.0 else f
+        src = cv2.multiply(f, s, dtype=cv2.CV_32F) if s != 1.0 else f
         mean = cv2.blur(src, (window, window), borderType=cv2.BORDER_REPLICATE)[r:-r, r:-r]
         centre = src[r:-r, r:-r]
         high, low = cv2.max(mean, centre), cv2.min(mean, centre)
-        ok = low > eps
-        ratio = cv2.divide(high, np.where(ok, low, np.float32(1.0)))
-        out.append(float(np.where(ok, ratio - np.float32(1.0), np.float32(0.0)).sum(dtype=np.float64)) / centre.size)
+        scored = cv2.compare(low, eps, cv2.CMP_GT)  # 255 where min(μ, g) > eps
+        ratio = cv2.divide(high, cv2.max(low, eps))
+        count = cv2.countNonZero(scored)
+        total = cv2.mean(ratio, mask=scored)[0] * count - count if count else 0.0
+        out.append(total / centre.size)
     return _out(out)
 
 
@@ -442,7 +488,7 @@ def vollath_f4(region: Tensor) -> Tensor:
     out = []
     for f, s in _each(region):
         h, w = f.shape
-        g = cv2.subtract(_float(f), cv2.mean(f)[0])
+        g = cv2.subtract(f, cv2.mean(f)[0], dtype=cv2.CV_32F)
         rows = cv2.sumElems(cv2.multiply(g[:, :-2], cv2.subtract(g[:, 1:-1], g[:, 2:])))[0] / (h * (w - 2))
         cols = cv2.sumElems(cv2.multiply(g[:-2], cv2.subtract(g[1:-1], g[2:])))[0] / ((h - 2) * w)
         out.append((rows + cols) * s * s)

@@ -798,7 +798,7 @@ def dct_reduced_energy_ratio(frames: Tensor, roi: Roi | str | None = None, block
         ShapeError: frames of the wrong shape or smaller than one tile.
 
     Example:
-        >>> dct_reduced_energy_ratio(torch.ones(1, 8, 8))
+        >>> dct_reduced_energy_ratio(torch.zeros(1, 8, 8))  # black: the DC floor keeps it finite
         tensor([0.])
     """
     block = _size("dct_reduced_energy_ratio", "block", block, minimum=3)
@@ -846,8 +846,8 @@ def curvature(frames: Tensor, roi: Roi | str | None = None) -> Tensor:
 
     Example:
         >>> x = torch.arange(-1.0, 2.0)
-        >>> curvature((x[None] ** 2).expand(3, 3)[None])  # f = x²: p2 = 1
-        tensor([1.])
+        >>> round(float(curvature((x[None] ** 2).expand(3, 3)[None])), 6)  # f = x²: p2 = 1
+        1.0
     """
     region = _region(frames, roi, 3, "curvature")
     if _opencv.usable(region):
@@ -1315,8 +1315,6 @@ def focus_volume(frames: Tensor, name: str = "tenengrad", window: int = 9, **par
     if "inner_window" in params:
         params = dict(params)
         params["window"] = params.pop("inner_window")
-    elif "window" in params:
-        raise InputError("focus_volume: pass the operator's own window as inner_window")
     unknown = set(params) - set(FOCUS_OPERATORS[code].params)
     if unknown:
         raise InputError(f"focus operator {code} takes no parameter {', '.join(sorted(unknown))}; "
