@@ -205,13 +205,16 @@ def _gaussian_taps(sigma: float):
     return np.asarray(smooth, np.float32), np.asarray(slope, np.float32)
 
 
-def _gaussian_gradients(f: np.ndarray, sigma: float):
-    """Gaussian-derivative responses on the valid grid (correlation, as the torch path), float32."""
+def _gaussian_gradients(f: np.ndarray, sigma: float, crop: bool = True):
+    """Gaussian-derivative responses (correlation, as the torch path), float32; the valid grid, or the whole
+    frame (border replicated) and the radius when ``crop`` is False."""
     cv2 = _cv2
     smooth, slope = _gaussian_taps(sigma)
     r = len(smooth) // 2
     gx = cv2.sepFilter2D(f, cv2.CV_32F, slope, smooth, borderType=cv2.BORDER_REPLICATE)
     gy = cv2.sepFilter2D(f, cv2.CV_32F, smooth, slope, borderType=cv2.BORDER_REPLICATE)
+    if not crop:
+        return gx, gy, r
     return gx[r:-r, r:-r], gy[r:-r, r:-r]
 
 
@@ -246,10 +249,12 @@ def _variance(x: np.ndarray) -> float:
 
 
 def tenengrad_variance(region: Tensor) -> Tensor:
+    cv2 = _cv2
     out = []
     for f, s in _each(region):
-        gx, gy = _sobel(f)
-        out.append(_variance(_cv2.magnitude(gx, gy)) * s * s)
+        gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3)
+        gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3)
+        out.append(_variance(cv2.magnitude(gx, gy)[1:-1, 1:-1]) * s * s)
     return _out(out)
 
 
@@ -353,15 +358,18 @@ def gray_level_variance(region: Tensor) -> Tensor:
 
 
 def gray_level_local_variance(region: Tensor, window: int) -> Tensor:
+    """Local variances E[g²] - E[g]² from a box filter and a squared-box filter of the centred frame (whole
+    contiguous frames; the valid windows are cut at the final variance). Rounding can leave a flat window's
+    local variance at -1e-9 instead of the torch path's clamped 0, far below float32 resolution of the score."""
     cv2 = _cv2
     out = []
     r = window // 2
     for f, s in _each(region):
         src = cv2.subtract(f, cv2.mean(f)[0], dtype=cv2.CV_32F)  # centred: fewer digits lost in E[g²] - E[g]²
-        mean = cv2.blur(src, (window, window), borderType=cv2.BORDER_REPLICATE)[r:-r, r:-r]
-        squares = cv2.sqrBoxFilter(src, cv2.CV_32F, (window, window), borderType=cv2.BORDER_REPLICATE)[r:-r, r:-r]
-        local = np.maximum(cv2.subtract(squares, cv2.multiply(mean, mean)), np.float32(0.0))
-        out.append(_variance(local) * s**4)
+        mean = cv2.blur(src, (window, window), borderType=cv2.BORDER_REPLICATE)
+        squares = cv2.sqrBoxFilter(src, cv2.CV_32F, (window, window), borderType=cv2.BORDER_REPLICATE)
+        local = cv2.subtract(squares, cv2.multiply(mean, mean))
+        out.append(_variance(local[r:-r, r:-r]) * s**4)
     return _out(out)
 
 
@@ -444,31 +452,35 @@ def curvature(region: Tensor) -> Tensor:
 
 
 def helmli_mean(region: Tensor, window: int, eps: float) -> Tensor:
+    """max(μ, g) / max(min(μ, g), eps) - 1 where min(μ, g) > eps, as a masked mean (whole frames, cut at the end)."""
     cv2 = _cv2
     out = []
     r = window // 2
     for f, s in _each(region):
         src = cv2.multiply(f, s, dtype=cv2.CV_32F) if s != 1.0 else f
-        mean = cv2.blur(src, (window, window), borderType=cv2.BORDER_REPLICATE)[r:-r, r:-r]
-        centre = src[r:-r, r:-r]
-        high, low = cv2.max(mean, centre), cv2.min(mean, centre)
-        scored = cv2.compare(low, eps, cv2.CMP_GT)  # 255 where min(μ, g) > eps
-        ratio = cv2.divide(high, cv2.max(low, eps))
+        mean = cv2.blur(src, (window, window), borderType=cv2.BORDER_REPLICATE)
+        low = cv2.min(mean, src)
+        ratio = cv2.divide(cv2.max(mean, src), cv2.max(low, eps))
+        scored = cv2.compare(low[r:-r, r:-r], eps, cv2.CMP_GT)  # 255 where min(μ, g) > eps
         count = cv2.countNonZero(scored)
-        total = cv2.mean(ratio, mask=scored)[0] * count - count if count else 0.0
-        out.append(total / centre.size)
+        total = cv2.mean(ratio[r:-r, r:-r], mask=scored)[0] * count - count if count else 0.0
+        out.append(total / scored.size)
     return _out(out)
 
 
 def steerable_filters(region: Tensor, sigma: float) -> Tensor:
+    """max(|gx|, |gy|, |gx + gy|/√2, |gx - gy|/√2) from u = |gx + gy| and v = |gx - gy|: max(|gx|, |gy|) is
+    (u + v)/2 and max(u, v) is |gx| + |gy|; element-wise passes run on whole contiguous frames, the valid grid
+    is cut at the final sum."""
     cv2 = _cv2
     out = []
     for f, s in _each(region):
-        gx, gy = _gaussian_gradients(f, sigma)
-        largest = cv2.max(np.abs(gx), np.abs(gy))
-        diagonal = cv2.max(np.abs(cv2.add(gx, gy)), np.abs(cv2.subtract(gx, gy)))
-        largest = cv2.max(largest, cv2.multiply(diagonal, math.sqrt(0.5)))
-        out.append(cv2.sumElems(largest)[0] * s / gx.size)
+        gx, gy, r = _gaussian_gradients(f, sigma, crop=False)
+        u = cv2.absdiff(gx, cv2.multiply(gy, -1.0))
+        v = cv2.absdiff(gx, gy)
+        largest = cv2.max(cv2.addWeighted(u, 0.5, v, 0.5, 0.0), cv2.multiply(cv2.max(u, v), math.sqrt(0.5)))
+        valid = largest[r:-r, r:-r]
+        out.append(cv2.sumElems(valid)[0] * s / valid.size)
     return _out(out)
 
 
