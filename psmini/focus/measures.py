@@ -171,7 +171,7 @@ def brenner(frames: Tensor, roi: Roi | str | None = None) -> Tensor:
         >>> brenner(frames)  # 12 of 36 positions straddle the edge, each scores 1
         tensor([0.3333])
     """
-    if roi is None and type(frames) is Tensor:  # the autofocus loop's case: as few checks as possible
+    if roi is None and type(frames) is Tensor:  # the autofocus loop's case: as few steps as possible
         fast = _opencv.brenner_uint8_frames(frames)
         if fast is not None:
             return fast

@@ -1012,10 +1012,22 @@ def _box(x: Tensor, window: int) -> Tensor:
     """Mean over the window × window neighbourhood of every pixel, edges replicated; same shape (B, H, W)."""
     if window == 1:
         return x
+    return _box_channels(x[:, None], window)[:, 0]
+
+
+def _box_channels(x: Tensor, window: int) -> Tensor:
+    """:func:`_box` of (B, C, H, W), separable, by running sums: a cumulative sum along each axis and the
+    difference of two of its slices (2 reads per pixel whatever the window; ``avg_pool2d`` measured 5–10×
+    slower on the CPU). Sums run in float64 so float32 input keeps its precision on wide frames."""
     before = window // 2
     after = window - 1 - before
-    padded = F.pad(x[:, None], (before, after, before, after), mode="replicate")
-    return F.avg_pool2d(padded, window, stride=1)[:, 0]
+    padded = F.pad(x, (before, after, before, after), mode="replicate")
+    wide = padded if padded.dtype == torch.float64 else padded.double()
+    for dim in (-2, -1):
+        running = F.pad(wide.cumsum(dim), (1, 0) if dim == -1 else (0, 0, 1, 0))
+        length = running.shape[dim] - window
+        wide = running.narrow(dim, window, length) - running.narrow(dim, 0, length)
+    return (wide / (window * window)).to(x.dtype)
 
 
 def _local_variance(x: Tensor, window: int) -> Tensor:
@@ -1032,11 +1044,17 @@ def _max_pool(x: Tensor, window: int) -> Tensor:
 
 
 def _local_entropy(g: Tensor, window: int, bins: int) -> Tensor:
+    """Entropy of each window's histogram: the window fraction of every gray level by one box filter per chunk of
+    levels (one-hot channels), over the levels present only."""
     levels = _levels(g.detach(), bins)
+    present = torch.unique(levels)
     total = torch.zeros_like(g)
-    for level in torch.unique(levels).tolist():  # a loop over gray levels present, each a whole-image box filter
-        p = _box((levels == level).to(g.dtype), window)
-        total = total - p * torch.where(p > 0, p, torch.ones_like(p)).log2()
+    chunk = max(1, min(64, (1 << 24) // max(1, levels.numel())))  # bounds the one-hot block to ~16M values
+    for start in range(0, present.numel(), chunk):
+        values = present[start : start + chunk]
+        onehot = (levels[:, None] == values[None, :, None, None]).to(g.dtype)  # (B, C, H, W)
+        p = _box_channels(onehot, window)
+        total = total - (p * torch.where(p > 0, p, torch.ones_like(p)).log2()).sum(dim=1)
     return total.detach()
 
 
