@@ -198,3 +198,25 @@ def test_docstring_examples():
 
     for module in (psmini.sff, data_synth.focus_stacks):
         assert doctest.testmod(module, raise_on_error=False).failed == 0, module.__name__
+
+
+def test_rig_full_sweep_keeps_every_frame_for_sff(tmp_path, capsys):
+    """The rig's focus sweep with full_sweep=True writes every position's frame; psmini sff reads that folder."""
+    from data_synth.rig import RigConfig
+    from psmini.cli import main
+    from psmini.io import read_capture
+    from psmini.rig import CaptureSession, SimulatedRig
+    from tests.rig.test_session import open_rig
+
+    with SimulatedRig("jute", 0, 32, pixel_pitch_mm=0.1, config=RigConfig(shadows=False)) as rig:
+        leds, camera = open_rig(rig)
+        with leds, camera:
+            session = CaptureSession(leds, camera, rig.lights, pixel_pitch_mm=0.1)
+            positions = [round(-1.2 + 0.2 * i, 2) for i in range(11)]
+            result = session.focus_sweep(rig.move_to, positions, folder=tmp_path / "focus", full_sweep=True)
+    assert result.positions == positions and not result.stopped_by_rule
+    assert read_capture(tmp_path / "focus").positions_mm == positions
+    assert main(["sff", str(tmp_path / "focus"), "--out", str(tmp_path / "d.npy"), "--window", "5"]) == 0
+    depth = np.load(tmp_path / "d.npy")
+    assert depth.shape == (32, 32) and -1.2 <= depth.min() and depth.max() <= 0.8
+    assert "position of best focus" in capsys.readouterr().out

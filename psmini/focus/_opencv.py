@@ -63,6 +63,27 @@ def _each(region: Tensor):
         yield frame, scale
 
 
+_pool = threading.local()
+
+
+def _scratch(shape: tuple[int, int], count: int) -> list[np.ndarray]:
+    """``count`` float32 arrays of ``shape``, reused per thread across calls (frame sizes repeat in a sweep).
+
+    Fresh frame-sized outputs cost page faults on every call (measured: SFIL 44 ms with fresh arrays, 3.5 ms
+    with the allocator keeping memory); OpenCV writes into these through ``dst=``. Only the last two shapes are
+    kept, so memory stays a few frames' worth.
+    """
+    cache = getattr(_pool, "cache", None)
+    if cache is None:
+        cache = _pool.cache = {}
+    arrays = cache.get(shape)
+    if arrays is None or len(arrays) < count:
+        if len(cache) >= 2:
+            cache.clear()
+        arrays = cache[shape] = [np.empty(shape, np.float32) for _ in range(max(count, len(arrays or ())))]
+    return arrays[:count]
+
+
 def _out(values: list[float]) -> Tensor:
     return torch.from_numpy(np.array(values, dtype=np.float32))
 
@@ -101,16 +122,16 @@ def brenner(region: Tensor) -> Tensor:
     return _out(out)
 
 
-_scratch = threading.local()
+_brenner_rows = threading.local()
 
 
 def _buffers(n: int, dtype: np.dtype) -> tuple[np.ndarray, np.ndarray]:
     """Two (1, n) scratch rows, kept per thread for the last size asked (no fresh pages for every frame)."""
     key = (n, dtype)
-    if getattr(_scratch, "key", None) != key:
-        _scratch.key = key
-        _scratch.value = (np.empty((1, n), dtype), np.empty((1, n), dtype))
-    return _scratch.value
+    if getattr(_brenner_rows, "key", None) != key:
+        _brenner_rows.key = key
+        _brenner_rows.value = (np.empty((1, n), dtype), np.empty((1, n), dtype))
+    return _brenner_rows.value
 
 
 def brenner_uint8_frames(frames: Tensor) -> Tensor | None:
@@ -227,8 +248,9 @@ def _gaussian_gradients(f: np.ndarray, sigma: float, crop: bool = True):
     cv2 = _cv2
     smooth, slope = _gaussian_taps(sigma)
     r = len(smooth) // 2
-    gx = cv2.sepFilter2D(f, cv2.CV_32F, slope, smooth, borderType=cv2.BORDER_REPLICATE)
-    gy = cv2.sepFilter2D(f, cv2.CV_32F, smooth, slope, borderType=cv2.BORDER_REPLICATE)
+    gx, gy = _scratch(f.shape, 2)
+    cv2.sepFilter2D(f, cv2.CV_32F, slope, smooth, dst=gx, borderType=cv2.BORDER_REPLICATE)
+    cv2.sepFilter2D(f, cv2.CV_32F, smooth, slope, dst=gy, borderType=cv2.BORDER_REPLICATE)
     if not crop:
         return gx, gy, r
     return gx[r:-r, r:-r], gy[r:-r, r:-r]
@@ -245,9 +267,10 @@ def gaussian_derivative(region: Tensor, sigma: float) -> Tensor:
 
 def _sobel(f: np.ndarray):
     cv2 = _cv2
-    gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3)[1:-1, 1:-1]
-    gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3)[1:-1, 1:-1]
-    return gx, gy
+    gx, gy = _scratch(f.shape, 2)
+    cv2.Sobel(f, cv2.CV_32F, 1, 0, dst=gx, ksize=3)
+    cv2.Sobel(f, cv2.CV_32F, 0, 1, dst=gy, ksize=3)
+    return gx[1:-1, 1:-1], gy[1:-1, 1:-1]
 
 
 def tenengrad(region: Tensor) -> Tensor:
@@ -268,15 +291,19 @@ def tenengrad_variance(region: Tensor) -> Tensor:
     cv2 = _cv2
     out = []
     for f, s in _each(region):
-        gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3)
-        gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3)
-        out.append(_variance(cv2.magnitude(gx, gy)[1:-1, 1:-1]) * s * s)
+        gx, gy, magnitude = _scratch(f.shape, 3)
+        cv2.Sobel(f, cv2.CV_32F, 1, 0, dst=gx, ksize=3)
+        cv2.Sobel(f, cv2.CV_32F, 0, 1, dst=gy, ksize=3)
+        cv2.magnitude(gx, gy, magnitude=magnitude)
+        out.append(_variance(magnitude[1:-1, 1:-1]) * s * s)
     return _out(out)
 
 
 def _laplacian(f: np.ndarray) -> np.ndarray:
     cv2 = _cv2
-    return cv2.Laplacian(f, cv2.CV_32F, ksize=1)[1:-1, 1:-1]
+    (lap,) = _scratch(f.shape, 1)
+    cv2.Laplacian(f, cv2.CV_32F, dst=lap, ksize=1)
+    return lap[1:-1, 1:-1]
 
 
 def variance_of_laplacian(region: Tensor) -> Tensor:
@@ -300,12 +327,15 @@ def modified_laplacian(region: Tensor, diagonal: bool) -> Tensor:
     cv2 = _cv2
     out = []
     for f, s in _each(region):
-        src = f  # integer frames are filtered as they are, into float32 (no converted copy)
-        total = cv2.norm(cv2.Sobel(src, cv2.CV_32F, 2, 0, ksize=1)[1:-1, 1:-1], cv2.NORM_L1)
-        total += cv2.norm(cv2.Sobel(src, cv2.CV_32F, 0, 2, ksize=1)[1:-1, 1:-1], cv2.NORM_L1)
+        # integer frames are filtered as they are, into float32 (no converted copy), into one reused buffer
+        (second,) = _scratch(f.shape, 1)
+        valid = second[1:-1, 1:-1]
+        total = cv2.norm(cv2.Sobel(f, cv2.CV_32F, 2, 0, dst=second, ksize=1)[1:-1, 1:-1], cv2.NORM_L1)
+        total += cv2.norm(cv2.Sobel(f, cv2.CV_32F, 0, 2, dst=second, ksize=1)[1:-1, 1:-1], cv2.NORM_L1)
         if diagonal:
             for kernel in _DIAGONALS:
-                total += math.sqrt(0.5) * cv2.norm(cv2.filter2D(src, cv2.CV_32F, kernel)[1:-1, 1:-1], cv2.NORM_L1)
+                cv2.filter2D(f, cv2.CV_32F, kernel, dst=second)
+                total += math.sqrt(0.5) * cv2.norm(valid, cv2.NORM_L1)
         out.append(total * s / ((f.shape[0] - 2) * (f.shape[1] - 2)))
     return _out(out)
 
@@ -381,10 +411,11 @@ def gray_level_local_variance(region: Tensor, window: int) -> Tensor:
     out = []
     r = window // 2
     for f, s in _each(region):
-        src = cv2.subtract(f, cv2.mean(f)[0], dtype=cv2.CV_32F)  # centred: fewer digits lost in E[g²] - E[g]²
-        mean = cv2.blur(src, (window, window), borderType=cv2.BORDER_REPLICATE)
-        squares = cv2.sqrBoxFilter(src, cv2.CV_32F, (window, window), borderType=cv2.BORDER_REPLICATE)
-        local = cv2.subtract(squares, cv2.multiply(mean, mean))
+        src, mean, squares = _scratch(f.shape, 3)
+        cv2.subtract(f, cv2.mean(f)[0], dst=src, dtype=cv2.CV_32F)  # centred: fewer digits lost in E[g²] - E[g]²
+        cv2.blur(src, (window, window), dst=mean, borderType=cv2.BORDER_REPLICATE)
+        cv2.sqrBoxFilter(src, cv2.CV_32F, (window, window), dst=squares, borderType=cv2.BORDER_REPLICATE)
+        local = cv2.subtract(squares, cv2.multiply(mean, mean, dst=src), dst=squares)
         out.append(_variance(local[r:-r, r:-r]) * s**4)
     return _out(out)
 
@@ -449,11 +480,12 @@ def dct_reduced_energy_ratio(region: Tensor, block: int, eps: float) -> Tensor:
     return _out(out)
 
 
-_CURVATURE = (
-    np.array([[-1, 0, 1]] * 3, np.float32) / 6,
-    np.array([[-1, 0, 1]] * 3, np.float32).T / 6,
-    np.array([[1, 0, 1]] * 3, np.float32) / 2 - np.float32(1 / 3),
-    np.array([[1, 0, 1]] * 3, np.float32).T / 2 - np.float32(1 / 3),
+_ONES = np.ones(3, np.float32)
+_CURVATURE = (  # (row taps, column taps) of p0 = Σx g/6, p1 = Σy g/6, p2 = Σx² g/2 - Σg/3, p3 = Σy² g/2 - Σg/3
+    (np.array([-1, 0, 1], np.float32) / 6, _ONES),
+    (_ONES, np.array([-1, 0, 1], np.float32) / 6),
+    (np.array([1 / 6, -1 / 3, 1 / 6], np.float32), _ONES),
+    (_ONES, np.array([1 / 6, -1 / 3, 1 / 6], np.float32)),
 )
 
 
@@ -461,8 +493,11 @@ def curvature(region: Tensor) -> Tensor:
     cv2 = _cv2
     out = []
     for f, s in _each(region):
-        src = f
-        total = sum(cv2.norm(cv2.filter2D(src, cv2.CV_32F, k)[1:-1, 1:-1], cv2.NORM_L1) for k in _CURVATURE)
+        (response,) = _scratch(f.shape, 1)
+        total = 0.0
+        for kx, ky in _CURVATURE:  # each coefficient's 3 × 3 kernel is separable
+            cv2.sepFilter2D(f, cv2.CV_32F, kx, ky, dst=response)
+            total += cv2.norm(response[1:-1, 1:-1], cv2.NORM_L1)
         out.append(total * s / ((f.shape[0] - 2) * (f.shape[1] - 2)))
     return _out(out)
 
@@ -473,10 +508,12 @@ def helmli_mean(region: Tensor, window: int, eps: float) -> Tensor:
     out = []
     r = window // 2
     for f, s in _each(region):
-        src = cv2.multiply(f, s, dtype=cv2.CV_32F) if s != 1.0 else f
-        mean = cv2.blur(src, (window, window), borderType=cv2.BORDER_REPLICATE)
-        low = cv2.min(mean, src)
-        ratio = cv2.divide(cv2.max(mean, src), cv2.max(low, eps))
+        scaled, mean, low, high = _scratch(f.shape, 4)
+        src = cv2.multiply(f, s, dst=scaled, dtype=cv2.CV_32F) if s != 1.0 else f
+        cv2.blur(src, (window, window), dst=mean, borderType=cv2.BORDER_REPLICATE)
+        cv2.min(mean, src, dst=low)
+        cv2.max(mean, src, dst=high)
+        ratio = cv2.divide(high, cv2.max(low, eps, dst=mean), dst=high)
         scored = cv2.compare(low[r:-r, r:-r], eps, cv2.CMP_GT)  # 255 where min(μ, g) > eps
         count = cv2.countNonZero(scored)
         total = cv2.mean(ratio[r:-r, r:-r], mask=scored)[0] * count - count if count else 0.0
@@ -490,13 +527,19 @@ def steerable_filters(region: Tensor, sigma: float) -> Tensor:
     is cut at the final sum."""
     cv2 = _cv2
     out = []
+    half = math.sqrt(0.5)
     for f, s in _each(region):
         gx, gy, r = _gaussian_gradients(f, sigma, crop=False)
-        u = cv2.absdiff(gx, cv2.multiply(gy, -1.0))
-        v = cv2.absdiff(gx, gy)
-        largest = cv2.max(cv2.addWeighted(u, 0.5, v, 0.5, 0.0), cv2.multiply(cv2.max(u, v), math.sqrt(0.5)))
+        _, _, negative, u, v = _scratch(f.shape, 5)
+        np.negative(gy, out=negative)
+        cv2.absdiff(gx, negative, dst=u)  # |gx + gy|
+        cv2.absdiff(gx, gy, dst=v)  # |gx - gy|
+        # max((u + v)/2, max(u, v)/√2) = max((u + v)/√2, max(u, v)) / √2
+        cv2.addWeighted(u, half, v, half, 0.0, dst=gx)
+        cv2.max(u, v, dst=gy)
+        largest = cv2.max(gx, gy, dst=gx)
         valid = largest[r:-r, r:-r]
-        out.append(cv2.sumElems(valid)[0] * s / valid.size)
+        out.append(cv2.sumElems(valid)[0] * half * s / valid.size)
     return _out(out)
 
 
