@@ -66,21 +66,22 @@ def _each(region: Tensor):
 _pool = threading.local()
 
 
-def _scratch(shape: tuple[int, int], count: int) -> list[np.ndarray]:
-    """``count`` float32 arrays of ``shape``, reused per thread across calls (frame sizes repeat in a sweep).
+def _scratch(shape: tuple[int, int], count: int, dtype: type = np.float32) -> list[np.ndarray]:
+    """``count`` arrays of ``shape`` and ``dtype``, reused per thread across calls (frame sizes repeat in a sweep).
 
     Fresh frame-sized outputs cost page faults on every call (measured: SFIL 44 ms with fresh arrays, 3.5 ms
-    with the allocator keeping memory); OpenCV writes into these through ``dst=``. Only the last two shapes are
-    kept, so memory stays a few frames' worth.
+    with the allocator keeping memory); OpenCV writes into these through ``dst=``. Only the last four
+    (shape, dtype) keys are kept, so memory stays a few frames' worth.
     """
     cache = getattr(_pool, "cache", None)
     if cache is None:
         cache = _pool.cache = {}
-    arrays = cache.get(shape)
+    key = (tuple(shape), np.dtype(dtype))
+    arrays = cache.get(key)
     if arrays is None or len(arrays) < count:
-        if len(cache) >= 2:
+        if arrays is None and len(cache) >= 4:
             cache.clear()
-        arrays = cache[shape] = [np.empty(shape, np.float32) for _ in range(max(count, len(arrays or ())))]
+        arrays = cache[key] = [np.empty(shape, dtype) for _ in range(max(count, len(arrays or ())))]
     return arrays[:count]
 
 
@@ -184,9 +185,12 @@ def image_contrast(region: Tensor) -> Tensor:
 
 
 def _haar_rows(f: np.ndarray):
-    """Sums and differences of horizontal neighbours, float32 (h, w-1)."""
+    """Sums and differences of horizontal neighbours, float32 (h, w-1), in reused buffers, and a third buffer."""
     cv2 = _cv2
-    return cv2.add(f[:, :-1], f[:, 1:], dtype=cv2.CV_32F), cv2.subtract(f[:, :-1], f[:, 1:], dtype=cv2.CV_32F)
+    sums, diffs, spare = _scratch((f.shape[0], f.shape[1] - 1), 3)
+    cv2.add(f[:, :-1], f[:, 1:], dst=sums, dtype=cv2.CV_32F)
+    cv2.subtract(f[:, :-1], f[:, 1:], dst=diffs, dtype=cv2.CV_32F)
+    return sums, diffs, spare[:-1]
 
 
 def wavelet_sum(region: Tensor) -> Tensor:
@@ -195,10 +199,10 @@ def wavelet_sum(region: Tensor) -> Tensor:
     out = []
     for f, s in _each(region):
         h, w = f.shape
-        sums, diffs = _haar_rows(f)
+        sums, diffs, spare = _haar_rows(f)
         lh = cv2.norm(sums[:-1], sums[1:], cv2.NORM_L1)
         hh = cv2.norm(diffs[:-1], diffs[1:], cv2.NORM_L1)
-        hl = cv2.norm(cv2.add(diffs[:-1], diffs[1:]), cv2.NORM_L1)
+        hl = cv2.norm(cv2.add(diffs[:-1], diffs[1:], dst=spare), cv2.NORM_L1)
         out.append(0.5 * (lh + hl + hh) * s / ((h - 1) * (w - 1)))
     return _out(out)
 
@@ -206,14 +210,13 @@ def wavelet_sum(region: Tensor) -> Tensor:
 def _haar_moments(f: np.ndarray):
     """Per band (LH, HL, HH, LL): (sum, sum of squares) over every 2 × 2 window, in the frame's units."""
     cv2 = _cv2
-    sums, diffs = _haar_rows(f)
-    added = cv2.add(diffs[:-1], diffs[1:])
+    sums, diffs, spare = _haar_rows(f)
     s_top, s_bottom = cv2.sumElems(sums[:-1])[0], cv2.sumElems(sums[1:])[0]
     d_top, d_bottom = cv2.sumElems(diffs[:-1])[0], cv2.sumElems(diffs[1:])[0]
     lh = (0.5 * (s_top - s_bottom), 0.25 * cv2.norm(sums[:-1], sums[1:], cv2.NORM_L2SQR))
-    hl = (0.5 * (d_top + d_bottom), 0.25 * cv2.norm(added, cv2.NORM_L2SQR))
     hh = (0.5 * (d_top - d_bottom), 0.25 * cv2.norm(diffs[:-1], diffs[1:], cv2.NORM_L2SQR))
-    ll = (0.5 * (s_top + s_bottom), 0.25 * cv2.norm(cv2.add(sums[:-1], sums[1:]), cv2.NORM_L2SQR))
+    hl = (0.5 * (d_top + d_bottom), 0.25 * cv2.norm(cv2.add(diffs[:-1], diffs[1:], dst=spare), cv2.NORM_L2SQR))
+    ll = (0.5 * (s_top + s_bottom), 0.25 * cv2.norm(cv2.add(sums[:-1], sums[1:], dst=spare), cv2.NORM_L2SQR))
     return lh, hl, hh, ll
 
 
@@ -514,7 +517,8 @@ def helmli_mean(region: Tensor, window: int, eps: float) -> Tensor:
         cv2.min(mean, src, dst=low)
         cv2.max(mean, src, dst=high)
         ratio = cv2.divide(high, cv2.max(low, eps, dst=mean), dst=high)
-        scored = cv2.compare(low[r:-r, r:-r], eps, cv2.CMP_GT)  # 255 where min(μ, g) > eps
+        (mask,) = _scratch((f.shape[0] - 2 * r, f.shape[1] - 2 * r), 1, np.uint8)
+        scored = cv2.compare(low[r:-r, r:-r], eps, cv2.CMP_GT, dst=mask)  # 255 where min(μ, g) > eps
         count = cv2.countNonZero(scored)
         total = cv2.mean(ratio[r:-r, r:-r], mask=scored)[0] * count - count if count else 0.0
         out.append(total / scored.size)
