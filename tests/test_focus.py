@@ -10,6 +10,7 @@ from scipy import ndimage
 from psmini.errors import InputError, ShapeError
 from psmini.focus import (
     FOCUS_MEASURES,
+    FOCUS_NAMES,
     FocusMeasure,
     brenner,
     focus_measure,
@@ -23,7 +24,8 @@ from psmini.focus import (
 )
 from tests.conftest import BaseTester
 
-NAMES = list(FOCUS_MEASURES)  # psmini's seven names and the 28 operator codes of Pertuz et al. (2013)
+NAMES = list(FOCUS_NAMES)  # psmini's seven names and the 28 operator codes of Pertuz et al. (2013)
+assert set(FOCUS_MEASURES) < set(NAMES) and len(NAMES) == 35
 # Operators divided by a brightness (a contrast ratio by design): inverting a frame whose mean changes changes them.
 BRIGHTNESS_RATIOS = {"variance", "glvn", "wavr", "dcte", "dctr", "helm"}
 # Operators that read one pixel only (no neighbours): a 1-pixel-high frame is enough for them.

@@ -12,7 +12,7 @@ _CHUNK = 32  # frames scored per batch: bounds memory on long sweeps of large fr
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from psmini.focus import FOCUS_MEASURES
+    from psmini.focus import FOCUS_NAMES
 
     parser = subparsers.add_parser(
         "focus",
@@ -23,7 +23,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "by a 3-point parabola around the largest score (the sampled position when the fit is rejected).",
     )
     parser.add_argument("folder", type=Path, metavar="DIR")
-    parser.add_argument("--metric", default="brenner", type=str.lower, choices=[*FOCUS_MEASURES, "all"],
+    parser.add_argument("--metric", default="brenner", type=str.lower, choices=[*FOCUS_NAMES, "all"],
                         help="focus measure: a psmini name, an operator code of Pertuz et al. 2013 (lapm, teng, ...) "
                         "or 'all' (every one of the 28 operators: best frame and score of each; default: brenner, "
                         "the seed's)")

@@ -11,7 +11,8 @@ from focus (:func:`psmini.sff.depth_from_focus`).
   sum, Gaussian derivative, Tenengrad, variance of the Laplacian, normalised variance) and the shared guards;
 - :mod:`psmini.focus.operators`: the other 21 operators of Pertuz, Puig and García, "Analysis of focus measure
   operators for shape-from-focus", Pattern Recognition 46 (2013), the registry :data:`FOCUS_OPERATORS` (by
-  Pertuz's code) and :data:`FOCUS_MEASURES` (by name), :func:`focus_measure` and :func:`focus_volume`;
+  Pertuz's code; :data:`FOCUS_MEASURES` keeps psmini's seven names, and every function taking a name takes a
+  code too), :func:`focus_measure` and :func:`focus_volume`;
 - :mod:`psmini.focus._opencv`: OpenCV fast paths, taken for CPU frames (uint8, uint16, float32) that need no
   gradient; the torch path serves autograd, float64 and CUDA, and gives the same value.
 
@@ -47,6 +48,7 @@ from psmini.focus.measures import (
 from psmini.focus.operators import (
     FOCUS_FAMILIES,
     FOCUS_MEASURES,
+    FOCUS_NAMES,
     FOCUS_OPERATORS,
     FocusMeasure,
     FocusOperator,
@@ -79,6 +81,7 @@ from psmini.focus.operators import (
 __all__ = [
     "FOCUS_FAMILIES",
     "FOCUS_MEASURES",
+    "FOCUS_NAMES",
     "FOCUS_OPERATORS",
     "FocusMeasure",
     "FocusOperator",

@@ -322,7 +322,10 @@ def laplacian_energy(region: Tensor) -> Tensor:
     return _out(out)
 
 
-_DIAGONALS = (np.array([[1, 0, 0], [0, -2, 0], [0, 0, 1]], np.float32), np.array([[0, 0, 1], [0, -2, 0], [1, 0, 0]], np.float32))
+_DIAGONALS = (
+    np.array([[1, 0, 0], [0, -2, 0], [0, 0, 1]], np.float32),
+    np.array([[0, 0, 1], [0, -2, 0], [1, 0, 0]], np.float32),
+)
 
 
 def modified_laplacian(region: Tensor, diagonal: bool) -> Tensor:

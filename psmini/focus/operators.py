@@ -80,6 +80,7 @@ from psmini.focus.measures import (
 __all__ = [
     "FOCUS_FAMILIES",
     "FOCUS_MEASURES",
+    "FOCUS_NAMES",
     "FOCUS_OPERATORS",
     "FocusMeasure",
     "FocusOperator",
@@ -1205,7 +1206,8 @@ FOCUS_OPERATORS: dict[str, FocusOperator] = {
         FocusOperator("WAVV", "wavelet", "Variance of wavelet coefficients", "Yang & Nelson 2003",
                       wavelet_variance),
         FocusOperator("WAVR", "wavelet", "Ratio of wavelet coefficients", "Xie et al. 2006", wavelet_ratio),
-        FocusOperator("ACMO", "statistics", "Absolute central moment", "Shirvaikar 2004", absolute_central_moment),
+        FocusOperator("ACMO", "statistics", "Absolute central moment", "Shirvaikar 2004",
+                      absolute_central_moment),
         FocusOperator("GLVA", "statistics", "Gray-level variance", "Krotkov 1987", gray_level_variance),
         FocusOperator("GLLV", "statistics", "Gray-level local variance", "Pech-Pacheco et al. 2000",
                       gray_level_local_variance, ("window",)),
@@ -1213,7 +1215,8 @@ FOCUS_OPERATORS: dict[str, FocusOperator] = {
                       normalized_variance, ("eps",)),
         FocusOperator("HISE", "statistics", "Histogram entropy", "Krotkov 1987", histogram_entropy, ("bins",)),
         FocusOperator("HISR", "statistics", "Histogram range", "Firestone et al. 1991", histogram_range),
-        FocusOperator("DCTE", "dct", "DCT energy ratio", "Shen & Chen 2006", dct_energy_ratio, ("block", "eps")),
+        FocusOperator("DCTE", "dct", "DCT energy ratio", "Shen & Chen 2006", dct_energy_ratio,
+                      ("block", "eps")),
         FocusOperator("DCTR", "dct", "DCT reduced energy ratio", "Lee et al. 2009", dct_reduced_energy_ratio,
                       ("block", "eps")),
         FocusOperator("BREN", "misc", "Brenner's measure", "Brenner et al. 1976", brenner),
@@ -1245,13 +1248,15 @@ _LEGACY = {
 }
 
 FOCUS_MEASURES: dict[str, Callable[..., Tensor]] = {
-    **{name: FOCUS_OPERATORS[code].measure for name, code in _LEGACY.items()},
-    **{code.lower(): op.measure for code, op in FOCUS_OPERATORS.items()},
+    name: FOCUS_OPERATORS[code].measure for name, code in _LEGACY.items()
 }
-"""Focus measures by name: psmini's seven names (``brenner`` — the seed's —, ``contrast``, ``wavelet``,
-``gaussian``, ``tenengrad``, ``laplacian`` for the variance of the Laplacian, ``variance`` for the normalised
-gray-level variance) and every operator's lower-case code (``bren``, ``teng``, ``lapm``, …). A code in upper
-case is accepted too."""
+"""psmini's seven focus measures by name: ``brenner`` (the seed's), ``contrast``, ``wavelet``, ``gaussian``,
+``tenengrad``, ``laplacian`` (variance of the Laplacian), ``variance`` (normalised gray-level variance). Every
+function that takes a measure name also takes any operator code of :data:`FOCUS_OPERATORS`, in either case
+(``"LAPM"``, ``"teng"``)."""
+
+FOCUS_NAMES: tuple[str, ...] = (*_LEGACY, *(code.lower() for code in FOCUS_OPERATORS))
+"""Every name :func:`focus_measure` accepts: psmini's seven and the 28 lower-case operator codes."""
 
 
 def _code(name: str) -> str:
@@ -1261,7 +1266,8 @@ def _code(name: str) -> str:
             return _LEGACY[name]
         if name.upper() in FOCUS_OPERATORS:
             return name.upper()
-    raise InputError(f"unknown focus measure {name!r}; expected one of {', '.join(FOCUS_MEASURES)}")
+    raise InputError(f"unknown focus measure {name!r}; expected one of {', '.join(FOCUS_MEASURES)} or an "
+                     f"operator code ({', '.join(FOCUS_OPERATORS)})")
 
 
 def _lookup(name: str) -> Callable[..., Tensor]:
