@@ -28,8 +28,10 @@ from psmini.integrate import (
 from psmini.evaluation import evaluate_sample, score_reconstruction
 from psmini.flatfield import FlatField, FlatFieldResult, flatfield
 from psmini.autofocus import AutofocusController, AutofocusResult, autofocus_sweep, best_of_scores, refine_peak
-from psmini.focus import (FOCUS_MEASURES, FocusMeasure, brenner, focus_measure, gaussian_derivative, image_contrast,
-                          normalized_variance, tenengrad, variance_of_laplacian, wavelet_sum)
+from psmini.focus import (FOCUS_MEASURES, FOCUS_OPERATORS, FocusMeasure, FocusVolume, brenner, focus_measure,
+                          focus_volume, gaussian_derivative, image_contrast, normalized_variance, tenengrad,
+                          variance_of_laplacian, wavelet_sum)
+from psmini.sff import DepthFromFocus, SFFConfig, depth_from_focus
 from psmini.geometry import depth_to_points, pixel_grid_mm, point_cloud
 from psmini.lights import (DirectionalLights, LEDLights, LightModel, PointLights, as_batched_lights, check_spans_3d,
                            lights_from_dict, lights_to_dict, ring_lights)
@@ -149,6 +151,12 @@ __all__ = [
     "tenengrad",
     "variance_of_laplacian",
     "normalized_variance",
+    "FOCUS_OPERATORS",
+    "focus_volume",
+    "FocusVolume",
+    "depth_from_focus",
+    "DepthFromFocus",
+    "SFFConfig",
     "AutofocusController",
     "AutofocusResult",
     "autofocus_sweep",

@@ -10,6 +10,7 @@ from scipy import ndimage
 from psmini.errors import InputError, ShapeError
 from psmini.focus import (
     FOCUS_MEASURES,
+    FOCUS_NAMES,
     FocusMeasure,
     brenner,
     focus_measure,
@@ -23,7 +24,12 @@ from psmini.focus import (
 )
 from tests.conftest import BaseTester
 
-NAMES = list(FOCUS_MEASURES)
+NAMES = list(FOCUS_NAMES)  # psmini's seven names and the 28 operator codes of Pertuz et al. (2013)
+assert set(FOCUS_MEASURES) < set(NAMES) and len(NAMES) == 35
+# Operators divided by a brightness (a contrast ratio by design): inverting a frame whose mean changes changes them.
+BRIGHTNESS_RATIOS = {"variance", "glvn", "wavr", "dcte", "dctr", "helm"}
+# Operators that read one pixel only (no neighbours): a 1-pixel-high frame is enough for them.
+POINTWISE = {"variance", "glvn", "acmo", "glva", "hise", "hisr"}
 
 
 def texture(size: int = 48, seed: int = 0, sigma: float = 0.0) -> np.ndarray:
@@ -162,7 +168,8 @@ class TestSymmetry(BaseTester):
             vertical = torch.tensor(stripes(32, period, vertical=True)[None], device=device)
             horizontal = torch.tensor(stripes(32, period, vertical=False)[None], device=device)
             score_v, score_h = focus_measure(vertical, name), focus_measure(horizontal, name)
-            assert float(score_v) > 1e-3
+            # 2-pixel stripes put every pixel on an edge: the variance of a response (TENV, GLLV) is then 0
+            assert period == 4 or float(score_v) > 1e-3
             self.assert_close(score_v, score_h)
 
     @pytest.mark.parametrize("name", NAMES)
@@ -178,14 +185,14 @@ class TestSymmetry(BaseTester):
         for image in (edge, edge.transpose(-1, -2), torch.tensor(stripes(24, 6)[None], device=device)):
             self.assert_close(focus_measure(image, name), focus_measure(1.0 - image, name))
 
-    @pytest.mark.parametrize("name", [n for n in NAMES if n != "variance"])
+    @pytest.mark.parametrize("name", [n for n in NAMES if n not in BRIGHTNESS_RATIOS])
     def test_polarity_texture_uint8(self, name, device):
         raw = torch.randint(0, 256, (2, 31, 29), dtype=torch.uint8, device=device)
         self.assert_close(focus_measure(raw, name), focus_measure(255 - raw, name))
 
 
 class TestBehaviour(BaseTester):
-    @pytest.mark.parametrize("name", NAMES)
+    @pytest.mark.parametrize("name", [n for n in NAMES if n != "vola"])
     def test_blur_lowers_score(self, name, device):
         stack = np.stack([texture(64, 7, sigma) for sigma in (0.0, 0.7, 1.5, 3.0)])
         scores = focus_measure(torch.tensor(stack, device=device), name)
@@ -214,6 +221,13 @@ class TestBehaviour(BaseTester):
         module = FocusMeasure("gaussian", roi=(2, 2, 20, 20), sigma=1.2)
         self.assert_close(module(frames), gaussian_derivative(frames[:, 2:22, 2:22], sigma=1.2))
         assert "gaussian" in repr(module)
+
+    def test_vollath_blur_lowers_score_of_band_limited_texture(self, device):
+        # Vollath's F4 is lag-1 minus lag-2 autocorrelation: on white noise both are ~0 and a little blur raises
+        # the lag-1 term first; on a texture with a finite correlation length (any real image) blur lowers it.
+        stack = np.stack([texture(64, 7, sigma) for sigma in (1.0, 1.5, 2.2, 3.0)])
+        scores = focus_measure(torch.tensor(stack, device=device), "vola")
+        assert bool((scores[:-1] > scores[1:]).all()), scores
 
     def test_constant_frames_score_zero(self, device):
         frames = torch.full((2, 16, 16), 0.4, device=device)
@@ -259,7 +273,7 @@ class TestErrors:
             focus_measure(torch.zeros(1, 3, 8, 8), name)
         with pytest.raises(ShapeError, match="at least"):
             focus_measure(torch.zeros(1, 0, 40), name)
-        if name != "variance":  # every other measure needs neighbours
+        if name not in POINTWISE:  # every other measure needs neighbours
             with pytest.raises(ShapeError, match="at least"):
                 focus_measure(torch.zeros(1, 1, 40), name)
         bad = torch.rand(1, 8, 8)

@@ -12,7 +12,7 @@ _CHUNK = 32  # frames scored per batch: bounds memory on long sweeps of large fr
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from psmini.focus import FOCUS_MEASURES
+    from psmini.focus import FOCUS_NAMES
 
     parser = subparsers.add_parser(
         "focus",
@@ -23,8 +23,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "by a 3-point parabola around the largest score (the sampled position when the fit is rejected).",
     )
     parser.add_argument("folder", type=Path, metavar="DIR")
-    parser.add_argument("--metric", default="brenner", choices=list(FOCUS_MEASURES),
-                        help="focus measure (default: brenner, the seed's)")
+    parser.add_argument("--metric", default="brenner", type=str.lower, choices=[*FOCUS_NAMES, "all"],
+                        help="focus measure: a psmini name, an operator code of Pertuz et al. 2013 (lapm, teng, ...) "
+                        "or 'all' (every one of the 28 operators: best frame and score of each; default: brenner, "
+                        "the seed's)")
     parser.add_argument("--roi", default=None, metavar="x,y,w,h", help="region of interest in pixels")
     add_device_flag(parser)
     add_json_flag(parser)
@@ -73,21 +75,28 @@ def _read_frames(files: list[Path]):
     return torch.from_numpy(np.stack([p.astype(np.float32) / (2**b - 1 if b else 1) for p, b in frames]))
 
 
-def run(args: argparse.Namespace) -> int:
+def _scores(frames, metric: str, roi, device):
     import torch
 
+    from psmini.focus import focus_measure
+
+    return torch.cat([
+        focus_measure(frames[i : i + _CHUNK].to(device), metric, roi=roi).cpu()
+        for i in range(0, frames.shape[0], _CHUNK)
+    ]).double()
+
+
+def run(args: argparse.Namespace) -> int:
     from psmini.autofocus import best_of_scores
-    from psmini.focus import focus_measure, parse_roi
+    from psmini.focus import parse_roi
 
     device = resolve_device(args.device)
     files, positions = _frame_list(args.folder)
     frames = _read_frames(files)
     roi = parse_roi(args.roi, frames.shape[-2], frames.shape[-1])
-    scores = torch.cat([
-        focus_measure(frames[i : i + _CHUNK].to(device), args.metric, roi=roi).cpu()
-        for i in range(0, frames.shape[0], _CHUNK)
-    ]).double()
-    result = best_of_scores(scores, positions)
+    if args.metric == "all":
+        return _run_all(args, files, positions, frames, roi, device)
+    result = best_of_scores(_scores(frames, args.metric, roi, device), positions)
     unit = "mm" if positions is not None else "(index)"
     sampled = result.positions[result.best_index]
     for i, (path, z, s) in enumerate(zip(files, result.positions, result.scores)):
@@ -112,5 +121,36 @@ def run(args: argparse.Namespace) -> int:
             "scores": result.scores,
             "stop_index": result.stop_index,
             "stopped_by_rule": result.stopped_by_rule,
+        })
+    return 0
+
+
+def _run_all(args, files, positions, frames, roi, device) -> int:
+    """Every operator of Pertuz et al. (2013): its best frame, refined position and best score."""
+    from psmini.autofocus import best_of_scores
+    from psmini.focus import FOCUS_OPERATORS
+
+    unit = "mm" if positions is not None else "(index)"
+    print(f"{'code':<5s} {'family':<10s} {'best':>4s}  {'file':<32s} {'position ' + unit:>16s}  score")
+    rows = {}
+    for code, op in FOCUS_OPERATORS.items():
+        result = best_of_scores(_scores(frames, code, roi, device), positions)
+        rows[code] = result
+        print(f"{code:<5s} {op.family:<10s} {result.best_index:4d}  {files[result.best_index].name:<32s} "
+              f"{result.best_position:16.4f}  {result.best_score:.6g}")
+    indices = [r.best_index for r in rows.values()]
+    consensus = max(set(indices), key=indices.count)
+    print(f"{indices.count(consensus)} of {len(indices)} operators pick index {consensus} "
+          f"({files[consensus].name})")
+    if args.json:
+        emit_json({
+            "metric": "all",
+            "roi": list(roi) if roi else None,
+            "files": [p.name for p in files],
+            "positions_are_indices": positions is None,
+            "operators": {code: {"family": FOCUS_OPERATORS[code].family, "best_index": r.best_index,
+                                 "best_position": r.best_position, "best_score": r.best_score,
+                                 "refined": r.refined, "scores": r.scores} for code, r in rows.items()},
+            "consensus_index": consensus,
         })
     return 0

@@ -268,7 +268,8 @@ class CaptureSession:
         return self.write(folder, self.acquire(kind), **write_args)
 
     def focus_sweep(self, move_to: Callable[[float], object], positions: Sequence[float] | None = None, *,
-                    folder: str | Path | None = None, overwrite: bool = False, **autofocus: Any) -> Any:
+                    folder: str | Path | None = None, overwrite: bool = False, full_sweep: bool = False,
+                    **autofocus: Any) -> Any:
         """Find focus with the robot: all LEDs on, ``move_to(z)``, a fresh frame, the stop rule; LEDs off after.
 
         Uses :func:`psmini.autofocus.autofocus_sweep` (the seed's rule: stop once the Brenner maximum is followed
@@ -279,6 +280,8 @@ class CaptureSession:
             positions: the sweep's positions, mm (or ``start``, ``stop``, ``step`` in ``autofocus``).
             folder: when given, the frames taken are written there as a ``kind: "focus"`` capture.
             overwrite: replace an existing ``folder``.
+            full_sweep: visit every position (no early stop) so the frames in ``folder`` cover the whole range:
+                the stack for shape from focus (``psmini sff FOLDER``, :func:`psmini.sff.depth_from_focus`).
             autofocus: more arguments of :func:`~psmini.autofocus.autofocus_sweep` (``start``, ``stop``,
                 ``step``, ``bounds``, ``measure``, ``roi``, ``patience``, ...).
 
@@ -306,6 +309,8 @@ class CaptureSession:
             visited.append(stage["z"])
             return torch.from_numpy(frame)
 
+        if full_sweep:
+            autofocus["patience"] = 1 << 30  # the stop rule never fires: the sweep ends at its last position
         self.leds.all_on()
         try:
             result = autofocus_sweep(move, grab, positions, **autofocus)

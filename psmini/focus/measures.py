@@ -1,4 +1,4 @@
-r"""Focus measures: how sharp each frame of a batch is, one score per frame.
+r"""The seven focus measures psmini started with (and their shared guards): one score per frame.
 
 Every measure takes a batch of gray frames, shape :math:`(B, H, W)` or :math:`(B, 1, H, W)`, as uint8 or uint16
 (scaled to :math:`[0, 1]` by the dtype's maximum, 255 or 65535) or floating point (used as is), an optional region
@@ -39,18 +39,17 @@ References:
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from psmini.errors import InputError, ShapeError
+from psmini.focus import _opencv
 
 __all__ = [
-    "FOCUS_MEASURES",
-    "FocusMeasure",
+    "Roi",
     "brenner",
-    "focus_measure",
     "gaussian_derivative",
     "image_contrast",
     "normalized_variance",
@@ -172,7 +171,13 @@ def brenner(frames: Tensor, roi: Roi | str | None = None) -> Tensor:
         >>> brenner(frames)  # 12 of 36 positions straddle the edge, each scores 1
         tensor([0.3333])
     """
+    if roi is None and type(frames) is Tensor:  # the autofocus loop's case: as few steps as possible
+        fast = _opencv.brenner_uint8_frames(frames)
+        if fast is not None:
+            return fast
     region = _region(frames, roi, 3, "brenner")
+    if _opencv.usable(region):
+        return _opencv.brenner(region)
     if region.dtype == torch.uint8:
         return _brenner_uint8(region)
     g = _as_float(region)[:, 0]
@@ -233,7 +238,10 @@ def image_contrast(frames: Tensor, roi: Roi | str | None = None) -> Tensor:
         >>> image_contrast(torch.ones(2, 5, 5))
         tensor([0., 0.])
     """
-    g = _as_float(_region(frames, roi, 3, "image_contrast"))[:, 0]
+    region = _region(frames, roi, 3, "image_contrast")
+    if _opencv.usable(region):
+        return _opencv.image_contrast(region)
+    g = _as_float(region)[:, 0]
     h, w = g.shape[-2:]
     total = g.new_zeros(g.shape[0])
     # Directions d = (du, dv) covering each unordered pair once. diff[r, c] = |g(p) - g(p + d)| for the pixel
@@ -279,7 +287,10 @@ def wavelet_sum(frames: Tensor, roi: Roi | str | None = None) -> Tensor:
         >>> wavelet_sum(torch.tensor([[[0.0, 1.0], [0.0, 1.0]]]))  # one window, only HL = -1
         tensor([1.])
     """
-    g = _as_float(_region(frames, roi, 2, "wavelet_sum"))[:, 0]
+    region = _region(frames, roi, 2, "wavelet_sum")
+    if _opencv.usable(region):
+        return _opencv.wavelet_sum(region)
+    g = _as_float(region)[:, 0]
     across = g[:, :, :-1] - g[:, :, 1:]  # a - b (top row of each window) and c - d (bottom row)
     down = g[:, :-1] - g[:, 1:]  # a - c and b - d
     top, bottom = across[:, :-1], across[:, 1:]
@@ -318,7 +329,10 @@ def gaussian_derivative(frames: Tensor, roi: Roi | str | None = None, sigma: flo
     if not (isinstance(sigma, (int, float)) and math.isfinite(sigma) and sigma > 0):
         raise InputError(f"gaussian_derivative: sigma must be a positive number of pixels, got {sigma!r}")
     smooth, slope = _gaussian_taps(float(sigma))
-    g = _as_float(_region(frames, roi, len(smooth), "gaussian_derivative"))[:, 0]
+    region = _region(frames, roi, len(smooth), "gaussian_derivative")
+    if _opencv.usable(region):
+        return _opencv.gaussian_derivative(region, float(sigma))
+    g = _as_float(region)[:, 0]
     gx = _correlate_valid(_correlate_valid(g, smooth, -2), slope, -1)
     gy = _correlate_valid(_correlate_valid(g, slope, -2), smooth, -1)
     return (gx.square() + gy.square()).mean(dim=(-2, -1))
@@ -379,7 +393,10 @@ def tenengrad(frames: Tensor, roi: Roi | str | None = None, threshold: float = 0
     """
     if not (isinstance(threshold, (int, float)) and math.isfinite(threshold) and threshold >= 0):
         raise InputError(f"tenengrad: threshold must be a number ≥ 0, got {threshold!r}")
-    g = _as_float(_region(frames, roi, 3, "tenengrad"))[:, 0]
+    region = _region(frames, roi, 3, "tenengrad")
+    if threshold == 0 and _opencv.usable(region):
+        return _opencv.tenengrad(region)
+    g = _as_float(region)[:, 0]
     # Sobel = [1, 2, 1] smoothing ⊗ [-1, 0, 1] difference, each factor as shifted slices (valid region only):
     # on one gray channel this is several times faster than a convolution call.
     smooth_rows = g[:, :-2] + 2.0 * g[:, 1:-1] + g[:, 2:]
@@ -416,7 +433,10 @@ def variance_of_laplacian(frames: Tensor, roi: Roi | str | None = None) -> Tenso
         >>> variance_of_laplacian(torch.arange(9.0).reshape(1, 3, 3))  # a plane has zero Laplacian
         tensor([0.])
     """
-    g = _as_float(_region(frames, roi, 3, "variance_of_laplacian"))[:, 0]
+    region = _region(frames, roi, 3, "variance_of_laplacian")
+    if _opencv.usable(region):
+        return _opencv.variance_of_laplacian(region)
+    g = _as_float(region)[:, 0]
     centre = g[:, 1:-1, 1:-1]
     lap = g[:, :-2, 1:-1] + g[:, 2:, 1:-1] + g[:, 1:-1, :-2] + g[:, 1:-1, 2:] - 4.0 * centre
     return _population_variance(lap)
@@ -454,76 +474,8 @@ def normalized_variance(frames: Tensor, roi: Roi | str | None = None, eps: float
     """
     if not (isinstance(eps, (int, float)) and eps > 0):
         raise InputError(f"normalized_variance: eps must be a positive number, got {eps!r}")
-    g = _as_float(_region(frames, roi, 1, "normalized_variance"))[:, 0]
+    region = _region(frames, roi, 1, "normalized_variance")
+    if _opencv.usable(region):
+        return _opencv.normalized_variance(region, float(eps))
+    g = _as_float(region)[:, 0]
     return _population_variance(g) / g.mean(dim=(-2, -1)).clamp_min(eps)
-
-
-FOCUS_MEASURES: dict[str, Callable[..., Tensor]] = {
-    "brenner": brenner,
-    "contrast": image_contrast,
-    "wavelet": wavelet_sum,
-    "gaussian": gaussian_derivative,
-    "tenengrad": tenengrad,
-    "laplacian": variance_of_laplacian,
-    "variance": normalized_variance,
-}
-"""Focus measures by name: ``brenner`` (the seed's), ``contrast``, ``wavelet``, ``gaussian``, ``tenengrad``,
-``laplacian`` (variance of the Laplacian), ``variance`` (normalised gray-level variance)."""
-
-
-def _lookup(name: str) -> Callable[..., Tensor]:
-    if name not in FOCUS_MEASURES:
-        raise InputError(f"unknown focus measure {name!r}; expected one of {', '.join(FOCUS_MEASURES)}")
-    return FOCUS_MEASURES[name]
-
-
-def focus_measure(frames: Tensor, name: str = "brenner", roi: Roi | str | None = None, **params: float) -> Tensor:
-    """Score each frame of a batch with the focus measure ``name`` (see :data:`FOCUS_MEASURES`).
-
-    Args:
-        frames: :math:`(B, H, W)` or :math:`(B, 1, H, W)`, uint8, uint16 or float.
-        name: a key of :data:`FOCUS_MEASURES`.
-        roi: optional region ``(x, y, w, h)`` in pixels.
-        **params: the measure's own parameters (``sigma`` for ``gaussian``, ``threshold`` for ``tenengrad``).
-
-    Returns:
-        :math:`(B,)` scores, larger is sharper.
-
-    Raises:
-        InputError: an unknown name, bad dtype, non-finite values, or a region outside the frame.
-        ShapeError: frames of the wrong shape.
-
-    Example:
-        >>> focus_measure(torch.rand(4, 1, 32, 32), "tenengrad").shape
-        torch.Size([4])
-    """
-    return _lookup(name)(frames, roi, **params)
-
-
-class FocusMeasure(nn.Module):
-    """A focus measure with its name, region and parameters fixed; ``forward(frames) -> (B,)`` scores.
-
-    Args:
-        name: a key of :data:`FOCUS_MEASURES`.
-        roi: optional region ``(x, y, w, h)`` in pixels, checked against each batch.
-        **params: the measure's own parameters.
-
-    Raises:
-        InputError: an unknown name.
-
-    Example:
-        >>> measure = FocusMeasure("brenner", roi=(0, 0, 16, 16))
-        >>> measure(torch.rand(3, 32, 32)).shape
-        torch.Size([3])
-    """
-
-    def __init__(self, name: str = "brenner", roi: Roi | str | None = None, **params: float) -> None:
-        super().__init__()
-        self.func = _lookup(name)
-        self.name, self.roi, self.params = name, roi, params
-
-    def forward(self, frames: Tensor) -> Tensor:
-        return self.func(frames, self.roi, **self.params)
-
-    def extra_repr(self) -> str:
-        return f"name={self.name!r}, roi={self.roi!r}" + "".join(f", {k}={v!r}" for k, v in self.params.items())
