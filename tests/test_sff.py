@@ -205,7 +205,8 @@ def test_rig_full_sweep_keeps_every_frame_for_sff(tmp_path, capsys):
     from data_synth.rig import RigConfig
     from psmini.cli import main
     from psmini.io import read_capture
-    from psmini.rig import CaptureSession, SimulatedRig
+    from data_synth.simulated_rig import SimulatedRig
+    from psmini.rig import CaptureSession
     from tests.rig.test_session import open_rig
 
     with SimulatedRig("jute", 0, 32, pixel_pitch_mm=0.1, config=RigConfig(shadows=False)) as rig:
