@@ -168,7 +168,8 @@ class PhotometricStereo(nn.Module):
             images, reference, dark, reference_dark, card_albedo, self.min_reference, self.saturation_level
         )
         matrix = distant_light_matrix(self.lights, reference is not None, images)
-        weights = None if bool(flat.valid.all()) else flat.valid
+        all_valid = flat.all_valid if flat.all_valid is not None else bool(flat.valid.all())
+        weights = None if all_valid else flat.valid
         if self.method == "lstsq":
             albedo, normals = albedo_normals(flat.images, matrix, mask, weights)
         elif self.method == "nonlambertian":

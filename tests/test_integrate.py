@@ -166,6 +166,13 @@ class TestCosineTransforms(BaseTester):
         self.gradcheck(dct2, (x,))
         self.gradcheck(idct2, (x,))
 
+    @pytest.mark.parametrize("shape", [(5, 6), (4, 7)])
+    def test_fc_gradcheck_without_mask(self, shape):
+        p = torch.rand(2, 1, *shape, dtype=torch.float64, requires_grad=True)
+        q = torch.rand(2, 1, *shape, dtype=torch.float64, requires_grad=True)
+        self.gradcheck(lambda a, b: frankot_chellappa(a, b, 0.3), (p, q))
+        self.gradcheck(lambda a, b: frankot_chellappa(a, b, 0.3, mask=torch.ones_like(a, dtype=torch.bool)), (p, q))
+
     @pytest.mark.parametrize("shape", [(6, 9), (7, 5), (2, 2), (3, 8), (64, 48)])
     def test_mirror_fc_equals_doubled_grid(self, shape):
         torch.manual_seed(0)

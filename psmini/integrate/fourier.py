@@ -53,11 +53,14 @@ class _MirrorPlan(NamedTuple):
 
     transform: Plan
     scale: Tensor  # (1, 2, H, W): pitch (-1)^u for gu, -pitch (-1)^v for gv (the signs turn DCTs into DSTs)
-    along_u: Tensor  # (H, W): -w_u / (w_u² + w_v²), 0 at (0, 0)
-    along_v: Tensor  # (H, W): -w_v / (w_u² + w_v²), 0 at (0, 0)
+    along_u: Tensor  # (H, W): -w_u / (w_u² + w_v²), 0 at (0, 0), signed as the halves it multiplies
+    along_v: Tensor  # (H, W): -w_v / (w_u² + w_v²), 0 at (0, 0), signed likewise
     flipped_rows: Tensor  # k_v -> (H - k_v) mod H
     alternating: Tensor  # (H, 1): (-1)^v
     nyquist: Tensor  # (W, W): a DCT row at k_v = 0 -> the doubled grid's Nyquist row profile along u
+    ramp_u: Tensor  # (W,): the DCT-II (2-D, row k_v = 0) of the plane u - (W - 1) / 2 times pitch
+    ramp_v: Tensor  # (H, 1): the DCT-II (2-D, column k_u = 0) of the plane -(v - (H - 1) / 2) times pitch
+    nyquist_mean: Tensor  # (W, 1): r -> 4 H W times the grid mean of (-1)^v r(u)
 
 
 @functools.lru_cache(maxsize=16)
@@ -75,20 +78,38 @@ def _mirror_plan(height: int, width: int, pitch: float, device: torch.device, dt
     nyquist = (-math.pi / ((wu**2 + math.pi**2) * 2 * height * width)).view(width, 1) * torch.sin(
         math.pi * ku.view(width, 1) * u.view(1, width) / width
     )
+    # DCT-II of a plane f(u) over the grid: 2 H DCT_u(f) on the row k_v = 0 (and likewise for f(v))
+    cos_u = torch.cos(math.pi * ku.view(width, 1) * u.view(1, width) / width)
+    cos_v = torch.cos(math.pi * kv.view(height, 1) * (kv + 0.5).view(1, height) / height)
+    ramp_u = 2 * height * pitch * (2 * cos_u @ (u - width / 2))
+    ramp_v = -2 * width * pitch * (2 * cos_v @ (kv + 0.5 - height / 2))
+    nyquist_mean = torch.full((width, 1), 4.0 * float(alternating.sum()))  # 4 H W * sum_v (-1)^v / H * mean_u
+    # the columns that come from the negated imaginary halves: 1..R of T_u, W-R..W-1 of the DCT of gv (-1)^v
+    right = (width - 1) // 2
+    along_u, along_v = -wu / denom, (-wv / denom).expand(height, width).clone()
+    along_u[:, 1 : right + 1] *= -1
+    along_v[:, width - right :] *= -1
+    nyquist[width - right :] *= -1
     const = {"device": device, "dtype": dtype}
     return _MirrorPlan(
         dct_plan(height, width, device, dtype),
         scale.view(1, 2, height, width).to(**const),
-        (-wu / denom).to(**const),
-        (-wv / denom).to(**const),
+        along_u.to(**const),
+        along_v.to(**const),
         ((height - torch.arange(height)) % height).to(device),
         alternating.to(**const),
         nyquist.to(**const),
+        ramp_u.to(**const),
+        ramp_v.view(height, 1).to(**const),
+        nyquist_mean.to(**const),
     )
 
 
-def _fc_mirror(g: Tensor, plan: _MirrorPlan) -> Tensor:
-    r"""Frankot–Chellappa of the mirrored :math:`(2H, 2W)` extension, computed on the :math:`(H, W)` grid.
+def _fc_mirror(g: Tensor, plan: _MirrorPlan) -> tuple[Tensor, Tensor]:
+    r"""Frankot–Chellappa of the mirrored :math:`(2H, 2W)` extension, on the :math:`(H, W)` grid, as coefficients.
+
+    Returns the DCT-II coefficients :math:`(B, 1, H, W)` of the solution and the Nyquist row's profile
+    :math:`r` :math:`(B, 1, 1, W)`: the depth is ``idct2(coefficients) + (-1)^v r``.
 
     ``g`` :math:`(B, 2, H, W)` holds the pixel-grid gradients times ``plan.scale``: :math:`(-1)^u g_u` and
     :math:`(-1)^v g_v`. The mirrored depth is even about the half-pixel beyond each edge, so its spectrum on the
@@ -100,14 +121,14 @@ def _fc_mirror(g: Tensor, plan: _MirrorPlan) -> Tensor:
     not make odd: :math:`(-1)^v r(u)`, :math:`r` a sine series of the DCT of :math:`(-1)^v g_v` at :math:`k_v = 0`.
     """
     transform = plan.transform
-    real, imag = half_spectra(g, transform)
+    real, negated = half_spectra(g, transform)
     right = transform.right
-    # T_u[k_u] = DCT[(-1)^u g_u][W - k_u]: the imaginary half in place, the real half reversed (k_u = 0 unused)
-    t_u = torch.cat([real[:, 0:1, :, 0:1], imag[:, 0:1, :, 1 : right + 1], real[:, 0:1, :, 1:].flip(-1)], dim=-1)
-    b = from_halves(real[:, 1:2], imag[:, 1:2], transform)  # DCT[(-1)^v g_v]
+    # T_u[k_u] = DCT[(-1)^u g_u][W - k_u]: the imaginary half in place, the real half reversed (k_u = 0 unused);
+    # the imaginary halves come negated, and their signs are folded into the plan's weights
+    t_u = torch.cat([real[:, 0:1, :, 0:1], negated[:, 0:1, :, 1 : right + 1], real[:, 0:1, :, 1:].flip(-1)], dim=-1)
+    b = torch.cat([real[:, 1:2], negated[:, 1:2, :, 1 : right + 1].flip(-1)], dim=-1)  # DCT[(-1)^v g_v], signed
     coefficients = torch.addcmul(plan.along_u * t_u, plan.along_v, b.index_select(-2, plan.flipped_rows))
-    z = idct2(coefficients)
-    return z.addcmul(plan.alternating, b[..., 0:1, :] @ plan.nyquist)
+    return coefficients, b[..., 0:1, :] @ plan.nyquist
 
 
 def frankot_chellappa(
@@ -151,19 +172,40 @@ def frankot_chellappa(
     if boundary not in _FC_BOUNDARIES:
         raise InputError(f"boundary must be one of {', '.join(_FC_BOUNDARIES)}, got {boundary!r}")
     height, width = p.shape[-2:]
+    if mask is not None and bool(mask.all()):
+        mask = None  # the same result without a pass over the mask per step
+    if boundary == "mirror":
+        return _frankot_chellappa_mirror(p, q, pitch, mask)
     p0, q0 = masked_mean(p, mask), masked_mean(q, mask)
     # Residual slopes in mm per pixel step along columns (u) and rows (v, downward: -q).
-    if boundary == "mirror":
-        plan = _mirror_plan(height, width, pitch, p.device, p.dtype)
-        g = (torch.cat([p, q], dim=1) - torch.cat([p0, q0], dim=1)) * plan.scale
-        z = _fc_mirror(g if mask is None else g * mask, plan)
-    else:
-        gu, gv = (p - p0) * pitch, -(q - q0) * pitch
-        if mask is not None:
-            gu, gv = gu * mask, gv * mask
-        z = _fc_periodic(gu, gv)
+    gu, gv = (p - p0) * pitch, -(q - q0) * pitch
+    if mask is not None:
+        gu, gv = gu * mask, gv * mask
+    z = _fc_periodic(gu, gv)
     u, v = centred_grid(height, width, p)
     z = z + (p0 * u - q0 * v) * pitch
+    return z - masked_mean(z, mask)
+
+
+def _frankot_chellappa_mirror(p: Tensor, q: Tensor, pitch: float, mask: Tensor | None) -> Tensor:
+    """The ``boundary="mirror"`` branch of :func:`frankot_chellappa` (checked inputs, float mask or None)."""
+    height, width = p.shape[-2:]
+    plan = _mirror_plan(height, width, pitch, p.device, p.dtype)
+    pq = torch.cat([p, q], dim=1)
+    means = masked_mean(pq, mask)  # (B, 2, 1, 1): the mean slopes (p0, q0)
+    # residual slopes in mm per pixel step along columns (u) and rows (v, downward: -q), with the DST signs
+    g = (pq - means).mul_(plan.scale)
+    coefficients, nyquist = _fc_mirror(g if mask is None else g.mul_(mask), plan)
+    if mask is None:
+        # the mean-slope plane and the zero mean, as coefficients: the plane p0 u - q0 v lives on the row k_v = 0
+        # and the column k_u = 0 of the DCT, a constant on (0, 0); the IDCT has zero mean but the Nyquist row not
+        coefficients[..., 0:1, :] += means[:, 0:1] * plan.ramp_u
+        coefficients[..., :, 0:1] += means[:, 1:2] * plan.ramp_v
+        coefficients[..., 0:1, 0:1] -= nyquist @ plan.nyquist_mean
+        return idct2(coefficients).addcmul_(plan.alternating, nyquist)
+    z = idct2(coefficients).addcmul_(plan.alternating, nyquist)
+    u, v = centred_grid(height, width, p)
+    z = z + (means[:, 0:1] * u - means[:, 1:2] * v) * pitch
     return z - masked_mean(z, mask)
 
 
