@@ -59,7 +59,9 @@ class _MirrorPlan(NamedTuple):
     alternating: Tensor  # (H, 1): (-1)^v
     nyquist: Tensor  # (W, W): a DCT row at k_v = 0 -> the doubled grid's Nyquist row profile along u
     ramp_u: Tensor  # (W,): the DCT-II (2-D, row k_v = 0) of the plane u - (W - 1) / 2 times pitch
-    ramp_v: Tensor  # (H, 1): the DCT-II (2-D, column k_u = 0) of the plane -(v - (H - 1) / 2) times pitch
+    ramp_u_minus_mean: Tensor  # (W,): ramp_u less the row k_v = 0 of the solution for a unit mean slope p0
+    ramp_v: Tensor  # (H, 1): the DCT-II (column k_u = 0) of the plane -(v - (H - 1) / 2) times pitch, less the
+    # column k_u = 0 of the solution for a unit mean slope q0 (the masked path adds its plane as pixels instead)
     nyquist_mean: Tensor  # (W, 1): r -> 4 H W times the grid mean of (-1)^v r(u)
 
 
@@ -91,6 +93,15 @@ def _mirror_plan(height: int, width: int, pitch: float, device: torch.device, dt
     along_v[:, width - right :] *= -1
     nyquist[width - right :] *= -1
     const = {"device": device, "dtype": dtype}
+    plan64 = _MirrorPlan(
+        dct_plan(height, width, torch.device("cpu"), f64), scale.view(1, 2, height, width), along_u, along_v,
+        (height - torch.arange(height)) % height, alternating, nyquist, ramp_u, ramp_u, ramp_v.view(height, 1),
+        nyquist_mean,
+    )
+    # the solution's coefficients for p = 1, q = 0 (all on the row k_v = 0) and for p = 0, q = 1 (all on the
+    # column k_u = 0), neither with a Nyquist row: what the mean slopes add when they are not taken out first
+    unit = _fc_mirror(plan64.scale * torch.eye(2, dtype=f64).view(2, 2, 1, 1), plan64)[0]
+    ramp_u_minus_mean, ramp_v = ramp_u - unit[0, 0, 0], ramp_v - unit[1, 0, :, 0]
     return _MirrorPlan(
         dct_plan(height, width, device, dtype),
         scale.view(1, 2, height, width).to(**const),
@@ -100,6 +111,7 @@ def _mirror_plan(height: int, width: int, pitch: float, device: torch.device, dt
         alternating.to(**const),
         nyquist.to(**const),
         ramp_u.to(**const),
+        ramp_u_minus_mean.to(**const),
         ramp_v.view(height, 1).to(**const),
         nyquist_mean.to(**const),
     )
@@ -168,6 +180,8 @@ def frankot_chellappa(
         >>> round(float(z[0, 0, 0, 1] - z[0, 0, 0, 0]), 4)  # 0.2 * 0.5 mm per column
         0.1
     """
+    if isinstance(mask, Tensor) and mask.dtype == torch.bool and mask.shape == p.shape and bool(mask.all()):
+        mask = None  # an all-true mask: the same result without passes over it
     mask, pitch = check_gradients(p, q, mask, pixel_pitch_mm)
     if boundary not in _FC_BOUNDARIES:
         raise InputError(f"boundary must be one of {', '.join(_FC_BOUNDARIES)}, got {boundary!r}")
@@ -193,16 +207,18 @@ def _frankot_chellappa_mirror(p: Tensor, q: Tensor, pitch: float, mask: Tensor |
     plan = _mirror_plan(height, width, pitch, p.device, p.dtype)
     pq = torch.cat([p, q], dim=1)
     means = masked_mean(pq, mask)  # (B, 2, 1, 1): the mean slopes (p0, q0)
-    # residual slopes in mm per pixel step along columns (u) and rows (v, downward: -q), with the DST signs
-    g = (pq - means).mul_(plan.scale)
-    coefficients, nyquist = _fc_mirror(g if mask is None else g.mul_(mask), plan)
     if mask is None:
+        # slopes in mm per pixel step along columns (u) and rows (v, downward: -q), with the DST signs; the mean
+        # slopes are taken out as coefficients below (p0 changes the row k_v = 0 only, q0 the column k_u = 0)
+        coefficients, nyquist = _fc_mirror(pq.mul_(plan.scale), plan)
         # the mean-slope plane and the zero mean, as coefficients: the plane p0 u - q0 v lives on the row k_v = 0
         # and the column k_u = 0 of the DCT, a constant on (0, 0); the IDCT has zero mean but the Nyquist row not
-        coefficients[..., 0:1, :] += means[:, 0:1] * plan.ramp_u
+        coefficients[..., 0:1, :] += means[:, 0:1] * plan.ramp_u_minus_mean
         coefficients[..., :, 0:1] += means[:, 1:2] * plan.ramp_v
         coefficients[..., 0:1, 0:1] -= nyquist @ plan.nyquist_mean
         return idct2(coefficients).addcmul_(plan.alternating, nyquist)
+    # residual slopes in mm per pixel step along columns (u) and rows (v, downward: -q), with the DST signs
+    coefficients, nyquist = _fc_mirror((pq - means).mul_(plan.scale).mul_(mask), plan)
     z = idct2(coefficients).addcmul_(plan.alternating, nyquist)
     u, v = centred_grid(height, width, p)
     z = z + (means[:, 0:1] * u - means[:, 1:2] * v) * pitch
