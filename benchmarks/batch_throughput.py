@@ -14,9 +14,13 @@ Measured in the same run, each end-to-end run in its own child process (its peak
   same maths in NumPy (dark subtraction, card division where trusted and unsaturated, least squares over each
   pixel's usable observations, gradients, mirrored Frankot–Chellappa over the solved pixels), the same depth
   files written (npy, png, json; NaN where unsolved);
-- the computation alone for both, on decoded samples in memory (torch: one batch, on one thread and on all).
+- the computation alone for both, on decoded samples in memory (torch: one batch, on one thread and on all);
+- near light end to end: ``psmini batch --light-model near`` (:func:`psmini.batch.reconstruct_dataset` with
+  ``light_model="near"``) on the first ``--near-count`` captures (near light costs seconds per sample: its
+  throughput is recorded beside the distant one, not raced against the NumPy loop).
 
-    python benchmarks/batch_throughput.py [--count 200] [--batch-size 4] [--workers 2] [--repeat 2] [--no-record]
+    python benchmarks/batch_throughput.py [--count 200] [--batch-size 4] [--workers 2] [--repeat 2] [--near-count 8]
+        [--no-record]
 """
 
 from __future__ import annotations
@@ -174,11 +178,15 @@ def child(args: argparse.Namespace) -> dict:
         card = numpy_decode(sample["card"])
         figures["compute_only_s"] = best_time(lambda: numpy_solve(
             sample["images"], sample["dark"], card["images"], card["dark"], directions, 0.8, 0.025), repeat=3)
-    elif args.child == "psmini":
+    elif args.child in ("psmini", "near"):
+        lot = root / "lot" if args.child == "psmini" else root / "near" / "lot"
+        folders = sorted(lot.glob("s*"))
         start, cpu = time.perf_counter(), _cpu_seconds()
-        summary = reconstruct_dataset(root / "lot", out, device=device, batch_size=args.batch_size,
-                                      workers=args.workers, outputs="depth", score=False)
+        summary = reconstruct_dataset(lot, out, device=device, batch_size=args.batch_size, workers=args.workers,
+                                      outputs="depth", score=False,
+                                      light_model="distant" if args.child == "psmini" else "near")
         figures["seconds"], figures["cpu_s"] = time.perf_counter() - start, _cpu_seconds() - cpu
+        figures["count"] = len(folders)
         rows = summary["samples"]
         assert summary["counts"]["done"] == len(folders), summary["counts"]
         for part in ("decode_s", "compute_s", "write_s"):
@@ -247,7 +255,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--gpu-batch-size", type=int, default=64)
     parser.add_argument("--repeat", type=int, default=2, help="rounds of all measurements; the best of each is kept")
     parser.add_argument("--no-record", action="store_true")
-    parser.add_argument("--child", choices=["numpy", "psmini", "compute"], help=argparse.SUPPRESS)
+    parser.add_argument("--near-count", type=int, default=8,
+                        help="captures reconstructed with near light (default 8; 0 skips the row)")
+    parser.add_argument("--child", choices=["numpy", "psmini", "compute", "near"], help=argparse.SUPPRESS)
     parser.add_argument("--root", help=argparse.SUPPRESS)
     parser.add_argument("--device", default="cpu", help=argparse.SUPPRESS)
     parser.add_argument("--threads", type=int, default=0, help=argparse.SUPPRESS)
@@ -262,6 +272,11 @@ def main(argv: list[str] | None = None) -> int:
         make_dataset(root, args.count, args.distinct, args.size)
         print(f"made {args.count} captures in {time.perf_counter() - start:.1f} s", file=sys.stderr)
         difference = check_agreement(root)
+        if args.near_count:  # the first captures again, with the card, for the near-light row
+            near = root / "near" / "lot"
+            shutil.copytree(root / "lot" / "card", near / "card", copy_function=os.link)
+            for folder in sorted((root / "lot").glob("s*"))[: args.near_count]:
+                shutil.copytree(folder, near / folder.name, copy_function=os.link)
         load_before = os.getloadavg()[0]
         threads = torch.get_num_threads()
         children = {"numpy": ("numpy", "cpu", {}),
@@ -280,6 +295,8 @@ def main(argv: list[str] | None = None) -> int:
                 run = run_child(root, kind, device, args, **options)
                 if key not in runs or _seconds(run) < _seconds(runs[key]):
                     runs[key] = run
+        if args.near_count:  # once: it takes seconds per sample
+            runs["near"] = run_child(root, "near", "cpu", args)
         load_after = os.getloadavg()[0]
     numpy_run, n = runs["numpy"], args.count
     baseline_e2e, baseline_compute = n / numpy_run["seconds"], 1 / numpy_run["compute_only_s"]
@@ -303,6 +320,16 @@ def main(argv: list[str] | None = None) -> int:
         rows.append([label, f"{n / e2e['seconds']:.2f}", f"{n / e2e['seconds'] / baseline_e2e:.2f}×",
                      f"{e2e['cpu_s'] / n * 1e3:.0f}", f"{1 / compute['compute_only_s']:.2f} ({compute_label})",
                      f"{1 / compute['compute_only_s'] / baseline_compute:.2f}×", parts(e2e), memory])
+    if "near" in runs:
+        near, label = runs["near"], f"psmini batch --light-model near (cpu, {args.workers} workers)"
+        count = near["count"]
+        distant = runs[f"psmini batch (cpu, {args.workers} workers)"]
+        rows.append([f"{label}, {count} captures", f"{count / near['seconds']:.3f}",
+                     f"{count / near['seconds'] / baseline_e2e:.3f}× ({count / near['seconds'] / (n / distant['seconds']):.3f}× distant)",
+                     f"{near['cpu_s'] / count * 1e3:.0f}", "—", "—",
+                     f"{near['decode_s'] / count * 1e3:.1f} / {near['compute_s'] / count * 1e3:.1f} / "
+                     f"{near['write_s'] / count * 1e3:.1f}",
+                     f"{near['peak_mb']:.0f} + workers {near['workers_peak_mb']:.0f}"])
     report = table(["implementation", "samples/s end to end", "vs NumPy", "CPU ms/sample end to end",
                     "samples/s compute alone", "vs NumPy",
                     "ms/sample decode / compute / write", "peak RSS (MB)"], rows)

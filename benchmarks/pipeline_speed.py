@@ -1,8 +1,13 @@
 """Speed and memory of flat-field + least-squares normals + Frankot–Chellappa on a batch of rig-sized samples.
 
 psmini's batched torch pipeline against a plain NumPy implementation of the same maths (dark subtraction, card
-division, pseudo-inverse normals, gradients, mirrored Frankot–Chellappa keeping the mean slope), measured in the
-same run. Each implementation runs in its own child process so that its peak resident memory is its own.
+division, pseudo-inverse normals, gradients, mirrored Frankot–Chellappa on the doubled grid keeping the mean
+slope: the maths of psmini before its N-point cosine-transform solver), measured in the same run. Each
+implementation runs in its own child process so that its peak resident memory is its own.
+
+Times are the best of ``--repeat`` runs, both as wall time and as the process's CPU time: on one thread the CPU
+time is what a quiet machine's wall time would be, and it does not count the time other processes on a shared
+machine take the core away (the wall time then does). The torch child also times each stage on its own.
 
     python benchmarks/pipeline_speed.py [--batch 8] [--size 400] [--repeat 5] [--no-record]
 """
@@ -14,6 +19,7 @@ import json
 import resource
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +27,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks._ledger import append_results, best_time, table  # noqa: E402
+from benchmarks._ledger import append_results, table  # noqa: E402
 from psmini import PhotometricStereo, ring_lights  # noqa: E402
 
 LEDS, ZENITH_DEG, PITCH_MM, CARD_ALBEDO = 8, 55.0, 0.025, 0.8
@@ -77,41 +83,113 @@ def numpy_frankot_chellappa(p, q, pitch):
     return z - z.mean()
 
 
-def run_child(impl: str, device: str, batch: int, size: int, repeat: int) -> dict[str, float]:
-    """Time one implementation in this process; report seconds per sample and peak memory."""
+def best_times(func, repeat: int, device: str = "cpu") -> tuple[float, float]:
+    """Best wall time and best process CPU time of ``func`` in seconds over ``repeat`` runs, after one warm-up."""
+    sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
+    func()
+    sync()
+    wall, cpu = [], []
+    for _ in range(repeat):
+        start, start_cpu = time.perf_counter(), time.process_time()
+        func()
+        sync()
+        wall.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
+    return min(wall), min(cpu)
+
+
+def torch_stages(model, tensors: dict, repeat: int) -> dict[str, float]:
+    """CPU seconds of each stage of the distant pipeline on its own (best of ``repeat``), for the whole batch."""
+    from psmini.flatfield import flatfield
+    from psmini.integrate import integrate
+    from psmini.normals import albedo_normals, normals_to_gradients
+    from psmini.pipeline import distant_light_matrix
+
+    images, reference, dark = tensors["images"], tensors["reference"], tensors["dark"]
+    flat = flatfield(images, reference, dark, dark[:1], CARD_ALBEDO)
+    matrix = distant_light_matrix(model.lights, True, images)
+    albedo, normals = albedo_normals(flat.images, matrix)
+    p, q = normals_to_gradients(normals)
+    solved = albedo > 0
+    stages = {
+        "flat-field": lambda: flatfield(images, reference, dark, dark[:1], CARD_ALBEDO),
+        "normals": lambda: albedo_normals(flat.images, matrix),
+        "gradients": lambda: normals_to_gradients(normals),
+        "Frankot–Chellappa": lambda: integrate(p, q, method="fc", pixel_pitch_mm=PITCH_MM, mask=solved),
+    }
+    return {name: best_times(func, repeat)[1] for name, func in stages.items()}
+
+
+def run_child(impl: str, device: str, batch: int, size: int, repeat: int) -> dict:
+    """Time one implementation in this process; report seconds per sample (wall, CPU) and peak memory."""
     inputs = make_inputs(batch, size)
     lights = ring_lights(LEDS, ZENITH_DEG, dtype=torch.float64).numpy()
     if impl == "numpy":
-        seconds = best_time(lambda: numpy_pipeline(**inputs, lights=lights), repeat=repeat)
+        wall, cpu = best_times(lambda: numpy_pipeline(**inputs, lights=lights), repeat)
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-        return {"s_per_sample": seconds / batch, "peak_mb": peak}
+        return {"s_per_sample": wall / batch, "cpu_per_sample": cpu / batch, "peak_mb": peak}
     tensors = {k: torch.from_numpy(v).to(device) for k, v in inputs.items()}
     model = PhotometricStereo(torch.from_numpy(lights).float(), pixel_pitch_mm=PITCH_MM).to(device)
     if device == "cuda":
         torch.cuda.reset_peak_memory_stats()
     with torch.no_grad():
-        seconds = best_time(
+        wall, cpu = best_times(
             lambda: model(tensors["images"], tensors["reference"], tensors["dark"], tensors["dark"][:1],
                           card_albedo=CARD_ALBEDO),
-            repeat=repeat, device=device,
+            repeat, device,
         )
+        stages = torch_stages(model, tensors, repeat) if device == "cpu" and torch.get_num_threads() == 1 else {}
     peak = (
         torch.cuda.max_memory_allocated() / 2**20 if device == "cuda"
         else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     )
-    return {"s_per_sample": seconds / batch, "peak_mb": peak}
+    return {"s_per_sample": wall / batch, "cpu_per_sample": cpu / batch, "peak_mb": peak,
+            "stages": {name: seconds / batch for name, seconds in stages.items()}}
 
 
-def check_agreement(batch: int, size: int) -> float:
-    """Largest depth difference (mm) between the two implementations on the same input."""
-    inputs = make_inputs(min(batch, 2), min(size, 128))
+def check_agreement(batch: int, size: int, dtype: torch.dtype = torch.float64) -> tuple[float, float]:
+    """Largest depth difference (mm) and that difference over the largest |depth|, torch in ``dtype`` vs NumPy
+    (float64, the doubled-grid solver) on the same input."""
+    inputs = make_inputs(batch, size)
     lights = ring_lights(LEDS, ZENITH_DEG, dtype=torch.float64)
     expected = numpy_pipeline(**inputs, lights=lights.numpy())
-    tensors = {k: torch.from_numpy(v).double() for k, v in inputs.items()}
-    result = PhotometricStereo(lights, pixel_pitch_mm=PITCH_MM)(
-        tensors["images"], tensors["reference"], tensors["dark"], tensors["dark"][:1], card_albedo=CARD_ALBEDO
-    )
-    return float(np.abs(result.depth[:, 0].numpy() - expected).max())
+    tensors = {k: torch.from_numpy(v).to(dtype) for k, v in inputs.items()}
+    with torch.no_grad():
+        result = PhotometricStereo(lights.to(dtype), pixel_pitch_mm=PITCH_MM)(
+            tensors["images"], tensors["reference"], tensors["dark"], tensors["dark"][:1], card_albedo=CARD_ALBEDO
+        )
+    difference = float(np.abs(result.depth[:, 0].double().numpy() - expected).max())
+    return difference, difference / float(np.abs(expected).max())
+
+
+def check_fc_against_doubled_grid(size: int) -> dict[str, float]:
+    """psmini's FC (N-point cosine transforms) against the doubled-grid FFT solve that it replaced (``_mirror`` +
+    ``_fc_periodic``, in torch) on one benchmark sample's slopes: max |Δz| / max |z| of each in float32 against
+    the doubled grid in float64, of the two float32 results, and of the two float64 results."""
+    from psmini.integrate._common import centred_grid
+    from psmini.integrate.fourier import _fc_periodic, _mirror, frankot_chellappa
+    from psmini.normals import normals_to_gradients
+
+    def doubled_grid(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        p0, q0 = p.mean(dim=(-2, -1), keepdim=True), q.mean(dim=(-2, -1), keepdim=True)
+        z = _fc_periodic(*_mirror((p - p0) * PITCH_MM, -(q - q0) * PITCH_MM))[..., :size, :size]
+        u, v = centred_grid(size, size, p)
+        z = z + (p0 * u - q0 * v) * PITCH_MM
+        return z - z.mean()
+
+    inputs = {k: torch.from_numpy(v) for k, v in make_inputs(1, size).items()}
+    model = PhotometricStereo(ring_lights(LEDS, ZENITH_DEG), pixel_pitch_mm=PITCH_MM)
+    with torch.no_grad():
+        result = model(inputs["images"], inputs["reference"], inputs["dark"], inputs["dark"][:1],
+                       card_albedo=CARD_ALBEDO)
+        p, q = normals_to_gradients(result.normals)
+        exact = doubled_grid(p.double(), q.double())
+        new32, old32 = frankot_chellappa(p, q, PITCH_MM).double(), doubled_grid(p, q).double()
+        new64 = frankot_chellappa(p.double(), q.double(), PITCH_MM)
+    scale = float(exact.abs().max())
+    return {name: float((a - b).abs().max()) / scale for name, (a, b) in
+            {"new32": (new32, exact), "old32": (old32, exact), "new_old32": (new32, old32),
+             "new_old64": (new64, exact)}.items()}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -130,7 +208,9 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(run_child(args.child, args.device, args.batch, args.size, args.repeat)))
         return 0
 
-    difference = check_agreement(args.batch, args.size)
+    difference, relative = check_agreement(min(args.batch, 2), min(args.size, 128))
+    difference32, relative32 = check_agreement(1, args.size, torch.float32)
+    fc = check_fc_against_doubled_grid(args.size)
     threads = torch.get_num_threads()
     # NumPy's maths here is single-threaded: torch is timed on one thread (like for like) and on all of them
     runs = [("numpy", "cpu", 1), ("torch", "cpu", 1)] + ([("torch", "cpu", threads)] if threads > 1 else [])
@@ -141,17 +221,32 @@ def main(argv: list[str] | None = None) -> int:
                    "--size", str(args.size), "--repeat", str(args.repeat), "--threads", str(count)]
         output = subprocess.run(command, capture_output=True, text=True, check=True).stdout
         figures[(impl, device, count)] = json.loads(output.strip().splitlines()[-1])
-    baseline = figures[("numpy", "cpu", 1)]["s_per_sample"]
-    rows = [
-        [f"{impl} ({device}, {count} thread{'s' if count > 1 else ''})", f"{fig['s_per_sample'] * 1e3:.1f}",
-         f"{baseline / fig['s_per_sample']:.2f}×", f"{fig['peak_mb']:.0f}"]
-        for (impl, device, count), fig in figures.items()
-    ]
-    report = table(["implementation", "ms per sample", "speed-up vs NumPy", "peak memory (MB)"], rows)
+    base_wall, base_cpu = figures[("numpy", "cpu", 1)]["s_per_sample"], figures[("numpy", "cpu", 1)]["cpu_per_sample"]
+    rows = []
+    for (impl, device, count), fig in figures.items():
+        single = count == 1 and device == "cpu"
+        rows.append([
+            f"{impl} ({device}, {count} thread{'s' if count > 1 else ''})",
+            f"{fig['cpu_per_sample'] * 1e3:.1f}" if single else "—",
+            f"{base_cpu / fig['cpu_per_sample']:.2f}×" if single else "—",
+            f"{fig['s_per_sample'] * 1e3:.1f}", f"{base_wall / fig['s_per_sample']:.2f}×", f"{fig['peak_mb']:.0f}",
+        ])
+    report = table(["implementation", "ms per sample (CPU time)", "speed-up vs NumPy (CPU time)",
+                    "ms per sample (wall)", "speed-up vs NumPy (wall)", "peak memory (MB)"], rows)
+    stages = figures[("torch", "cpu", 1)].get("stages", {})
+    if stages:
+        report += "\n\n" + table(["torch stage (cpu, 1 thread, on its own)", "ms per sample (CPU time)"],
+                                  [[name, f"{seconds * 1e3:.2f}"] for name, seconds in stages.items()])
     note = (f"Batch of {args.batch} samples × {LEDS} LEDs × {args.size}×{args.size}, float32: flat-field, "
-            f"least-squares normals, mirrored Frankot–Chellappa. Best of {args.repeat}. Peak memory: process "
-            f"peak RSS on CPU (includes the inputs and the interpreter), `max_memory_allocated` on CUDA. "
-            f"Depth agreement torch vs NumPy (float64, 2×128²): max |Δz| = {difference:.2e} mm.")
+            f"least-squares normals, mirrored Frankot–Chellappa (torch: N-point cosine transforms; NumPy: the "
+            f"doubled-grid FFT). Best of {args.repeat}, CPU time of the process (one thread) and wall time. Peak "
+            f"memory: process peak RSS on CPU (includes the inputs and the interpreter), `max_memory_allocated` on "
+            f"CUDA. Depth agreement torch vs NumPy: float64, 2×128²: max |Δz| = {difference:.2e} mm "
+            f"({relative:.1e} of max |z|); float32, 1×{args.size}²: max |Δz| = {difference32:.2e} mm "
+            f"({relative32:.1e} of max |z|: float32 rounding of the whole pipeline). FC alone on one sample's "
+            f"slopes, N-point cosine transforms (new) vs the doubled-grid FFT they replaced (old), max |Δz| / max "
+            f"|z|: new vs old in float64 {fc['new_old64']:.1e}; in float32 new vs old {fc['new_old32']:.1e}, new "
+            f"vs exact (old, float64) {fc['new32']:.1e}, old vs exact {fc['old32']:.1e}.")
     print(report)
     print(note)
     if not args.no_record:

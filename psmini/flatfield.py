@@ -32,10 +32,13 @@ class FlatFieldResult:
         images: flat-fielded intensities, shape :math:`(B, K, H, W)`, clamped at 0; 0 where not valid.
         valid: observations to trust, shape :math:`(B, K, H, W)`, bool: not saturated, and the reference
             bright enough there.
+        all_valid: whether every observation is valid when that is known from the card alone, without a pass
+            over ``valid`` (no saturation level given); ``None`` otherwise (use ``bool(valid.all())``).
     """
 
     images: Tensor
     valid: Tensor
+    all_valid: bool | None = None
 
 
 def _check_frame(frame: Tensor | None, batch: int, count: int, height: int, width: int, name: str) -> Tensor | None:
@@ -109,11 +112,14 @@ def flatfield(
     reference = _check_frame(reference, *shape, "reference")
     reference_dark = _check_frame(reference_dark, *shape, "reference_dark") if reference_dark is not None else dark
 
+    # One new tensor per sample, updated in place: the difference, its clamp, the card's scale (each a pass over
+    # memory; there is no fused kernel for max(I - D, 0) * s in eager torch).
     signal = images.clamp_min(0) if dark is None else (images - dark.to(images)).clamp_min_(0)
     saturated = None if saturation_level is None else images >= saturation_level
     if reference is None:
-        valid = torch.ones_like(images, dtype=torch.bool) if saturated is None else ~saturated
-        return FlatFieldResult(signal if saturated is None else signal.masked_fill(saturated, 0), valid)
+        if saturated is None:
+            return FlatFieldResult(signal, torch.ones_like(images, dtype=torch.bool), True)
+        return FlatFieldResult(signal.masked_fill_(saturated, 0), ~saturated)
 
     reference = reference.to(images)
     card = reference if reference_dark is None else reference - reference_dark.to(images)
@@ -124,12 +130,11 @@ def flatfield(
     # scale is card_albedo / card where trusted and 0 elsewhere (an infinite denominator gives the 0 with a zero
     # gradient, where a 0/0 would send NaN back).
     scale = card_albedo / torch.where(trusted, card, torch.inf)
-    ratio = signal * scale
+    ratio = signal.mul_(scale)
     valid = trusted.expand(shape)
     if saturated is not None:
-        valid = valid & ~saturated
-        ratio = ratio.masked_fill(saturated, 0)
-    return FlatFieldResult(ratio, valid)
+        return FlatFieldResult(ratio.masked_fill_(saturated, 0), valid & ~saturated)
+    return FlatFieldResult(ratio, valid, bool(trusted.all()))  # the card's (K, H, W), once per batch
 
 
 class FlatField(nn.Module):

@@ -29,10 +29,12 @@ def _unit_and_length(m: Tensor, solved: Tensor | None) -> tuple[Tensor, Tensor]:
 
     ``solved`` (B, 1, H, W) marks well-posed pixels; ``None`` means all. Pixels with |m| = 0 count as not solved.
     """
-    tiny = torch.finfo(m.dtype).tiny
-    length = m.square().sum(dim=1, keepdim=True).clamp_min(tiny).sqrt()  # no NaN gradient at m = 0
+    # (vector_norm over the 3-long dim 1 measured 10x slower than this on the CPU)
+    length = m.square().sum(dim=1, keepdim=True).clamp_min(torch.finfo(m.dtype).tiny).sqrt()  # no NaN grad at 0
     nonzero = length > torch.finfo(m.dtype).eps
     solved = nonzero if solved is None else solved & nonzero
+    if bool(solved.all()):  # the usual case: no masked_fill, no where, one division
+        return length, m / length
     up = torch.tensor([0.0, 0.0, 1.0], device=m.device, dtype=m.dtype).view(1, 3, 1, 1)  # broadcast, not filled
     return length.masked_fill(~solved, 0), torch.where(solved, m / length, up)
 
@@ -230,5 +232,6 @@ def normals_to_gradients(normals: Tensor, min_nz: float = 1e-2) -> tuple[Tensor,
     check_finite(normals, "normals")
     if not 0.0 < min_nz < 1.0:
         raise InputError(f"min_nz must lie in (0, 1), got {min_nz}")
-    nz = normals[:, 2:3].clamp_min(min_nz)
-    return -normals[:, 0:1] / nz, -normals[:, 1:2] / nz
+    # one division of both slopes by -n_z; p and q are views of one (B, 2, H, W) tensor
+    slopes = normals[:, 0:2] / normals[:, 2:3].clamp_min(min_nz).neg_()
+    return slopes[:, 0:1], slopes[:, 1:2]

@@ -160,7 +160,8 @@ class PhotometricStereo(nn.Module):
         mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
         flat = flatfield(images, reference, dark, reference_dark, card_albedo, config.min_reference, saturation_level)
         matrix = distant_light_matrix(self.lights, reference is not None, images)
-        weights = None if bool(flat.valid.all()) else flat.valid
+        all_valid = flat.all_valid if flat.all_valid is not None else bool(flat.valid.all())
+        weights = None if all_valid else flat.valid
         estimator = "lstsq" if config.estimator == "auto" else config.estimator
         albedo, normals = NORMAL_ESTIMATORS[estimator](flat.images, matrix, mask, weights, config.estimator_options)
         solved = albedo > 0

@@ -70,3 +70,43 @@ class TestFlatField(BaseTester):
         images = torch.rand(1, 3, 3, 3, dtype=torch.float64, requires_grad=True)
         reference = (torch.rand(3, 3, 3, dtype=torch.float64) + 0.5).requires_grad_()
         self.gradcheck(lambda i, r: flatfield(i, r, card_albedo=0.8).images, (images, reference))
+
+    def test_gradcheck_with_dark_and_saturation(self):
+        """The in-place path (difference, clamp, scale, saturation fill on one new tensor) keeps its gradients."""
+        torch.manual_seed(0)
+        images = (0.3 + 0.6 * torch.rand(2, 3, 3, 3, dtype=torch.float64)).requires_grad_()
+        dark = torch.full((2, 1, 3, 3), 0.1, dtype=torch.float64, requires_grad=True)
+        reference = (torch.rand(3, 3, 3, dtype=torch.float64) + 0.5).requires_grad_()
+        with torch.no_grad():
+            images[0, 0, 0, 0] = 0.05  # below the dark frame: clamped to 0
+        self.gradcheck(
+            lambda i, d, r: flatfield(i, r, d, torch.zeros(1, 1, 3, 3, dtype=torch.float64), 0.8,
+                                      saturation_level=0.85).images,
+            (images, dark, reference),
+        )
+
+    def test_single_pass_equals_reference_formula(self, device, dtype):
+        """max(I - D, 0) * albedo / (R - D_R) where trusted, 0 elsewhere, with saturated observations zeroed."""
+        torch.manual_seed(1)
+        images = torch.rand(3, 8, 12, 10, device=device, dtype=dtype)
+        dark = 0.05 * torch.rand(3, 1, 12, 10, device=device, dtype=dtype)
+        reference = 0.2 + torch.rand(8, 12, 10, device=device, dtype=dtype)
+        reference[2, :3] = 0.001  # untrusted corner under LED 2
+        reference_dark = torch.full((1, 1, 12, 10), 0.01, device=device, dtype=dtype)
+        result = flatfield(images, reference, dark, reference_dark, 0.8, 0.02, saturation_level=0.97)
+        card = reference - reference_dark
+        trusted = (card > 0.02 * card.amax(dim=(-2, -1), keepdim=True)) & (reference < 0.97)
+        ok = trusted & (images < 0.97)
+        expected = torch.where(ok, 0.8 * (images - dark).clamp_min(0) / card, torch.zeros_like(images))
+        self.assert_close(result.images, expected)
+        assert torch.equal(result.valid, ok)
+
+    def test_all_valid_known_from_the_card(self):
+        images = torch.rand(2, 4, 5, 5)
+        card = torch.full((4, 5, 5), 0.5)
+        assert flatfield(images, card).all_valid is True
+        assert flatfield(images).all_valid is True
+        card[1, 0, 0] = 0.0  # one untrusted card pixel
+        result = flatfield(images, card)
+        assert result.all_valid is False and not bool(result.valid.all())
+        assert flatfield(images, card, saturation_level=0.99).all_valid is None

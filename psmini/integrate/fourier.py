@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import functools
 import math
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -10,6 +12,8 @@ from torch import Tensor, nn
 
 from psmini.errors import InputError
 from psmini.integrate._common import centred_grid, check_gradients, masked_mean
+from psmini.integrate._dct import Plan, dct2, from_halves, half_spectra, idct2
+from psmini.integrate._dct import plan as dct_plan
 
 __all__ = ["frankot_chellappa", "FrankotChellappa", "dct_poisson", "DCTPoisson"]
 
@@ -20,7 +24,8 @@ def _mirror(gu: Tensor, gv: Tensor) -> tuple[Tensor, Tensor]:
     """Extend pixel-grid gradients to ``(2H, 2W)`` as the gradients of the even (mirrored) depth.
 
     The depth is mirrored about the half-pixel beyond each edge, so its column derivative is odd under a
-    left-right flip and even under an up-down flip (and the other way round for the row derivative).
+    left-right flip and even under an up-down flip (and the other way round for the row derivative). Kept as
+    the reference of the tests: :func:`_fc_mirror` solves the same problem on the ``(H, W)`` grid.
     """
     gu = torch.cat([gu, -gu.flip(-1)], dim=-1)
     gv = torch.cat([gv, gv.flip(-1)], dim=-1)
@@ -41,6 +46,101 @@ def _fc_periodic(gu: Tensor, gv: Tensor) -> Tensor:
     # real array (complex-by-complex products and a complex division cost several times more per element)
     spectrum = torch.fft.rfft2(gu) * (wu / denom) + torch.fft.rfft2(gv) * (wv / denom)
     return torch.fft.irfft2(spectrum * -1j, s=(height, width))
+
+
+class _MirrorPlan(NamedTuple):
+    """Constants of the mirrored Frankot–Chellappa solve on one (H, W) grid, pitch, device and dtype."""
+
+    transform: Plan
+    scale: Tensor  # (1, 2, H, W): pitch (-1)^u for gu, -pitch (-1)^v for gv (the signs turn DCTs into DSTs)
+    along_u: Tensor  # (H, W): -w_u / (w_u² + w_v²), 0 at (0, 0), signed as the halves it multiplies
+    along_v: Tensor  # (H, W): -w_v / (w_u² + w_v²), 0 at (0, 0), signed likewise
+    flipped_rows: Tensor  # k_v -> (H - k_v) mod H
+    alternating: Tensor  # (H, 1): (-1)^v
+    nyquist: Tensor  # (W, W): a DCT row at k_v = 0 -> the doubled grid's Nyquist row profile along u
+    ramp_u: Tensor  # (W,): the DCT-II (2-D, row k_v = 0) of the plane u - (W - 1) / 2 times pitch
+    ramp_u_minus_mean: Tensor  # (W,): ramp_u less the row k_v = 0 of the solution for a unit mean slope p0
+    ramp_v: Tensor  # (H, 1): the DCT-II (column k_u = 0) of the plane -(v - (H - 1) / 2) times pitch, less the
+    # column k_u = 0 of the solution for a unit mean slope q0 (the masked path adds its plane as pixels instead)
+    nyquist_mean: Tensor  # (W, 1): r -> 4 H W times the grid mean of (-1)^v r(u)
+
+
+@functools.lru_cache(maxsize=16)
+def _mirror_plan(height: int, width: int, pitch: float, device: torch.device, dtype: torch.dtype) -> _MirrorPlan:
+    """Build the constants of :func:`_fc_mirror` (in float64, then cast)."""
+    f64 = torch.float64
+    ku, kv = torch.arange(width, dtype=f64), torch.arange(height, dtype=f64)
+    wu, wv = (math.pi * ku / width).view(1, width), (math.pi * kv / height).view(height, 1)
+    denom = wu**2 + wv**2
+    denom[0, 0] = 1.0
+    alternating = (1 - 2 * (kv % 2)).view(height, 1)
+    scale = torch.stack([pitch * (1 - 2 * (ku % 2)).view(1, width).expand(height, width),
+                         -pitch * alternating.expand(height, width)])
+    u = torch.arange(width, dtype=f64) + 0.5
+    nyquist = (-math.pi / ((wu**2 + math.pi**2) * 2 * height * width)).view(width, 1) * torch.sin(
+        math.pi * ku.view(width, 1) * u.view(1, width) / width
+    )
+    # DCT-II of a plane f(u) over the grid: 2 H DCT_u(f) on the row k_v = 0 (and likewise for f(v))
+    cos_u = torch.cos(math.pi * ku.view(width, 1) * u.view(1, width) / width)
+    cos_v = torch.cos(math.pi * kv.view(height, 1) * (kv + 0.5).view(1, height) / height)
+    ramp_u = 2 * height * pitch * (2 * cos_u @ (u - width / 2))
+    ramp_v = -2 * width * pitch * (2 * cos_v @ (kv + 0.5 - height / 2))
+    nyquist_mean = torch.full((width, 1), 4.0 * float(alternating.sum()))  # 4 H W * sum_v (-1)^v / H * mean_u
+    # the columns that come from the negated imaginary halves: 1..R of T_u, W-R..W-1 of the DCT of gv (-1)^v
+    right = (width - 1) // 2
+    along_u, along_v = -wu / denom, (-wv / denom).expand(height, width).clone()
+    along_u[:, 1 : right + 1] *= -1
+    along_v[:, width - right :] *= -1
+    nyquist[width - right :] *= -1
+    const = {"device": device, "dtype": dtype}
+    plan64 = _MirrorPlan(
+        dct_plan(height, width, torch.device("cpu"), f64), scale.view(1, 2, height, width), along_u, along_v,
+        (height - torch.arange(height)) % height, alternating, nyquist, ramp_u, ramp_u, ramp_v.view(height, 1),
+        nyquist_mean,
+    )
+    # the solution's coefficients for p = 1, q = 0 (all on the row k_v = 0) and for p = 0, q = 1 (all on the
+    # column k_u = 0), neither with a Nyquist row: what the mean slopes add when they are not taken out first
+    unit = _fc_mirror(plan64.scale * torch.eye(2, dtype=f64).view(2, 2, 1, 1), plan64)[0]
+    ramp_u_minus_mean, ramp_v = ramp_u - unit[0, 0, 0], ramp_v - unit[1, 0, :, 0]
+    return _MirrorPlan(
+        dct_plan(height, width, device, dtype),
+        scale.view(1, 2, height, width).to(**const),
+        along_u.to(**const),
+        along_v.to(**const),
+        ((height - torch.arange(height)) % height).to(device),
+        alternating.to(**const),
+        nyquist.to(**const),
+        ramp_u.to(**const),
+        ramp_u_minus_mean.to(**const),
+        ramp_v.view(height, 1).to(**const),
+        nyquist_mean.to(**const),
+    )
+
+
+def _fc_mirror(g: Tensor, plan: _MirrorPlan) -> tuple[Tensor, Tensor]:
+    r"""Frankot–Chellappa of the mirrored :math:`(2H, 2W)` extension, on the :math:`(H, W)` grid, as coefficients.
+
+    Returns the DCT-II coefficients :math:`(B, 1, H, W)` of the solution and the Nyquist row's profile
+    :math:`r` :math:`(B, 1, 1, W)`: the depth is ``idct2(coefficients) + (-1)^v r``.
+
+    ``g`` :math:`(B, 2, H, W)` holds the pixel-grid gradients times ``plan.scale``: :math:`(-1)^u g_u` and
+    :math:`(-1)^v g_v`. The mirrored depth is even about the half-pixel beyond each edge, so its spectrum on the
+    doubled grid is its DCT-II up to a half-sample phase, and the odd extensions of the gradients give sine
+    transforms: the doubled-grid solution is :math:`\mathrm{IDCT}[-(\omega_u T_u + \omega_v T_v)/(\omega_u^2 +
+    \omega_v^2)]` with :math:`\omega = \pi k / N`, :math:`T_u = \mathrm{DCT}_v \mathrm{DST}_u\, g_u` and
+    :math:`T_v = \mathrm{DST}_v \mathrm{DCT}_u\, g_v` (a DST-II is the DCT-II of :math:`(-1)^n x` read at
+    :math:`N - k`), plus the doubled grid's Nyquist row :math:`k_v = H`, whose derivative weight the FFT does
+    not make odd: :math:`(-1)^v r(u)`, :math:`r` a sine series of the DCT of :math:`(-1)^v g_v` at :math:`k_v = 0`.
+    """
+    transform = plan.transform
+    real, negated = half_spectra(g, transform)
+    right = transform.right
+    # T_u[k_u] = DCT[(-1)^u g_u][W - k_u]: the imaginary half in place, the real half reversed (k_u = 0 unused);
+    # the imaginary halves come negated, and their signs are folded into the plan's weights
+    t_u = torch.cat([real[:, 0:1, :, 0:1], negated[:, 0:1, :, 1 : right + 1], real[:, 0:1, :, 1:].flip(-1)], dim=-1)
+    b = torch.cat([real[:, 1:2], negated[:, 1:2, :, 1 : right + 1].flip(-1)], dim=-1)  # DCT[(-1)^v g_v], signed
+    coefficients = torch.addcmul(plan.along_u * t_u, plan.along_v, b.index_select(-2, plan.flipped_rows))
+    return coefficients, b[..., 0:1, :] @ plan.nyquist
 
 
 def frankot_chellappa(
@@ -80,20 +180,48 @@ def frankot_chellappa(
         >>> round(float(z[0, 0, 0, 1] - z[0, 0, 0, 0]), 4)  # 0.2 * 0.5 mm per column
         0.1
     """
+    if isinstance(mask, Tensor) and mask.dtype == torch.bool and mask.shape == p.shape and bool(mask.all()):
+        mask = None  # an all-true mask: the same result without passes over it
     mask, pitch = check_gradients(p, q, mask, pixel_pitch_mm)
     if boundary not in _FC_BOUNDARIES:
         raise InputError(f"boundary must be one of {', '.join(_FC_BOUNDARIES)}, got {boundary!r}")
     height, width = p.shape[-2:]
+    if mask is not None and bool(mask.all()):
+        mask = None  # the same result without a pass over the mask per step
+    if boundary == "mirror":
+        return _frankot_chellappa_mirror(p, q, pitch, mask)
     p0, q0 = masked_mean(p, mask), masked_mean(q, mask)
     # Residual slopes in mm per pixel step along columns (u) and rows (v, downward: -q).
     gu, gv = (p - p0) * pitch, -(q - q0) * pitch
     if mask is not None:
         gu, gv = gu * mask, gv * mask
-    if boundary == "mirror":
-        gu, gv = _mirror(gu, gv)
-    z = _fc_periodic(gu, gv)[..., :height, :width]
+    z = _fc_periodic(gu, gv)
     u, v = centred_grid(height, width, p)
     z = z + (p0 * u - q0 * v) * pitch
+    return z - masked_mean(z, mask)
+
+
+def _frankot_chellappa_mirror(p: Tensor, q: Tensor, pitch: float, mask: Tensor | None) -> Tensor:
+    """The ``boundary="mirror"`` branch of :func:`frankot_chellappa` (checked inputs, float mask or None)."""
+    height, width = p.shape[-2:]
+    plan = _mirror_plan(height, width, pitch, p.device, p.dtype)
+    pq = torch.cat([p, q], dim=1)
+    means = masked_mean(pq, mask)  # (B, 2, 1, 1): the mean slopes (p0, q0)
+    if mask is None:
+        # slopes in mm per pixel step along columns (u) and rows (v, downward: -q), with the DST signs; the mean
+        # slopes are taken out as coefficients below (p0 changes the row k_v = 0 only, q0 the column k_u = 0)
+        coefficients, nyquist = _fc_mirror(pq.mul_(plan.scale), plan)
+        # the mean-slope plane and the zero mean, as coefficients: the plane p0 u - q0 v lives on the row k_v = 0
+        # and the column k_u = 0 of the DCT, a constant on (0, 0); the IDCT has zero mean but the Nyquist row not
+        coefficients[..., 0:1, :] += means[:, 0:1] * plan.ramp_u_minus_mean
+        coefficients[..., :, 0:1] += means[:, 1:2] * plan.ramp_v
+        coefficients[..., 0:1, 0:1] -= nyquist @ plan.nyquist_mean
+        return idct2(coefficients).addcmul_(plan.alternating, nyquist)
+    # residual slopes in mm per pixel step along columns (u) and rows (v, downward: -q), with the DST signs
+    coefficients, nyquist = _fc_mirror((pq - means).mul_(plan.scale).mul_(mask), plan)
+    z = idct2(coefficients).addcmul_(plan.alternating, nyquist)
+    u, v = centred_grid(height, width, p)
+    z = z + (means[:, 0:1] * u - means[:, 1:2] * v) * pitch
     return z - masked_mean(z, mask)
 
 
@@ -114,23 +242,23 @@ class FrankotChellappa(nn.Module):
         return frankot_chellappa(p, q, self.pixel_pitch_mm, self.boundary, mask)
 
 
+@functools.lru_cache(maxsize=16)
+def _neumann_eigenvalues(height: int, width: int, device: torch.device, dtype: torch.dtype) -> Tensor:
+    """Reciprocal eigenvalues ``(H, W)`` of the 5-point Neumann Laplacian in the DCT-II basis, 0 for the constant."""
+    ku = torch.arange(width, dtype=torch.float64).view(1, width)
+    kv = torch.arange(height, dtype=torch.float64).view(height, 1)
+    eigen = (2 - 2 * torch.cos(math.pi * ku / width)) + (2 - 2 * torch.cos(math.pi * kv / height))
+    eigen[0, 0] = math.inf  # the constant mode: its coefficient is zero for a solvable right side
+    return (1 / eigen).to(device=device, dtype=dtype)
+
+
 def _neumann_poisson(b: Tensor) -> Tensor:
     """Solve the 5-point Neumann Poisson problem ``L z = b`` (``b`` sums to 0) by the DCT, zero-mean ``z``.
 
-    The DCT-II diagonalises the Neumann Laplacian; it is computed here as the FFT of the even extension
-    (each sample mirrored about the half-pixel beyond the edge), on which the periodic Laplacian equals the
-    Neumann one.
+    The DCT-II diagonalises the Neumann Laplacian (its eigenvalues are ``4 - 2 cos(pi k_u / W) - 2 cos(pi k_v / H)``);
+    the transforms are N-point ones (:mod:`psmini.integrate._dct`).
     """
-    height, width = b.shape[-2:]
-    b = torch.cat([b, b.flip(-1)], dim=-1)
-    b = torch.cat([b, b.flip(-2)], dim=-2)
-    ku = torch.fft.rfftfreq(2 * width, device=b.device, dtype=b.dtype).view(1, 1, 1, -1)
-    kv = torch.fft.fftfreq(2 * height, device=b.device, dtype=b.dtype).view(1, 1, -1, 1)
-    eigen = (2 - 2 * torch.cos(2 * math.pi * ku)) + (2 - 2 * torch.cos(2 * math.pi * kv))
-    eigen[..., 0, 0] = 1.0  # the constant mode: its coefficient is zero for a solvable right side
-    spectrum = torch.fft.rfft2(b) / eigen
-    spectrum[..., 0, 0] = 0.0
-    return torch.fft.irfft2(spectrum, s=(2 * height, 2 * width))[..., :height, :width]
+    return idct2(dct2(b) * _neumann_eigenvalues(b.shape[-2], b.shape[-1], b.device, b.dtype))
 
 
 def dct_poisson(p: Tensor, q: Tensor, pixel_pitch_mm: float = 1.0, mask: Tensor | None = None) -> Tensor:
