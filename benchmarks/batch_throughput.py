@@ -16,7 +16,7 @@ Measured in the same run, each end-to-end run in its own child process (its peak
   files written (npy, png, json; NaN where unsolved);
 - the computation alone for both, on decoded samples in memory (torch: one batch, on one thread and on all);
 - near light end to end: ``psmini batch --light-model near`` (:func:`psmini.batch.reconstruct_dataset` with
-  ``light_model="near"``) on the first ``--near-count`` captures (near light costs seconds per sample: its
+  ``ReconstructionConfig(solver="near")``) on the first ``--near-count`` captures (near light costs seconds per sample: its
   throughput is recorded beside the distant one, not raced against the NumPy loop).
 
     python benchmarks/batch_throughput.py [--count 200] [--batch-size 4] [--workers 2] [--repeat 2] [--near-count 8]
@@ -45,6 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._ledger import append_results, best_time, machine, table  # noqa: E402
 from benchmarks.pipeline_speed import numpy_frankot_chellappa  # noqa: E402
 from psmini.batch import reconstruct_dataset  # noqa: E402
+from psmini.config import ReconstructionConfig  # noqa: E402
 from psmini.io import load_sample, save_depth  # noqa: E402
 from psmini.pipeline import PhotometricStereo, distant_light_matrix  # noqa: E402
 
@@ -182,9 +183,9 @@ def child(args: argparse.Namespace) -> dict:
         lot = root / "lot" if args.child == "psmini" else root / "near" / "lot"
         folders = sorted(lot.glob("s*"))
         start, cpu = time.perf_counter(), _cpu_seconds()
-        summary = reconstruct_dataset(lot, out, device=device, batch_size=args.batch_size, workers=args.workers,
-                                      outputs="depth", score=False,
-                                      light_model="distant" if args.child == "psmini" else "near")
+        config = ReconstructionConfig(solver="distant" if args.child == "psmini" else "near", device=str(device))
+        summary = reconstruct_dataset(lot, out, config, batch_size=args.batch_size, workers=args.workers,
+                                      outputs="depth", score=False)
         figures["seconds"], figures["cpu_s"] = time.perf_counter() - start, _cpu_seconds() - cpu
         figures["count"] = len(folders)
         rows = summary["samples"]
@@ -196,12 +197,11 @@ def child(args: argparse.Namespace) -> dict:
         images = torch.stack([s.images for s in samples]).to(device)
         dark = torch.stack([s.dark for s in samples]).to(device)
         reference, reference_dark = samples[0].reference[None].to(device), samples[0].reference_dark[None].to(device)
-        model = PhotometricStereo(samples[0].lights.to(device), pixel_pitch_mm=0.025, saturation_level=1.0,
-                                  solver="distant")
+        model = PhotometricStereo(samples[0].lights.to(device), 0.025, ReconstructionConfig(solver="distant"))
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats()
         with torch.no_grad():
-            seconds = best_time(lambda: model(images, reference, dark, reference_dark, None, 0.8), repeat=5,
+            seconds = best_time(lambda: model(images, reference, dark, reference_dark, None, 0.8, 1.0), repeat=5,
                                 device=str(device))
         figures["compute_only_s"] = seconds / len(samples)
         if device.type == "cuda":
@@ -230,9 +230,9 @@ def check_agreement(root: Path) -> float:
     folder = sorted((root / "lot").glob("s*"))[0]
     sample = load_sample(folder)
     lights = sample.lights.double()
-    model = PhotometricStereo(lights, pixel_pitch_mm=sample.pixel_pitch_mm, saturation_level=1.0, solver="distant")
+    model = PhotometricStereo(lights, sample.pixel_pitch_mm, ReconstructionConfig(solver="distant"))
     result = model(sample.images[None].double(), sample.reference[None].double(), sample.dark[None].double(),
-                   sample.reference_dark[None].double(), None, sample.card_albedo)
+                   sample.reference_dark[None].double(), None, sample.card_albedo, 1.0)
     directions = lights(torch.zeros(1, 3, 1, 1, dtype=torch.float64))[0][0, :, :, 0, 0].numpy()
     assert np.allclose(distant_light_matrix(lights, True, torch.zeros(1, dtype=torch.float64)).numpy(),
                        directions / directions[:, 2:3])
