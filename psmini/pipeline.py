@@ -16,7 +16,7 @@ from psmini.errors import InputError
 from psmini.flatfield import flatfield
 from psmini.integrate import integrate
 from psmini.lights import DirectionalLights, check_spans_3d
-from psmini.nearlight import near_light_photometric_stereo
+from psmini.nearlight import NearLightOptions, solve_near_light
 from psmini.nonlambertian import nonlambertian_normals
 from psmini.normals import albedo_normals, normals_to_gradients
 from psmini.robust import ROBUST_METHODS, robust_normals
@@ -79,7 +79,7 @@ class PhotometricStereo(nn.Module):
 
     With ``solver="distant"`` the lights are used as seen from the field centre (:func:`distant_light_matrix`):
     flat-field, least squares, integration, the classical pipeline. With ``solver="near"`` the point or LED model is
-    evaluated on the surface itself (:func:`psmini.nearlight.near_light_photometric_stereo`). ``"auto"`` picks
+    evaluated on the surface itself (:func:`psmini.nearlight.solve_near_light`, on the same flat-fielded images). ``"auto"`` picks
     ``"near"`` for models with positions (:class:`~psmini.lights.PointLights`, :class:`~psmini.lights.LEDLights`)
     and ``"distant"`` otherwise.
 
@@ -97,8 +97,9 @@ class PhotometricStereo(nn.Module):
             (``"robust"``: the recommended one), or ``"nonlambertian"``
             (:func:`psmini.nonlambertian.nonlambertian_normals`, a Lambertian + Blinn–Phong fit started from the
             robust one). The near solver takes ``"lstsq"`` only.
-        **near_options: passed to :func:`~psmini.nearlight.near_light_photometric_stereo` (e.g. ``card_height_mm``,
-            ``estimate_offset``, ``max_iterations``).
+        **near_options: ``card_height_mm`` (height of the card plane when its images were taken, mm; 0 by default)
+            and fields of :class:`~psmini.nearlight.NearLightOptions` (e.g. ``max_iterations``, ``estimate_offset``),
+            or ``options=`` a whole :class:`~psmini.nearlight.NearLightOptions`.
 
     Raises:
         InputError: for an unknown solver or method, ``"near"`` without light positions or pixel pitch, or
@@ -143,7 +144,11 @@ class PhotometricStereo(nn.Module):
         self.method = method
         self.integrator = integrator or ("masked" if self.solver == "near" else "fc")
         self.pixel_pitch_mm, self.min_reference, self.saturation_level = pixel_pitch_mm, min_reference, saturation_level
-        self.near_options = near_options
+        self.card_height_mm = float(near_options.pop("card_height_mm", 0.0))
+        base = near_options.pop("options", None) or NearLightOptions()
+        if self.solver == "near":
+            near_options.setdefault("integrator", self.integrator)
+        self.near_options = base.replace(**near_options)  # validated here, before any work
 
     def forward(
         self,
@@ -155,18 +160,15 @@ class PhotometricStereo(nn.Module):
         card_albedo: float = 1.0,
     ) -> Reconstruction:
         """Reconstruct ``images`` :math:`(B, K, H, W)`; see :func:`psmini.flatfield.flatfield` for the rest."""
-        if self.solver == "near":
-            return near_light_photometric_stereo(
-                images, self.lights, self.pixel_pitch_mm, reference=reference, dark=dark,
-                reference_dark=reference_dark, card_albedo=card_albedo, mask=mask,
-                saturation_level=self.saturation_level, min_reference=self.min_reference,
-                integrator=self.integrator, **self.near_options,
-            )
         sizes = check_shape(images, ["B", "K", "H", "W"], "images")
         mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
         flat = flatfield(
             images, reference, dark, reference_dark, card_albedo, self.min_reference, self.saturation_level
         )
+        if self.solver == "near":
+            card_height = self.card_height_mm if reference is not None else None
+            return solve_near_light(flat.images, self.lights, self.pixel_pitch_mm, card_height, flat.valid, mask,
+                                    self.near_options)
         matrix = distant_light_matrix(self.lights, reference is not None, images)
         weights = None if bool(flat.valid.all()) else flat.valid
         if self.method == "lstsq":
