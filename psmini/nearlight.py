@@ -49,7 +49,7 @@ from psmini._checks import check_finite, check_mask, check_positive, check_shape
 from psmini.errors import InputError, ShapeError
 from psmini.geometry import depth_to_points, pixel_grid_mm
 from psmini.integrate import METHODS as INTEGRATORS
-from psmini.integrate import integrate
+from psmini.integrate import dct_poisson, integrate
 from psmini.integrate.least_squares import _edge_system
 from psmini.integrate.poisson import solve_weighted_poisson
 from psmini.lights import LEDLights, PointLights
@@ -99,10 +99,18 @@ _EDGE_CONFIDENCE = 0.01
 _MIN_COARSE_SIZE = 32
 # Interval (mm) scanned around the half-resolution offset by the first full-resolution alternation.
 _FINE_SEARCH_MM = (-0.5, 0.5)
+# Updates of the observations' selection in the first alternation at each resolution; later ones keep it.
+_SELECTION_UPDATES = 3
+# The half-resolution alternations stop at this many times the tolerance (their depth only places the lights).
+_COARSE_TOLERANCE_FACTOR = 10.0
 # Relative residual at which the half-resolution integrations stop (their depth only places the light field).
 _COARSE_CG_TOLERANCE = 1e-4
 # Unsolved pixels inside the mask get this confidence and a zero slope: a membrane filled from their rims.
 _GAP_CONFIDENCE = 1e-3
+# Pixels fitted to exactly three observations get this share of their confidence (nothing checks their fit).
+_THREE_OBSERVATIONS_CONFIDENCE = 0.1
+# Side (pixels) of the window from which unconfident slopes are filled.
+_FILL_SIZE = 9
 
 
 @dataclass(frozen=True)
@@ -112,8 +120,9 @@ class NearLightOptions:
 
     Attributes:
         max_iterations: most alternations (lights → normals → depth).
-        tolerance_mm: the solver stops when ``change_percentile`` of the pixels moved less than this, mm.
-        change_percentile: the share of solved pixels whose depth change must fall below ``tolerance_mm``: a few
+        tolerance_deg: the solver stops when ``change_percentile`` of the solved pixels' normals moved less than
+            this since the previous alternation, degrees (the depth is then consistent with its normals).
+        change_percentile: the share of solved pixels whose normal change must fall below ``tolerance_deg``: a few
             oscillating pixels (rims of crevices) cannot hold the iteration hostage.
         estimate_offset: find the absolute height from the images (the light field is not uniform); otherwise
             the mean height stays ``initial_height_mm``.
@@ -127,8 +136,11 @@ class NearLightOptions:
             observation (purely Lambertian cloth).
         outlier_fraction: residual, relative to the pixel's scale, above which an observation is an outlier (cast
             shadows missed by the shadow test).
-        integrator: method of :func:`psmini.integrate.integrate`; ``"masked"`` (least squares on the mask, with
-            low confidence beside unsolved pixels, warm-started from the previous alternation) is the default.
+        integrator: the final integration: ``"fill"`` (the default: slopes weighted by their inverse variance,
+            unconfident ones filled from their surroundings, a Neumann DCT solve; fast), ``"masked"`` (weighted least
+            squares on the mask by conjugate gradients, warm-started; closer on knits, seconds slower) or another
+            method of :func:`psmini.integrate.integrate` (unweighted, on the solved pixels). The alternations always
+            use ``"fill"``.
 
     Raises:
         InputError: for values out of range.
@@ -139,7 +151,7 @@ class NearLightOptions:
     """
 
     max_iterations: int = 8
-    tolerance_mm: float = 1e-3
+    tolerance_deg: float = 0.02
     change_percentile: float = 0.99
     estimate_offset: bool = True
     initial_height_mm: float = 0.0
@@ -147,7 +159,7 @@ class NearLightOptions:
     shadow_fraction: float = 0.02
     highlight_fraction: float | None = 0.02
     outlier_fraction: float = 0.15
-    integrator: str = "masked"
+    integrator: str = "fill"
 
     def __post_init__(self) -> None:
         def bad(name: str, expected: str) -> InputError:
@@ -156,8 +168,8 @@ class NearLightOptions:
         if not (isinstance(self.max_iterations, int) and not isinstance(self.max_iterations, bool)
                 and self.max_iterations >= 1):
             raise bad("max_iterations", "an integer >= 1")
-        if not (isinstance(self.tolerance_mm, (int, float)) and 0 < self.tolerance_mm < math.inf):
-            raise bad("tolerance_mm", "a positive number")
+        if not (isinstance(self.tolerance_deg, (int, float)) and 0 < self.tolerance_deg < math.inf):
+            raise bad("tolerance_deg", "a positive number")
         if not (isinstance(self.change_percentile, (int, float)) and 0 < self.change_percentile <= 1):
             raise bad("change_percentile", "in (0, 1]")
         if not isinstance(self.estimate_offset, bool):
@@ -176,8 +188,8 @@ class NearLightOptions:
             raise bad("highlight_fraction", "a positive number or None")
         if not (isinstance(self.outlier_fraction, (int, float)) and self.outlier_fraction > 0):
             raise bad("outlier_fraction", "a positive number")
-        if self.integrator not in INTEGRATORS:
-            raise bad("integrator", f"one of {', '.join(sorted(INTEGRATORS))}")
+        if self.integrator != "fill" and self.integrator not in INTEGRATORS:
+            raise bad("integrator", f"'fill' or one of {', '.join(sorted(INTEGRATORS))}")
 
     def to_dict(self) -> dict:
         """The options as a JSON-serialisable dict (``NearLightOptions(**d)`` rebuilds them)."""
@@ -205,16 +217,16 @@ class NearLightResult(Reconstruction):
     Attributes:
         weights: observations used in the last solve, :math:`(B, K, H, W)` bool (False: shadow, outlier, invalid).
         offset_mm: mean height of the cloth above the card plane, :math:`(B,)`, mm.
-        iterations: alternations run.
-        changes_mm: the ``change_percentile`` quantile of the depth change of each alternation (over the batch,
-            the largest), mm.
+        iterations: alternations run, at both resolutions (the first ones run on 2 × 2-averaged images).
+        changes_deg: the ``change_percentile`` quantile of the normals' change of each alternation after the first
+            at each resolution (over the batch, the largest), degrees.
         converged: whether the change fell below the tolerance before ``max_iterations``.
     """
 
     weights: Tensor | None = None
     offset_mm: Tensor | None = None
     iterations: int = 0
-    changes_mm: tuple[float, ...] = ()
+    changes_deg: tuple[float, ...] = ()
     converged: bool = False
 
 
@@ -354,8 +366,9 @@ def _predict(m: Tensor, lx: Tensor, ly: Tensor, lz: Tensor) -> Tensor:
     return m[:, 0:1] * lx + m[:, 1:2] * ly + m[:, 2:3] * lz
 
 
-def _leverage(lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) -> Tensor:
-    r"""Leverage :math:`L_k^T (\sum_{j} w_j L_j L_j^T)^{-1} L_k` of every light, (B, K, H, W) (adjugate form)."""
+def _adjugate(lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) -> tuple[tuple[Tensor, ...], Tensor]:
+    """The six entries of the adjugate of each pixel's normal matrix and its determinant, each (B, 1, H, W);
+    the determinant is +inf where the matrix is not well posed (its inverse is then 0)."""
     wx, wy, wz = used * lx, used * ly, used * lz
     a, b, c = (wx * lx).sum(1, keepdim=True), (wx * ly).sum(1, keepdim=True), (wx * lz).sum(1, keepdim=True)
     d, e, f = (wy * ly).sum(1, keepdim=True), (wy * lz).sum(1, keepdim=True), (wz * lz).sum(1, keepdim=True)
@@ -363,7 +376,13 @@ def _leverage(lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) -> Tensor:
     c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
     det = a * c00 + b * c01 + c * c02
     scale = ((a + d + f) / 3).pow(3).clamp_min(torch.finfo(lx.dtype).tiny)
-    det = torch.where(det > 1e-6 * scale, det, torch.full_like(det, torch.inf))  # ill-posed: leverage 0
+    det = torch.where(det > 1e-6 * scale, det, torch.full_like(det, torch.inf))
+    return (c00, c01, c02, c11, c12, c22), det
+
+
+def _leverage(lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) -> Tensor:
+    r"""Leverage :math:`L_k^T (\sum_{j} w_j L_j L_j^T)^{-1} L_k` of every light, (B, K, H, W) (adjugate form)."""
+    (c00, c01, c02, c11, c12, c22), det = _adjugate(lx, ly, lz, used)
     quadratic = (c00 * lx * lx + c11 * ly * ly + c22 * lz * lz
                  + 2 * (c01 * lx * ly + c02 * lx * lz + c12 * ly * lz))
     return quadratic / det
@@ -673,31 +692,55 @@ def estimate_height_offset(
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def _confidence(solved: Tensor, domain: Tensor, like: Tensor) -> Tensor:
-    """Per-pixel confidence: 1 on solved pixels, :data:`_EDGE_CONFIDENCE` beside an unsolved pixel of the domain,
-    :data:`_GAP_CONFIDENCE` on unsolved ones (whose slope is 0: the membrane between their rims)."""
-    gap = (domain & ~solved).to(like.dtype)
+def _confidence(fit: tuple[Tensor, Tensor, Tensor], vectors: tuple[Tensor, ...], used: Tensor, domain: Tensor) -> Tensor:
+    r"""Per-pixel confidence of the slopes in the integration, (B, 1, H, W), in [0, 1].
+
+    The inverse of the slope's variance, relative to its median over the solved pixels: a pixel's normal varies
+    as :math:`\sigma^2 \operatorname{tr}(G^{-1}) / \rho^2` (:math:`G` its normal matrix) and its slope
+    :math:`-n_x / n_z` as that over :math:`n_z^4`, so steep walls seen by few grazing lights (a knit's loops) get
+    little weight where they would otherwise add up to millimetres of tilt. Pixels fitted to exactly three
+    observations (no check of their fit) get a tenth; pixels next to an unsolved one (a crevice lit by fewer than
+    three LEDs) :data:`_EDGE_CONFIDENCE`, since their normal sees the crevice's wall; unsolved pixels 0.
+    """
+    albedo, normals, solved = fit
+    (c00, _, _, c11, _, c22), det = _adjugate(*vectors[:3], used)
+    variance = (c00 + c11 + c22) / det  # tr(G^-1)
+    inverse = albedo.square() * normals[:, 2:3].pow(4) / variance.clamp_min(torch.finfo(albedo.dtype).tiny)
+    inverse = torch.where(solved, inverse, torch.zeros_like(inverse)).nan_to_num(0.0, posinf=0.0)
+    confidence = (inverse / _median(inverse, solved).clamp_min(torch.finfo(albedo.dtype).tiny)).clamp(0, 1)
+    confidence = confidence * torch.where(used.sum(dim=1, keepdim=True) >= 4, 1.0, _THREE_OBSERVATIONS_CONFIDENCE)
+    gap = (domain & ~solved).to(albedo.dtype)
     padded = F.pad(gap, (1, 1, 1, 1), value=0.0)  # the image border is no gap
     beside = (padded[..., 1:-1, :-2] + padded[..., 1:-1, 2:] + padded[..., :-2, 1:-1] + padded[..., 2:, 1:-1]) > 0
-    confidence = torch.where(solved & beside, torch.full_like(like, _EDGE_CONFIDENCE), torch.ones_like(like))
-    return torch.where(solved, confidence, torch.full_like(like, _GAP_CONFIDENCE))
+    confidence = torch.where(beside, confidence.clamp(max=_EDGE_CONFIDENCE), confidence)
+    return torch.where(solved, confidence, torch.zeros_like(confidence))
 
 
-def _integrate(p: Tensor, q: Tensor, solved: Tensor, domain: Tensor, method: str, pitch: float,
-               previous: Tensor | None, tol: float | None = None) -> Tensor:
-    """Height (zero mean over the domain) from the slopes of the solved pixels.
+def _fill(g: Tensor, confidence: Tensor) -> Tensor:
+    """Slopes with the unconfident ones replaced, in proportion, by the confidence-weighted mean around them
+    (normalised convolution over :data:`_FILL_SIZE` pixels)."""
+    k = _FILL_SIZE
+    num = F.avg_pool2d(g * confidence, k, 1, k // 2, count_include_pad=False)
+    den = F.avg_pool2d(confidence, k, 1, k // 2, count_include_pad=False)
+    return confidence * g + (1 - confidence) * num / den.clamp_min(1e-6)
 
-    A pixel next to an unsolved one (a crevice lit by fewer than three LEDs) sees the crevice's wall: its normal
-    takes in a drop that does not lie between it and its solved neighbours, so it gets confidence
-    :data:`_EDGE_CONFIDENCE` (edges carry the confidence-weighted mean of their two pixels' slopes); otherwise each
-    crevice pulls its rim down and a knit's many crevices add up to a dome. Unsolved pixels stay in the domain with
-    a tiny confidence and zero slope: they take the height of their rims (no spikes), and they keep islands of
-    solved pixels connected to the rest. ``"masked"`` is warm-started from ``previous`` (mm); other integrators
-    get the plain solved mask.
+
+def _integrate(p: Tensor, q: Tensor, confidence: Tensor, domain: Tensor, method: str, pitch: float,
+               previous: Tensor | None, mask_given: bool, tol: float | None = None) -> Tensor:
+    """Height (zero mean over the domain) from the slopes, weighted by ``confidence`` (:func:`_confidence`).
+
+    ``"fill"``: unconfident slopes replaced by their confident surroundings (:func:`_fill`), then a Neumann (DCT)
+    solve on the rectangle (fast; the rest of the rectangle is a membrane when a mask is given). ``"masked"``:
+    weighted least squares on the domain (edges carry the confidence-weighted mean of their two pixels' slopes,
+    unsolved pixels a tiny confidence and zero slope), by multigrid-preconditioned conjugate gradients
+    warm-started from ``previous`` (mm): closer on knits, several times slower. Other integrators of
+    :func:`psmini.integrate.integrate` get the pixels with any confidence as their mask.
     """
+    if method == "fill":
+        return dct_poisson(_fill(p, confidence), _fill(q, confidence), pitch, domain if mask_given else None)
     if method != "masked":
-        return integrate(p, q, method=method, pixel_pitch_mm=pitch, mask=solved)
-    confidence = _confidence(solved, domain, p)
+        return integrate(p, q, method=method, pixel_pitch_mm=pitch, mask=confidence > 0)
+    confidence = torch.where(confidence > 0, confidence, torch.full_like(confidence, _GAP_CONFIDENCE))
     half = torch.full_like(p, 0.5)
     wu, wv, tu, tv = _edge_system(p, -q, confidence, half, half)
     start = None if previous is None else previous / pitch
@@ -748,8 +791,8 @@ def solve_near_light(
     observations used (shadows, one highlight per pixel, attached shadows and outliers: decided once, then
     updated), re-solves where they changed, integrates the slopes (warm-started from the previous depth) and places
     the result at the height that explains the images best: a coarse scan in the first alternation, one parabolic
-    (Newton) step per later one. It stops when ``options.change_percentile`` of the solved pixels moved less than
-    ``options.tolerance_mm``. The images are not flat-fielded here: that is the pipeline's first stage
+    (Newton) steps in later ones. It stops when ``options.change_percentile`` of the solved pixels' normals moved
+    less than ``options.tolerance_deg`` since the previous alternation. The images are not flat-fielded here: that is the pipeline's first stage
     (:func:`psmini.flatfield.flatfield`).
 
     Differentiable with respect to the intensities and the light model's parameters through the last
@@ -824,24 +867,26 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, light_model: nn.M
                 if small_mask is None else small_mask
             coarse = _State(depth=F.avg_pool2d(state.depth, 2), offset=start)
             _alternate(F.avg_pool2d(images, 2), small_valid, small_mask, small_domain, light_model, 2 * pitch,
-                       card_height, options, coarse, scan=options.search_mm, cg_tol=_COARSE_CG_TOLERANCE, s=_OFFSET_STRIDE // 2)
+                       card_height, options, coarse, scan=options.search_mm, cg_tol=_COARSE_CG_TOLERANCE,
+                       tolerance=_COARSE_TOLERANCE_FACTOR * options.tolerance_deg, final=False,
+                       first_level=True, s=_OFFSET_STRIDE // 2)
             size = (height, width)
             state = _State(depth=F.interpolate(coarse.depth, size=size, mode="bilinear", align_corners=False),
-                           offset=coarse.offset, changes=coarse.changes,
+                           offset=coarse.offset, changes=coarse.changes, iterations=coarse.iterations,
                            relative=F.interpolate(coarse.relative, size=size, mode="bilinear", align_corners=False))
-            scan = _FINE_SEARCH_MM  # pooling biases the coarse level's offset by up to tenths of a mm: scan again
+            scan, first = _FINE_SEARCH_MM, False  # pooling biases the coarse level's offset: scan again
         else:
-            scan = options.search_mm
+            scan, first = options.search_mm, True
         field = _alternate(images, valid, mask, domain, light_model, pitch, card_height, options, state, scan=scan,
-                           cg_tol=None)
+                           cg_tol=None, tolerance=options.tolerance_deg, final=True, first_level=first)
     # the last solve, at the final depth, carries the gradients (intensities, light model's parameters)
     vectors = field(state.depth)
     m, posed = _fit(images, *vectors[:3], state.used)
     albedo, normals = _split(m, posed, mask)
     p, q = normals_to_gradients(normals)
     return NearLightResult(albedo, normals, p, q, state.depth, albedo > 0, weights=state.used & (albedo > 0),
-                           offset_mm=_masked_mean(state.depth, domain).view(-1), iterations=len(state.changes),
-                           changes_mm=tuple(state.changes), converged=state.converged)
+                           offset_mm=_masked_mean(state.depth, domain).view(-1), iterations=state.iterations,
+                           changes_deg=tuple(state.changes), converged=state.converged)
 
 
 @dataclass
@@ -854,49 +899,86 @@ class _State:
     used: Tensor | None = None
     changes: list[float] = dataclasses.field(default_factory=list)
     converged: bool = False
+    iterations: int = 0
+    normals: Tensor | None = None
+    solved: Tensor | None = None
+    confidence: Tensor | None = None
 
 
 def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tensor, light_model: nn.Module,
                pitch: float, card_height: float | None, options: NearLightOptions, state: _State,
-               scan: tuple[float, float],
-               cg_tol: float | None, s: int = _OFFSET_STRIDE) -> _LightField:
-    """Alternations at one resolution, updating ``state`` in place; returns the level's light field. The offset
-    is searched on every ``s``-th pixel, over ``scan`` around the current offset in the first alternation."""
+               scan: tuple[float, float], cg_tol: float | None, tolerance: float, final: bool,
+               first_level: bool, s: int = _OFFSET_STRIDE) -> _LightField:
+    """Alternations at one resolution, updating ``state`` in place; returns the level's light field.
+
+    Each alternation: light vectors at the current depth, normals (with the selection of observations updated in
+    the first :data:`_SELECTION_UPDATES`), then, unless the normals moved less than ``tolerance`` degrees (the
+    ``change_percentile`` quantile over the solved pixels) since the last alternation, a new depth: integration
+    (warm-started) and the offset (scanned over ``scan`` in the first alternation, on every ``s``-th pixel). The
+    test on the normals stops without one more integration: the depth is then consistent with its normals.
+    The alternations integrate by a Neumann (DCT) solve on the rectangle; with ``final``, the last normals are
+    integrated once more by ``options.integrator`` (warm-started from the last depth) and the offset refined.
+    """
     height, width = images.shape[-2:]
     field = _LightField(light_model, height, width, pitch, card_height, images)
     coarse = _LightField(light_model, height, width, pitch, card_height, images, s)
     rejection = _Rejection(images, valid, options)
     used = rejection.candidates
     state.converged = False
+    previous: Tensor | None = None
+    select_at = 1 if first_level and options.max_iterations > 1 else 0
     for iteration in range(options.max_iterations):
+        state.iterations += 1
         vectors = field(state.depth)
         m, posed = _fit(images, *vectors[:3], used)
         albedo, normals = _split(m, posed, mask)
-        new = rejection.update(vectors, m, albedo, used, mask)
-        if not bool((new == used).all()):
+        # the observations' selection: its updates (one highlight and one cast shadow per pixel and update) run in
+        # one alternation, at fixed lights, once the surface is near its height (the second alternation when the
+        # height is still unknown: far from it, model errors look like highlights and shadows); then the selection
+        # stays: flips of a few pixels in every alternation would keep the iteration from converging
+        for _ in range(_SELECTION_UPDATES if iteration == select_at else 0):
+            new = rejection.update(vectors, m, albedo, used, mask)
+            if bool((new == used).all()):
+                break
             used = new
             m, posed = _fit(images, *vectors[:3], used)
             albedo, normals = _split(m, posed, mask)
         solved = albedo > 0
+        state.used = used
+        if previous is not None:
+            change = _change(normals - previous, solved & domain, options.change_percentile)
+            state.changes.append(change)
+            logger.info("near-light alternation %d at %d x %d: %.0f%% of the normals moved less than %.2e deg",
+                        len(state.changes), height, width, 100 * options.change_percentile, change)
+            if change < tolerance:
+                state.converged = True
+                break
+        previous = normals
         p, q = normals_to_gradients(normals)
-        relative = _integrate(p, q, solved, domain, options.integrator, pitch, state.relative, cg_tol)
-        relative = relative - _masked_mean(relative, domain)
-        offset = state.offset
-        if options.estimate_offset:
-            sub_images, sub_used = images[..., ::s, ::s], (used & solved)[..., ::s, ::s].to(images)
-            sub_depth = relative[..., ::s, ::s]
-            search = scan if iteration == 0 else None
-            offset = _search_offset(coarse, sub_images, sub_used, sub_depth, offset, search, _OFFSET_TOLERANCE_MM)
-        depth = relative + offset.view(-1, 1, 1, 1)
-        change = _change(depth - state.depth, solved & domain, options.change_percentile)
-        state.depth, state.offset, state.relative, state.used = depth, offset, relative, used
-        state.changes.append(change)
-        logger.info("near-light alternation %d at %d x %d: %.0f%% of the pixels moved less than %.2e mm",
-                    len(state.changes), height, width, 100 * options.change_percentile, change)
-        if change < options.tolerance_mm:
-            state.converged = True
-            break
+        # the depth of an alternation only places the light field: the fast "fill" integration is enough there;
+        # the final integration (below) is the chosen integrator's
+        confidence = _confidence((albedo, normals, solved), vectors, used, domain)
+        relative = _integrate(p, q, confidence, domain, "fill", pitch, None, mask is not None)
+        _place(images, used & solved, relative, domain, coarse, state, scan if iteration == 0 else None, options, s)
+        state.normals, state.solved, state.confidence = normals, solved, confidence
+    if final and options.integrator != "fill" and state.normals is not None:
+        p, q = normals_to_gradients(state.normals)
+        relative = _integrate(p, q, state.confidence, domain, options.integrator, pitch, state.relative,
+                              mask is not None, cg_tol)
+        _place(images, used & state.solved, relative, domain, coarse, state, None, options, s)
     return field
+
+
+def _place(images: Tensor, used: Tensor, relative: Tensor, domain: Tensor, coarse: _LightField, state: _State,
+           search: tuple[float, float] | None, options: NearLightOptions, s: int) -> None:
+    """Set ``state``'s depth to ``relative`` (re-centred on the domain) plus the offset that explains the images
+    best (scanned over ``search`` when given, then parabolic steps; kept without ``options.estimate_offset``)."""
+    relative = relative - _masked_mean(relative, domain)
+    offset = state.offset
+    if options.estimate_offset:
+        sub_images, sub_used, sub_depth = images[..., ::s, ::s], used[..., ::s, ::s].to(images), relative[..., ::s, ::s]
+        offset = _search_offset(coarse, sub_images, sub_used, sub_depth, offset, search, _OFFSET_TOLERANCE_MM)
+    state.depth, state.offset, state.relative = relative + offset.view(-1, 1, 1, 1), offset, relative
 
 
 def _masked_mean(x: Tensor, region: Tensor) -> Tensor:
@@ -905,14 +987,16 @@ def _masked_mean(x: Tensor, region: Tensor) -> Tensor:
 
 
 def _change(difference: Tensor, region: Tensor, percentile: float) -> float:
-    """The ``percentile`` quantile of |difference| over the region, the largest over the batch, mm."""
+    """The ``percentile`` quantile over the region of the angle between unit normals whose difference is given,
+    degrees, the largest over the batch (2 asin(|a - b| / 2))."""
+    chord = difference.square().sum(dim=1, keepdim=True).sqrt()
     largest = 0.0
-    for d, r in zip(difference.abs(), region):
-        values = d[r]
+    for c, r in zip(chord, region):
+        values = c[r]
         if values.numel():
             rank = min(values.numel(), max(1, math.ceil(percentile * values.numel())))
             largest = max(largest, float(values.kthvalue(rank).values))
-    return largest
+    return math.degrees(2 * math.asin(min(1.0, largest / 2)))
 
 
 @dataclass(frozen=True)
