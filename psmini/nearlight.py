@@ -418,16 +418,18 @@ def _noise_model(images: Tensor, pred: Tensor, used: Tensor, valid: Tensor, albe
     shot noise, which grows with the signal), each (B, 1, 1, 1), in the images' units.
 
     :math:`\sigma_0` comes from the observations that the fit puts well inside an attached shadow: they read noise
-    alone, clipped at zero by the dark subtraction, so :math:`\sigma_0^2 = 2\,\overline{I^2}` over them. :math:`g`
+    alone, clipped at zero by the dark subtraction, whose 75th percentile is :math:`0.674\,\sigma_0`. :math:`g`
     is the median over pixels with at least five observations of (residual variance per degree of freedom minus
     :math:`\sigma_0^2`) over the mean prediction.
     """
     usable = albedo > 0
     if mask is not None:
         usable = usable & mask.bool()
-    dark = valid & usable & (pred < -0.1 * scale)
-    count = dark.sum(dim=(1, 2, 3), keepdim=True)
-    floor_sq = 2 * (images.square() * dark).sum(dim=(1, 2, 3), keepdim=True) / count.clamp_min(1)
+    # (and that read little next to the pixel's brightest: a fit bent by a glint puts lit observations there too)
+    dark = valid & usable & (pred < -0.1 * scale) & (images < 0.1 * images.amax(dim=1, keepdim=True))
+    # noise clipped at zero: its 75th percentile is 0.674 sigma0 (robust to fits that a glint bent)
+    upper = [v[d].quantile(0.75) if bool(d.any()) else v.new_zeros(()) for v, d in zip(images, dark)]
+    floor_sq = (torch.stack(upper) / 0.6745).square().view(-1, 1, 1, 1)
     n = used.sum(dim=1, keepdim=True)
     variance = ((images - pred).square() * used).sum(dim=1, keepdim=True) / (n - 3).clamp_min(1)
     level = ((pred.clamp_min(0) * used).sum(dim=1, keepdim=True) / n.clamp_min(1)).clamp_min(1e-12)
@@ -436,7 +438,7 @@ def _noise_model(images: Tensor, pred: Tensor, used: Tensor, valid: Tensor, albe
 
 
 class _Rejection:
-    """Which observations a pixel's fit uses: decided once, then updated once per alternation.
+    r"""Which observations a pixel's fit uses: decided once, then updated once per alternation.
 
     Shadows: observations darker than the shadow level (``shadow_fraction`` of the pixel's brightest, raised to
     three noise levels, at most :data:`_SHADOW_CAP`). Highlights: per update, the brightest observation relative to
@@ -456,40 +458,63 @@ class _Rejection:
         self.highlights = torch.zeros_like(valid)
         self.shadows = torch.zeros_like(valid)
         self.noise: tuple[Tensor, Tensor] | None = None
+        self.relative_noise: Tensor | None = None
 
     def update(self, field: tuple[Tensor, Tensor, Tensor, Tensor], m: Tensor, albedo: Tensor, used: Tensor,
-               mask: Tensor | None) -> Tensor:
-        """New weights from the fit ``m`` made with ``used``; (B, K, H, W) bool."""
+               mask: Tensor | None, highlights_only: bool = False) -> Tensor:
+        """New weights from the fit ``m`` made with ``used``; (B, K, H, W) bool. With ``highlights_only`` only the
+        highlight test runs (its rounds come first: a glint bends the fit that the other tests judge by)."""
         lx, ly, lz, length = field
         images, options = self.intensities, self.options
         pred = _predict(m, lx, ly, lz)
         scale = albedo * length.mean(dim=1, keepdim=True)
-        if self.noise is None:  # first update: the noise model, and shadows relative to it
-            self.noise = _noise_model(images, pred, used, self.valid, albedo, scale, mask)
-            shadow = self.noise[0].sqrt() * _SHADOW_SIGMAS
-            self.candidates = _candidates(images, self.valid & (images > shadow), options.shadow_fraction)
-        floor_sq, gain = self.noise
-        sigma = (floor_sq + gain * pred.clamp_min(0)).sqrt()
+        relative = images / length.clamp_min(torch.finfo(length.dtype).tiny)
+        if highlights_only:
+            # before the glints are out, the noise model would take them for noise: the median over pixels of
+            # the residual of a fit without each pixel's brightest observation, relative to the pixel's scale
+            if self.relative_noise is None:
+                ranked = relative.masked_fill(~used, -torch.inf)
+                others = used & (ranked < ranked.amax(dim=1, keepdim=True))
+                m_others, posed = _fit(images, lx, ly, lz, others)
+                albedo_others, _ = _split(m_others, posed, mask)
+                n = others.sum(dim=1, keepdim=True)
+                squared = ((images - _predict(m_others, lx, ly, lz)).square() * others).sum(dim=1, keepdim=True)
+                residual = (squared / (n - 3).clamp_min(1)).sqrt() / (albedo_others * length.mean(dim=1, keepdim=True)
+                                                                     ).clamp_min(1e-12)
+                self.relative_noise = _median(residual, (n >= 4) & (albedo_others > 0)).nan_to_num(0.0, posinf=0.0)
+            sigma = self.relative_noise * scale
+        else:
+            if self.noise is None:  # first full update: the noise model, and shadows relative to it
+                self.noise = _noise_model(images, pred, used, self.valid, albedo, scale, mask)
+                shadow = self.noise[0].sqrt() * _SHADOW_SIGMAS
+                self.candidates = _candidates(images, self.valid & (images > shadow), options.shadow_fraction)
+            floor_sq, gain = self.noise
+            sigma = (floor_sq + gain * pred.clamp_min(0)).sqrt()
         leverage = _leverage(lx, ly, lz, used)
         # residuals of each observation against the fit of the others: r / (1 - h) for the observations in the
         # fit (leave-one-out, from the hat matrix), r itself for the others; and their spread in noise levels
         kept = torch.where(used, (1 - leverage).clamp_min(1e-6), torch.ones_like(leverage))
         spread = torch.where(used, 1 / kept, 1 + leverage).sqrt()
         left_out = (images - pred) / kept
-        relative = images / length.clamp_min(torch.finfo(length.dtype).tiny)
         count = used.sum(dim=1, keepdim=True)
         if options.highlight_fraction is not None:
             ranked = relative.masked_fill(~used, -torch.inf)
             suspect = used & (ranked == ranked.amax(dim=1, keepdim=True))  # the brightest (amax: argmax is slow)
             threshold = torch.maximum(sigma * _HIGHLIGHT_SIGMAS * spread, options.highlight_fraction * scale)
             testable = (count >= _HIGHLIGHT_MIN_OBS) & (albedo > 0)
-            self.highlights = self.highlights | (suspect & testable & (left_out > threshold))
+            glint = suspect & testable & (left_out > threshold)
+            self.highlights = self.highlights | glint
+            glinting = glint.any(dim=1, keepdim=True)  # a glint bends the fit: no shadow test there this time
+        else:
+            glinting = torch.zeros_like(albedo, dtype=torch.bool)
+        if highlights_only:
+            return used & ~self.highlights
         # cast shadows only darken: the darkest observation relative to its light leaves when the fit of the others
         # predicts it far brighter (with four observations the others still determine the normal)
         ranked = relative.masked_fill(~used, torch.inf)
         suspect = used & (ranked == ranked.amin(dim=1, keepdim=True))
         threshold = torch.maximum(options.outlier_fraction * scale, _OUTLIER_SIGMAS * sigma * spread)
-        self.shadows = self.shadows | (suspect & (count >= 4) & (albedo > 0) & (left_out < -threshold))
+        self.shadows = self.shadows | (suspect & ~glinting & (count >= 4) & (albedo > 0) & (left_out < -threshold))
         lit = pred > _GRAZING_COSINE * albedo * length
         bright = self.candidates & lit
         # grazing light: an observation near zero that the fit of the others also puts near zero (but above it) is
@@ -502,6 +527,24 @@ class _Rejection:
         enough = proposal.sum(dim=1, keepdim=True) >= 3
         fallback = torch.where(count >= 3, used, self.candidates & ~self.highlights)
         return torch.where(enough, proposal, fallback)
+
+
+def _select(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], used: Tensor, m: Tensor,
+            albedo: Tensor, normals: Tensor, mask: Tensor | None, updates: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Highlight rounds (at most K - 3, each dropping at most one observation per pixel), then ``updates`` full
+    updates of the selection, re-solving after each change; returns the selection and its fit."""
+    for highlights_only in [True] * (images.shape[1] - 3) + [False] * updates:
+        if highlights_only and rejection.options.highlight_fraction is None:
+            continue
+        new = rejection.update(vectors, m, albedo, used, mask, highlights_only)
+        if bool((new == used).all()):
+            if highlights_only:
+                continue
+            break
+        used = new
+        m, posed = _fit(images, *vectors[:3], used)
+        albedo, normals = _split(m, posed, mask)
+    return used, m, albedo, normals
 
 
 def robust_near_light_normals(
@@ -561,13 +604,8 @@ def robust_near_light_normals(
     used = rejection.candidates
     m, posed = _fit(intensities, lx, ly, lz, used)
     albedo, normals = _split(m, posed, mask)
-    for _ in range(rounds):
-        new = rejection.update(field, m, albedo, used, mask)
-        if bool((new == used).all()):
-            break
-        used = new
-        m, posed = _fit(intensities, lx, ly, lz, used)
-        albedo, normals = _split(m, posed, mask)
+    if rounds:
+        used, m, albedo, normals = _select(rejection, intensities, field, used, m, albedo, normals, mask, rounds)
     return albedo, normals, used & (albedo > 0)
 
 
@@ -936,13 +974,9 @@ def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tenso
         # one alternation, at fixed lights, once the surface is near its height (the second alternation when the
         # height is still unknown: far from it, model errors look like highlights and shadows); then the selection
         # stays: flips of a few pixels in every alternation would keep the iteration from converging
-        for _ in range(_SELECTION_UPDATES if iteration == select_at else 0):
-            new = rejection.update(vectors, m, albedo, used, mask)
-            if bool((new == used).all()):
-                break
-            used = new
-            m, posed = _fit(images, *vectors[:3], used)
-            albedo, normals = _split(m, posed, mask)
+        if iteration == select_at:
+            used, m, albedo, normals = _select(rejection, images, vectors, used, m, albedo, normals, mask,
+                                               _SELECTION_UPDATES)
         solved = albedo > 0
         state.used = used
         if previous is not None:

@@ -87,7 +87,7 @@ class PhotometricStereo(nn.Module):
         lights: a light model of :mod:`psmini.lights`, or a :math:`(K, 3)` tensor of directions scaled by
             intensity.
         integrator: integration method of :func:`psmini.integrate.integrate`; ``None``: ``"fc"``
-            (Frankot–Chellappa) for distant lights, ``"masked"`` for near ones.
+            (Frankot–Chellappa) for distant lights, the near-light options' (``"fill"``) for near ones.
         pixel_pitch_mm: size of one pixel on the cloth, mm; ``None`` integrates in pixel units (distant only).
         min_reference: see :func:`psmini.flatfield.flatfield`.
         saturation_level: raw level at which an observation counts as saturated and is dropped; ``None`` keeps all.
@@ -146,9 +146,11 @@ class PhotometricStereo(nn.Module):
         self.pixel_pitch_mm, self.min_reference, self.saturation_level = pixel_pitch_mm, min_reference, saturation_level
         self.card_height_mm = float(near_options.pop("card_height_mm", 0.0))
         base = near_options.pop("options", None) or NearLightOptions()
-        if self.solver == "near":
-            near_options.setdefault("integrator", self.integrator)
+        if self.solver == "near" and integrator is not None:
+            near_options.setdefault("integrator", integrator)
         self.near_options = base.replace(**near_options)  # validated here, before any work
+        if self.solver == "near":
+            self.integrator = self.near_options.integrator
 
     def forward(
         self,
