@@ -83,6 +83,8 @@ _OFFSET_TOLERANCE_MM = 1e-3
 # Observations whose leave-one-out residual exceeds this many noise levels are highlights, when the noise makes
 # that larger than ``highlight_fraction``.
 _HIGHLIGHT_SIGMAS = 4.0
+# ... in the rounds before the noise model (whose noise level is cruder): only gross glints.
+_FIRST_HIGHLIGHT_SIGMAS = 8.0
 # A pixel is tested for a highlight only with at least this many observations: the fit of the others then stays
 # overdetermined (an exactly determined fit of three turns noise into false highlights where light is scarce).
 _HIGHLIGHT_MIN_OBS = 5
@@ -136,9 +138,10 @@ class NearLightOptions:
             observation (purely Lambertian cloth).
         outlier_fraction: residual, relative to the pixel's scale, above which an observation is an outlier (cast
             shadows missed by the shadow test).
-        integrator: the final integration: ``"fill"`` (the default: slopes weighted by their inverse variance,
-            unconfident ones filled from their surroundings, a Neumann DCT solve; fast), ``"masked"`` (weighted least
-            squares on the mask by conjugate gradients, warm-started; closer on knits, seconds slower) or another
+        integrator: the final integration: ``"masked"`` (the default: weighted least squares on the mask, slopes
+            weighted by their inverse variance, by conjugate gradients warm-started from the alternations' depth),
+            ``"fill"`` (unconfident slopes filled from their surroundings, a Neumann DCT solve: several times
+            faster, depth errors 2-3 times larger on the benchmark's jute and knit) or another
             method of :func:`psmini.integrate.integrate` (unweighted, on the solved pixels). The alternations always
             use ``"fill"``.
 
@@ -159,7 +162,7 @@ class NearLightOptions:
     shadow_fraction: float = 0.02
     highlight_fraction: float | None = 0.02
     outlier_fraction: float = 0.15
-    integrator: str = "fill"
+    integrator: str = "masked"
 
     def __post_init__(self) -> None:
         def bad(name: str, expected: str) -> InputError:
@@ -428,8 +431,8 @@ def _noise_model(images: Tensor, pred: Tensor, used: Tensor, valid: Tensor, albe
     # (and that read little next to the pixel's brightest: a fit bent by a glint puts lit observations there too)
     dark = valid & usable & (pred < -0.1 * scale) & (images < 0.1 * images.amax(dim=1, keepdim=True))
     # noise clipped at zero: its 75th percentile is 0.674 sigma0 (robust to fits that a glint bent)
-    upper = [v[d].quantile(0.75) if bool(d.any()) else v.new_zeros(()) for v, d in zip(images, dark)]
-    floor_sq = (torch.stack(upper) / 0.6745).square().view(-1, 1, 1, 1)
+    count = dark.sum(dim=(1, 2, 3), keepdim=True)
+    floor_sq = 2 * (images.square() * dark).sum(dim=(1, 2, 3), keepdim=True) / count.clamp_min(1)
     n = used.sum(dim=1, keepdim=True)
     variance = ((images - pred).square() * used).sum(dim=1, keepdim=True) / (n - 3).clamp_min(1)
     level = ((pred.clamp_min(0) * used).sum(dim=1, keepdim=True) / n.clamp_min(1)).clamp_min(1e-12)
@@ -482,7 +485,9 @@ class _Rejection:
                 residual = (squared / (n - 3).clamp_min(1)).sqrt() / (albedo_others * length.mean(dim=1, keepdim=True)
                                                                      ).clamp_min(1e-12)
                 self.relative_noise = _median(residual, (n >= 4) & (albedo_others > 0)).nan_to_num(0.0, posinf=0.0)
-            sigma = self.relative_noise * scale
+            # shot noise grows with the signal: scaled by the square root of the prediction over the pixel's mean
+            level = (pred.clamp_min(0) * used).sum(dim=1, keepdim=True) / used.sum(dim=1, keepdim=True).clamp_min(1)
+            sigma = self.relative_noise * scale * (pred.clamp_min(0) / level.clamp_min(1e-12)).sqrt()
         else:
             if self.noise is None:  # first full update: the noise model, and shadows relative to it
                 self.noise = _noise_model(images, pred, used, self.valid, albedo, scale, mask)
@@ -500,7 +505,8 @@ class _Rejection:
         if options.highlight_fraction is not None:
             ranked = relative.masked_fill(~used, -torch.inf)
             suspect = used & (ranked == ranked.amax(dim=1, keepdim=True))  # the brightest (amax: argmax is slow)
-            threshold = torch.maximum(sigma * _HIGHLIGHT_SIGMAS * spread, options.highlight_fraction * scale)
+            sigmas = _FIRST_HIGHLIGHT_SIGMAS if highlights_only else _HIGHLIGHT_SIGMAS
+            threshold = torch.maximum(sigma * sigmas * spread, options.highlight_fraction * scale)
             testable = (count >= _HIGHLIGHT_MIN_OBS) & (albedo > 0)
             glint = suspect & testable & (left_out > threshold)
             self.highlights = self.highlights | glint
@@ -530,15 +536,20 @@ class _Rejection:
 
 
 def _select(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], used: Tensor, m: Tensor,
-            albedo: Tensor, normals: Tensor, mask: Tensor | None, updates: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Highlight rounds (at most K - 3, each dropping at most one observation per pixel), then ``updates`` full
-    updates of the selection, re-solving after each change; returns the selection and its fit."""
-    for highlights_only in [True] * (images.shape[1] - 3) + [False] * updates:
-        if highlights_only and rejection.options.highlight_fraction is None:
+            albedo: Tensor, normals: Tensor, mask: Tensor | None, updates: int,
+            highlight_rounds: int | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Highlight rounds (at most ``highlight_rounds``, K - 3 by default, each dropping at most one observation per
+    pixel), then ``updates`` full updates of the selection, re-solving after each change; returns the selection
+    and its fit."""
+    highlight_rounds = (images.shape[1] - 3) if highlight_rounds is None else highlight_rounds
+    searching = rejection.options.highlight_fraction is not None
+    for highlights_only in [True] * highlight_rounds + [False] * updates:
+        if highlights_only and not searching:
             continue
         new = rejection.update(vectors, m, albedo, used, mask, highlights_only)
         if bool((new == used).all()):
-            if highlights_only:
+            if highlights_only:  # no glint left: on to the full updates
+                searching = False
                 continue
             break
         used = new
@@ -975,8 +986,9 @@ def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tenso
         # height is still unknown: far from it, model errors look like highlights and shadows); then the selection
         # stays: flips of a few pixels in every alternation would keep the iteration from converging
         if iteration == select_at:
+            # the half-resolution level only places the surface: fewer rounds there
             used, m, albedo, normals = _select(rejection, images, vectors, used, m, albedo, normals, mask,
-                                               _SELECTION_UPDATES)
+                                               _SELECTION_UPDATES, None)
         solved = albedo > 0
         state.used = used
         if previous is not None:

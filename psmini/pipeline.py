@@ -87,7 +87,7 @@ class PhotometricStereo(nn.Module):
         lights: a light model of :mod:`psmini.lights`, or a :math:`(K, 3)` tensor of directions scaled by
             intensity.
         integrator: integration method of :func:`psmini.integrate.integrate`; ``None``: ``"fc"``
-            (Frankot–Chellappa) for distant lights, the near-light options' (``"fill"``) for near ones.
+            (Frankot–Chellappa) for distant lights, the near-light options' (``"masked"``) for near ones.
         pixel_pitch_mm: size of one pixel on the cloth, mm; ``None`` integrates in pixel units (distant only).
         min_reference: see :func:`psmini.flatfield.flatfield`.
         saturation_level: raw level at which an observation counts as saturated and is dropped; ``None`` keeps all.
