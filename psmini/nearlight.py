@@ -101,10 +101,15 @@ _EDGE_CONFIDENCE = 0.01
 _MIN_COARSE_SIZE = 32
 # Interval (mm) scanned around the half-resolution offset by the first full-resolution alternation.
 _FINE_SEARCH_MM = (-0.5, 0.5)
-# Updates of the observations' selection in the first alternation at each resolution; later ones keep it.
-_SELECTION_UPDATES = 3
+# ... with this many offsets (0.125 mm apart) before the parabolic steps.
+_FINE_SCAN_POINTS = 9
+# Updates of the observations' selection in one alternation at full resolution (after three highlight rounds);
+# later alternations keep it.
+_SELECTION_UPDATES = 2
 # The half-resolution alternations stop at this many times the tolerance (their depth only places the lights).
 _COARSE_TOLERANCE_FACTOR = 10.0
+# Relative residual at which the final integration stops (warm-started; a micrometre on the benchmark's depths).
+_FINE_CG_TOLERANCE = 1e-5
 # Relative residual at which the half-resolution integrations stop (their depth only places the light field).
 _COARSE_CG_TOLERANCE = 1e-4
 # Unsolved pixels inside the mask get this confidence and a zero slope: a membrane filled from their rims.
@@ -651,16 +656,16 @@ def _parabola_step(field, images, used, depth, centre: Tensor, step: float) -> T
 
 
 def _search_offset(field, images, used, depth, centre: Tensor, search: tuple[float, float] | None,
-                   tolerance: float) -> Tensor:
+                   tolerance: float, points: int = _SCAN_POINTS) -> Tensor:
     """Scan :data:`_SCAN_POINTS` offsets over ``search`` around ``centre``, then parabolic steps of shrinking width
     (fourfold each) down to ``tolerance``; without ``search``, the steps alone from :data:`_NEWTON_STEP_MM`."""
     if search is None:  # refine around the centre only
         best, step = centre, _NEWTON_STEP_MM
     else:
-        grid = torch.linspace(search[0], search[1], _SCAN_POINTS, device=centre.device, dtype=centre.dtype)
+        grid = torch.linspace(search[0], search[1], points, device=centre.device, dtype=centre.dtype)
         costs = _offset_cost(field, images, used, depth, centre[:, None] + grid)
         best = centre + grid[costs.argmin(dim=1)]
-        step = (search[1] - search[0]) / (_SCAN_POINTS - 1)
+        step = (search[1] - search[0]) / (points - 1)
     while step > tolerance:
         best = _parabola_step(field, images, used, depth, best, step)
         step /= 4
@@ -927,7 +932,7 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, light_model: nn.M
         else:
             scan, first = options.search_mm, True
         field = _alternate(images, valid, mask, domain, light_model, pitch, card_height, options, state, scan=scan,
-                           cg_tol=None, tolerance=options.tolerance_deg, final=True, first_level=first)
+                           cg_tol=_FINE_CG_TOLERANCE, tolerance=options.tolerance_deg, final=True, first_level=first)
     # the last solve, at the final depth, carries the gradients (intensities, light model's parameters)
     vectors = field(state.depth)
     m, posed = _fit(images, *vectors[:3], state.used)
@@ -985,10 +990,9 @@ def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tenso
         # one alternation, at fixed lights, once the surface is near its height (the second alternation when the
         # height is still unknown: far from it, model errors look like highlights and shadows); then the selection
         # stays: flips of a few pixels in every alternation would keep the iteration from converging
-        if iteration == select_at:
-            # the half-resolution level only places the surface: fewer rounds there
+        if iteration == select_at:  # fewer rounds at half resolution, which only places the surface
             used, m, albedo, normals = _select(rejection, images, vectors, used, m, albedo, normals, mask,
-                                               _SELECTION_UPDATES, None)
+                                               _SELECTION_UPDATES if final else 1, 3 if final else 1)
         solved = albedo > 0
         state.used = used
         if previous is not None:
@@ -1023,7 +1027,8 @@ def _place(images: Tensor, used: Tensor, relative: Tensor, domain: Tensor, coars
     offset = state.offset
     if options.estimate_offset:
         sub_images, sub_used, sub_depth = images[..., ::s, ::s], used[..., ::s, ::s].to(images), relative[..., ::s, ::s]
-        offset = _search_offset(coarse, sub_images, sub_used, sub_depth, offset, search, _OFFSET_TOLERANCE_MM)
+        points = _SCAN_POINTS if search is None or search[1] - search[0] > 1.5 else _FINE_SCAN_POINTS
+        offset = _search_offset(coarse, sub_images, sub_used, sub_depth, offset, search, _OFFSET_TOLERANCE_MM, points)
     state.depth, state.offset, state.relative = relative + offset.view(-1, 1, 1, 1), offset, relative
 
 
