@@ -14,8 +14,8 @@ pixel. The camera's gain and vignetting cancel, and so do the LEDs' intensities;
 
 The absolute height of the cloth is observable because the light field is not uniform: the per-pixel
 least-squares residual is zero only at the true height (noise-free, Lambertian). The solver finds the height
-offset by a scan of that residual on a coarse pixel grid in the first alternation, then refines it by one
-parabolic (Newton) step per alternation. With a card it is sharp (about a micrometre on noise-free renders of the
+offset by a scan of that residual on a coarse pixel grid in the first alternation, then refines it by parabolic
+(Newton) steps in later ones, a few batched evaluations of the light model on every fourth pixel. With a card it is sharp (about a micrometre on noise-free renders of the
 rig); on raw images the height shows only through the inverse-square law's variation across the field and is
 found to tens of micrometres.
 
@@ -746,7 +746,8 @@ def estimate_height_offset(
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def _confidence(fit: tuple[Tensor, Tensor, Tensor], vectors: tuple[Tensor, ...], used: Tensor, domain: Tensor) -> Tensor:
+def _confidence(fit: tuple[Tensor, Tensor, Tensor], vectors: tuple[Tensor, ...], used: Tensor,
+                domain: Tensor) -> Tensor:
     r"""Per-pixel confidence of the slopes in the integration, (B, 1, H, W), in [0, 1].
 
     The inverse of the slope's variance, relative to its median over the solved pixels: a pixel's normal varies
@@ -841,13 +842,15 @@ def solve_near_light(
     r"""The near-light stage: flat-fielded images → albedo, normals, absolute depth, by alternation.
 
     Starting from the plane at ``options.initial_height_mm``, each alternation evaluates the light vectors at the
-    current depth (one fused pass, :class:`_LightField`), solves the per-pixel weighted least squares, updates the
-    observations used (shadows, one highlight per pixel, attached shadows and outliers: decided once, then
-    updated), re-solves where they changed, integrates the slopes (warm-started from the previous depth) and places
-    the result at the height that explains the images best: a coarse scan in the first alternation, one parabolic
-    (Newton) steps in later ones. It stops when ``options.change_percentile`` of the solved pixels' normals moved
-    less than ``options.tolerance_deg`` since the previous alternation. The images are not flat-fielded here: that is the pipeline's first stage
-    (:func:`psmini.flatfield.flatfield`).
+    current depth (one fused pass from parts computed once), solves the per-pixel weighted least squares, and
+    integrates the slopes weighted by their inverse variance; the result is placed at the height that explains the
+    images best (a scan in the first alternation, parabolic Newton steps later). The selection of observations
+    (shadows by a noise model :math:`\sigma^2 = \sigma_0^2 + g I`, highlights and cast shadows by leave-one-out
+    residuals, grazing light kept) is decided once, in one alternation, and then kept. The first alternations run
+    on 2 × 2-averaged images; at full resolution the alternations stop when ``options.change_percentile`` of the
+    solved pixels' normals moved less than ``options.tolerance_deg`` since the previous one, and the last normals
+    are integrated by ``options.integrator`` (warm-started). The images are not flat-fielded here: that is the
+    pipeline's first stage (:func:`psmini.flatfield.flatfield`).
 
     Differentiable with respect to the intensities and the light model's parameters through the last
     alternation's solve (the offset search and the observations' selection are not differentiated).
