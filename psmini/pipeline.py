@@ -79,8 +79,8 @@ class PhotometricStereo(nn.Module):
 
     With ``solver="distant"`` the lights are used as seen from the field centre (:func:`distant_light_matrix`):
     flat-field, least squares, integration, the classical pipeline. With ``solver="near"`` the point or LED model is
-    evaluated on the surface itself (:func:`psmini.nearlight.solve_near_light`, on the same flat-fielded images). ``"auto"`` picks
-    ``"near"`` for models with positions (:class:`~psmini.lights.PointLights`, :class:`~psmini.lights.LEDLights`)
+    evaluated on the surface itself (:func:`psmini.nearlight.solve_near_light`, on the same flat-fielded images).
+    ``"auto"`` picks ``"near"`` for models with positions (:class:`~psmini.lights.PointLights`, :class:`~psmini.lights.LEDLights`)
     and ``"distant"`` otherwise.
 
     Args:
