@@ -14,6 +14,12 @@ under a card bright enough and not saturated, so that flat-fielding can divide b
 handled by the solvers, not skipped; the fraction of pixels with fewer is reported), and the
 depth error: RMSE after removing the mean offset (the dome of the distant-light methods shows here), in µm.
 
+Beside each case: the noise floor (per-pixel least squares at the TRUE surface with the TRUE LEDs on the same
+flat-fielded images, using exactly the lit, usable observations), the share of scored pixels whose near-light depth
+(true LEDs, mean offset removed) is more than 0.1 mm off, the alternations run, and the seconds of near light and of
+the distant pipeline (flat-field, least squares, Frankot–Chellappa) in the same run. At the end, near light on a
+batch of 16 captures against 16 single calls (seconds per sample).
+
     python benchmarks/nearlight.py [--quick] [--json] [--size N] [--device cpu|cuda] [--no-record]
 """
 
@@ -33,8 +39,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._ledger import append_results, table  # noqa: E402
 from data_synth import make_fabric  # noqa: E402
 from data_synth.rig import RigConfig, render_capture, render_card  # noqa: E402
-from psmini import PhotometricStereo, angular_error_deg, fit_leds, flatfield  # noqa: E402
-from psmini.nearlight import near_light_photometric_stereo  # noqa: E402
+from psmini import PhotometricStereo, albedo_normals, angular_error_deg, fit_leds, flatfield  # noqa: E402
+from psmini.config import ReconstructionConfig  # noqa: E402
+from psmini.nearlight import near_light_vectors  # noqa: E402
+
+NEAR, DISTANT = ReconstructionConfig(solver="near"), ReconstructionConfig(solver="distant")
 
 CARD_ALBEDO = 0.8
 METHODS = ("far_raw", "far_flatfield", "near_true", "near_calibrated")
@@ -82,17 +91,14 @@ def evaluate_case(fabric, config, offset_mm, calibrated, card, device) -> dict[s
     cloth = capture.mask.bool()
     truth_normals, truth_depth = capture.normals[None], capture.depth_mm[None]
     pitch = config.pixel_pitch_mm
+    near = lambda lights: PhotometricStereo(lights, pitch, NEAR)(  # noqa: E731
+        images, card.images[None], dark, card.dark[None], card_albedo=CARD_ALBEDO, saturation_level=1.0)
     runs = {
-        "far_raw": lambda: PhotometricStereo(capture.lights, pixel_pitch_mm=pitch, saturation_level=1.0,
-                                             solver="distant")(images, dark=dark),
-        "far_flatfield": lambda: PhotometricStereo(capture.lights, pixel_pitch_mm=pitch, saturation_level=1.0, solver="distant")(
-            images, card.images[None], dark, card.dark[None], card_albedo=CARD_ALBEDO),
-        "near_true": lambda: near_light_photometric_stereo(
-            images, capture.lights, pitch, reference=card.images[None], dark=dark, reference_dark=card.dark[None],
-            card_albedo=CARD_ALBEDO, saturation_level=1.0),
-        "near_calibrated": lambda: near_light_photometric_stereo(
-            images, calibrated, pitch, reference=card.images[None], dark=dark, reference_dark=card.dark[None],
-            card_albedo=CARD_ALBEDO, saturation_level=1.0),
+        "far_raw": lambda: PhotometricStereo(capture.lights, pitch, DISTANT)(images, dark=dark, saturation_level=1.0),
+        "far_flatfield": lambda: PhotometricStereo(capture.lights, pitch, DISTANT)(
+            images, card.images[None], dark, card.dark[None], card_albedo=CARD_ALBEDO, saturation_level=1.0),
+        "near_true": lambda: near(capture.lights),
+        "near_calibrated": lambda: near(calibrated),
     }
     results = {}
     for method, run in runs.items():
@@ -108,10 +114,46 @@ def evaluate_case(fabric, config, offset_mm, calibrated, card, device) -> dict[s
             "angle_deg": float(error.mean()),
             "depth_rmse_um": float(difference[region[0]].square().mean().sqrt()) * 1000,
             "dome_um": dome_error_um(difference, region[0], pitch),
+            "off_0.1mm": float((difference[region[0]].abs() > 0.1).float().mean()),
             "seconds": seconds,
+            "iterations": getattr(result, "iterations", 0),
         }
+    # the noise floor: least squares at the true surface with the true LEDs, on exactly the usable observations
+    flat = flatfield(images, card.images[None], dark, card.dark[None], CARD_ALBEDO, saturation_level=1.0)
+    vectors = near_light_vectors(capture.lights, truth_depth, pitch, card_height_mm=0.0)
+    _, floor_normals = albedo_normals(flat.images, vectors, weights=usable[None])
+    results["floor"] = {"angle_deg": float(angular_error_deg(floor_normals, truth_normals)[0, 0][region[0]].mean())}
     results["coverage"] = {"fewer_than_3": 1 - float(region.sum()) / float(cloth.sum())}
     return results
+
+
+def batch_speed(size: int, pitch: float, device: torch.device, count: int = 16) -> dict[str, float]:
+    """Seconds per sample of near light on one batch of ``count`` noisy captures against single calls, and of the
+    distant pipeline on the same captures one by one."""
+    config = RigConfig(size=size, pixel_pitch_mm=pitch, noise=True, bit_depth=8, intensity_spread=0.05)
+    card = render_card(config, CARD_ALBEDO, device=device)
+    fabrics = [make_fabric(FULL_FABRICS[i % len(FULL_FABRICS)], size=size, pixel_pitch_mm=pitch, seed=0) for i in range(count)]
+    captures = [render_capture(f, config, height_offset_mm=0.5 * (i % 3), device=device) for i, f in enumerate(fabrics)]
+    images, dark = torch.stack([c.images for c in captures]), torch.stack([c.dark for c in captures])
+    lights = captures[0].lights
+    near = PhotometricStereo(lights, pitch, NEAR)
+    far = PhotometricStereo(lights, pitch, DISTANT)
+
+    def timed(run) -> float:
+        start = time.perf_counter()
+        run()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        return time.perf_counter() - start
+
+    reference, reference_dark = card.images[None], card.dark[None]
+    single = sum(timed(lambda i=i: near(images[i : i + 1], reference, dark[i : i + 1], reference_dark,
+                                         card_albedo=CARD_ALBEDO, saturation_level=1.0)) for i in range(count)) / count
+    distant = sum(timed(lambda i=i: far(images[i : i + 1], reference, dark[i : i + 1], reference_dark,
+                                         card_albedo=CARD_ALBEDO, saturation_level=1.0)) for i in range(count)) / count
+    batch = timed(lambda: near(images, reference, dark, reference_dark, card_albedo=CARD_ALBEDO,
+                                saturation_level=1.0)) / count
+    return {"single": single, "batch": batch, "far": distant}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -128,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     offsets = (1.0,) if args.quick else (0.0, 0.5, 1.0)
     pitch = 10.0 / size  # the rig's 10 mm field at any resolution
 
-    rows, summary, worst = [], {}, {}
+    rows, summary, worst, floors = [], {}, {}, {False: [], True: []}
     noisy_config = RigConfig(size=size, pixel_pitch_mm=pitch, noise=True, bit_depth=8, intensity_spread=0.05)
     calibrated, fit = calibrate(noisy_config, device)
     for noisy in (False, True):
@@ -141,25 +183,39 @@ def main(argv: list[str] | None = None) -> int:
                 case = evaluate_case(fabric, config, offset, calibrated, card, device)
                 for method in METHODS:
                     collected[method].append(case[method])
+                near_case, far_case = case["near_true"], case["far_flatfield"]
+                floors[noisy].append(case["floor"]["angle_deg"])
                 rows.append([name, f"{offset:g}", "8-bit noisy" if noisy else "noise-free"]
                             + [f"{case[m]['angle_deg']:.3f} / {case[m]['depth_rmse_um']:.0f} / {case[m]['dome_um']:.1f}"
                                for m in METHODS]
-                            + [f"{100 * case['coverage']['fewer_than_3']:.1f}%", f"{case['near_true']['seconds']:.1f}"])
+                            + [f"{case['floor']['angle_deg']:.3f}", f"{near_case['angle_deg'] - case['floor']['angle_deg']:+.3f}",
+                               f"{near_case['depth_rmse_um'] / far_case['depth_rmse_um']:.2f}",
+                               f"{100 * near_case['off_0.1mm']:.2f}%",
+                               f"{100 * case['coverage']['fewer_than_3']:.1f}%", f"{near_case['iterations']}",
+                               f"{near_case['seconds']:.2f}", f"{far_case['seconds']:.3f}"])
                 print(" | ".join(rows[-1]), flush=True)
         for method in METHODS:
             key = method if noisy else f"{method}_noisefree"
             summary[key] = sum(c["angle_deg"] for c in collected[method]) / len(collected[method])
             worst[key] = (max(c["angle_deg"] for c in collected[method]), max(c["dome_um"] for c in collected[method]))
-    header = ["fabric", "offset (mm)", "render"] + [f"{m}: ° / µm / dome µm" for m in METHODS] + ["lit by < 3", "near s"]
+    header = (["fabric", "offset (mm)", "render"] + [f"{m}: ° / µm / dome µm" for m in METHODS]
+              + ["noise floor (°)", "near_true − floor (°)", "depth near / far_flatfield", "near > 0.1 mm off",
+                 "lit by < 3", "alternations", "near s", "far_flatfield s"])
     report = table(header, rows)
     means = table(["method", "mean error noise-free (°)", "worst case noise-free (°)", "worst dome noise-free (µm)",
                    "mean error 8-bit noisy (°)", "worst case noisy (°)"],
                   [[m, f"{summary[m + '_noisefree']:.3f}", f"{worst[m + '_noisefree'][0]:.3f}",
-                    f"{worst[m + '_noisefree'][1]:.1f}", f"{summary[m]:.3f}", f"{worst[m][0]:.3f}"] for m in METHODS])
+                    f"{worst[m + '_noisefree'][1]:.1f}", f"{summary[m]:.3f}", f"{worst[m][0]:.3f}"] for m in METHODS]
+                  + [["noise floor", f"{sum(floors[False]) / len(floors[False]):.3f}", "", "",
+                      f"{sum(floors[True]) / len(floors[True]):.3f}", ""]])
+    speed = batch_speed(size, pitch, device)
     note = (f"{len(fabrics)} fabrics × offsets {offsets} mm, {size}×{size} px at {pitch:.4f} mm/px, on {device}. "
             f"Cells: mean angular error over cloth pixels with ≥ 3 usable LEDs (lit, unsaturated, card usable) / depth RMSE after removing "
             f"the mean offset / dome: RMS of that depth error low-passed at σ = 1 mm (normalised convolution over the "
-            f"same pixels), the low-frequency bend without the weave-scale integration error. LEDs calibrated from noisy 8-bit cards at 0 and 1 mm in {fit['seconds']:.1f} s: "
+            f"same pixels), the low-frequency bend without the weave-scale integration error. Near light on a batch "
+            f"of 16 {size}² captures: {speed['batch']:.2f} s per sample, single calls {speed['single']:.2f} s per "
+            f"sample (ratio {speed['batch'] / speed['single']:.2f}); distant pipeline {speed['far']:.3f} s per sample "
+            f"(near / distant {speed['single'] / speed['far']:.0f}×). LEDs calibrated from noisy 8-bit cards at 0 and 1 mm in {fit['seconds']:.1f} s: "
             f"largest position error {fit['position_error_mm']:.3f} mm, intensity error {100 * fit['intensity_error']:.2f}%.")
     print(report)
     print(means)
@@ -172,6 +228,8 @@ def main(argv: list[str] | None = None) -> int:
         payload["near_true_noisefree"] = summary["near_true_noisefree"]
         payload["far_flatfield_noisefree"] = summary["far_flatfield_noisefree"]
         payload["calibration"] = fit
+        payload["noise_floor"] = sum(floors[True]) / len(floors[True])
+        payload["speed"] = speed
         print(json.dumps(payload, sort_keys=True))
     return 0
 

@@ -36,8 +36,8 @@ from psmini.geometry import depth_to_points, pixel_grid_mm, point_cloud
 from psmini.lights import (DirectionalLights, LEDLights, LightModel, PointLights, as_batched_lights, check_spans_3d,
                            lights_from_dict, lights_to_dict, ring_lights)
 from psmini.metrics import angular_error_deg, depth_error, mean_angular_error, median_angular_error
-from psmini.nearlight import (NearLightResult, estimate_height_offset, near_light_photometric_stereo, near_light_vectors,
-                              refine_depth, robust_near_light_normals)
+from psmini.nearlight import (NearLightOptions, NearLightResult, RefineOptions, estimate_height_offset, near_light_vectors,
+                              refine_depth, robust_near_light_normals, solve_near_light)
 from psmini.normals import LeastSquaresNormals, albedo_normals, normals_to_gradients
 from psmini.nonlambertian import (BlinnPhongFit, NonLambertianNormals, blinn_phong_images, fit_blinn_phong,
                                   nonlambertian_normals)
@@ -101,7 +101,9 @@ __all__ = [
     "evaluate_sample",
     "score_reconstruction",
     # near light
-    "near_light_photometric_stereo",
+    "solve_near_light",
+    "NearLightOptions",
+    "RefineOptions",
     "near_light_vectors",
     "robust_near_light_normals",
     "estimate_height_offset",

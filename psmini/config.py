@@ -25,7 +25,7 @@ import torch
 from psmini.errors import InputError
 from psmini.integrate import METHODS as INTEGRATION_METHODS
 from psmini.lights import LightModel
-from psmini.nearlight import near_light_photometric_stereo
+from psmini.nearlight import NearLightOptions
 from psmini.robust import ROBUST_METHODS
 
 __all__ = ["SOLVERS", "ESTIMATORS", "ReconstructionConfig"]
@@ -40,9 +40,6 @@ SOLVERS = ("auto", "distant", "near")
 ESTIMATORS = ("auto", "lstsq", "robust") + ROBUST_METHODS + ("nonlambertian",)
 
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
-# options of the near solver that the pipeline itself supplies (from the sample and the other fields)
-_NEAR_SUPPLIED = {"images", "light_model", "pixel_pitch_mm", "reference", "dark", "reference_dark", "card_albedo",
-                  "mask", "saturation_level", "min_reference", "integrator"}
 # options of an integrator that the pipeline itself supplies
 _INTEGRATOR_SUPPLIED = {"p", "q", "pixel_pitch_mm", "mask"}
 
@@ -63,13 +60,14 @@ class ReconstructionConfig:
             lights, the near solver's own robust least squares for near ones).
         estimator_options: keyword options of the estimator (:func:`psmini.robust.robust_normals` for the robust
             ones), checked against it.
-        integrator: ``"auto"`` or a name of :data:`psmini.integrate.METHODS`. ``auto``: masked least squares when
-            the sample has a mask or the solver is near (the unsolved crevices of cloth are holes in the domain),
-            Frankot–Chellappa over the full rectangle otherwise.
-        integrator_options: keyword options of that integrator, checked against it (so options of another
-            integrator are refused).
-        near: keyword options of the near-light solver (:func:`psmini.nearlight.near_light_photometric_stereo`,
-            e.g. ``max_iterations``, ``card_height_mm``), checked against it.
+        integrator: ``"auto"`` or a name of :data:`psmini.integrate.METHODS`. ``auto``: for distant lights masked
+            least squares when the sample has a mask, Frankot–Chellappa over the full rectangle otherwise; for near
+            light the near options' integrator (weighted masked least squares: the unsolved crevices of cloth are
+            holes in the domain). A name given here replaces the near options' integrator too.
+        integrator_options: keyword options of the distant solver's integrator, checked against it (so options of
+            another integrator are refused; the near solver weights its own).
+        near: the near-light solver's :class:`~psmini.nearlight.NearLightOptions` (alternations, tolerance,
+            shadow and highlight rejection, offset search, integration).
         min_reference: card pixels darker than this fraction of the LED's brightest card pixel are not trusted
             (:func:`psmini.flatfield.flatfield`).
         device: where to compute (``"cpu"``, ``"cuda"``, ``"cuda:1"``).
@@ -92,7 +90,7 @@ class ReconstructionConfig:
     estimator_options: Mapping[str, Any] = field(default_factory=dict)
     integrator: str = "auto"
     integrator_options: Mapping[str, Any] = field(default_factory=dict)
-    near: Mapping[str, Any] = field(default_factory=dict)
+    near: NearLightOptions = field(default_factory=NearLightOptions)
     min_reference: float = 0.02
     device: str = "cpu"
     dtype: str = "float32"
@@ -100,7 +98,10 @@ class ReconstructionConfig:
     def __post_init__(self) -> None:
         self._check_name("solver", self.solver, SOLVERS)
         self._check_name("estimator", self.estimator, ESTIMATORS)
-        self._check_name("integrator", self.integrator, ("auto",) + tuple(sorted(INTEGRATION_METHODS)))
+        self._check_name("integrator", self.integrator, ("auto", "fill") + tuple(sorted(INTEGRATION_METHODS)))
+        if self.integrator == "fill" and self.solver == "distant":
+            raise InputError("integrator 'fill' is the near solver's (slopes filled, a Neumann DCT solve); the "
+                             "distant solver takes one of " + ", ".join(sorted(INTEGRATION_METHODS)))
         self._check_name("dtype", self.dtype, tuple(_DTYPES))
         if self.solver == "near" and self.estimator != "auto":
             raise InputError(f"estimator {self.estimator!r} is for distant lights; the near-light solver has its own "
@@ -119,9 +120,16 @@ class ReconstructionConfig:
 
             self._check_options("estimator_options", self.estimator_options, [robust_normals],
                                 {"intensities", "lights", "method", "mask", "weights"})
-        self._check_options("near", self.near, [near_light_photometric_stereo], _NEAR_SUPPLIED)
-        if self.near and self.solver == "distant":
-            raise InputError(f"near-light options {sorted(self.near)} were given but the solver is 'distant'")
+        if isinstance(self.near, Mapping):  # the JSON form (from_dict, --near-option)
+            try:
+                object.__setattr__(self, "near", NearLightOptions(**self.near))
+            except TypeError as error:
+                raise InputError(f"near: {error} (the fields of NearLightOptions)") from error
+        if not isinstance(self.near, NearLightOptions):
+            raise InputError(f"near must be a NearLightOptions, got {type(self.near).__name__}")
+        if self.solver == "distant" and self.near != NearLightOptions():
+            changed = sorted(k for k, v in self.near.to_dict().items() if v != NearLightOptions().to_dict()[k])
+            raise InputError(f"near-light options {changed} were given but the solver is 'distant'")
 
     @staticmethod
     def _check_name(what: str, value: Any, allowed: tuple[str, ...]) -> None:
@@ -129,7 +137,7 @@ class ReconstructionConfig:
             raise InputError(f"{what} must be one of {', '.join(allowed)}, got {value!r}")
 
     def _integrators(self) -> list[Any]:
-        if self.integrator == "auto":  # options must suit every integrator auto may pick
+        if self.integrator in ("auto", "fill"):  # options must suit every integrator the distant solver may pick
             return [INTEGRATION_METHODS["masked"], INTEGRATION_METHODS["fc"]]
         return [INTEGRATION_METHODS[self.integrator]]
 
@@ -169,11 +177,17 @@ class ReconstructionConfig:
         return self.solver
 
     def integrator_for(self, solver: str, has_mask: bool) -> str:
-        """The integrator that runs: :attr:`integrator`, or for ``auto`` masked least squares with a mask or near
-        light and Frankot–Chellappa otherwise."""
+        """The integrator that runs: :attr:`integrator`, or for ``auto`` the near options' with near light, masked
+        least squares with a mask and Frankot–Chellappa otherwise."""
         if self.integrator != "auto":
             return self.integrator
-        return "masked" if has_mask or solver == "near" else "fc"
+        if solver == "near":
+            return self.near.integrator
+        return "masked" if has_mask else "fc"
+
+    def near_options(self, has_mask: bool) -> NearLightOptions:
+        """The :class:`~psmini.nearlight.NearLightOptions` that run, with the integrator of :meth:`integrator_for`."""
+        return self.near.replace(integrator=self.integrator_for("near", has_mask))
 
     def resolved(self, lights: LightModel, has_mask: bool) -> ReconstructionConfig:
         """This configuration with ``auto`` replaced by what runs for ``lights`` (what results record).
@@ -187,13 +201,16 @@ class ReconstructionConfig:
         """
         solver = self.solver_for(lights)
         estimator = self.estimator if self.estimator != "auto" else ("lstsq" if solver == "distant" else "auto")
-        return dataclasses.replace(self, solver=solver, estimator=estimator,
+        near = self.near_options(has_mask) if solver == "near" else self.near
+        return dataclasses.replace(self, solver=solver, estimator=estimator, near=near,
                                    integrator=self.integrator_for(solver, has_mask))
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict of every field (what ``outputs.json`` and batch summaries record)."""
-        return {f.name: (dict(getattr(self, f.name)) if isinstance(getattr(self, f.name), Mapping)
-                         else getattr(self, f.name)) for f in dataclasses.fields(self)}
+        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        values.update(estimator_options=dict(self.estimator_options), integrator_options=dict(self.integrator_options),
+                      near=self.near.to_dict())
+        return values
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> ReconstructionConfig:

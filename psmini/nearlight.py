@@ -13,16 +13,22 @@ reads :math:`\rho\,n \cdot L_k(x) / (E_k(x_c)\,l_{k,z}(x_c))`, with :math:`x_c` 
 pixel. The camera's gain and vignetting cancel, and so do the LEDs' intensities; what remains is the geometry.
 
 The absolute height of the cloth is observable because the light field is not uniform: the per-pixel
-least-squares residual is zero only at the true height (noise-free, Lambertian). The solver estimates the
-height offset by a one-dimensional search of that residual after each integration. With a card the search is
-sharp (about a micrometre on noise-free renders of the rig); on raw images the height shows only through the
-inverse-square law's variation across the field and is found to tens of micrometres.
+least-squares residual is zero only at the true height (noise-free, Lambertian). The solver finds the height
+offset by a scan of that residual on a coarse pixel grid in the first alternation, then refines it by parabolic
+(Newton) steps in later ones, a few batched evaluations of the light model on every fourth pixel. With a card it is sharp (about a micrometre on noise-free renders of the
+rig); on raw images the height shows only through the inverse-square law's variation across the field and is
+found to tens of micrometres.
+
+Near light is a stage of the pipeline (:func:`solve_near_light`): it takes images that are already flat-fielded
+(:func:`psmini.flatfield.flatfield`) with their validity, and returns albedo, normals, depth and the solved mask.
+Its options travel as one frozen :class:`NearLightOptions`.
 
 Two departures from plain least squares keep textiles within the Lambertian model's reach. Metallic threads add a
 specular lobe that only brightens: each pixel's brightest observation is tested against the fit of the others (a
-leave-one-out residual, from the hat matrix) before any fit can be pulled by it. Crevices lit by fewer than three
-LEDs stay unsolved, and the pixels on their rims, whose normals see the crevice's wall, get little weight in the
-integration, so that the many crevices of a knit do not add up to a dome.
+leave-one-out residual, from the hat matrix) before it can pull the fit, one observation per alternation. Crevices
+lit by fewer than three LEDs stay unsolved; the pixels on their rims, whose normals see the crevice's wall, get
+little weight in the integration (the many crevices of a knit would otherwise add up to a dome), and the unsolved
+pixels themselves are filled smoothly from their rims, so they can never stand out as depth spikes.
 
 A second, joint refinement (:func:`refine_depth`) minimises a robust (Huber) re-rendering loss over the depth
 map by gradient descent, coarse to fine, with the albedo solved in closed form at each step.
@@ -30,7 +36,7 @@ map by gradient descent, coarse to fine, with the albedo solved in closed form a
 
 from __future__ import annotations
 
-import inspect
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -41,51 +47,268 @@ from torch import Tensor, nn
 
 from psmini._checks import check_finite, check_mask, check_positive, check_shape
 from psmini.errors import InputError, ShapeError
-from psmini.flatfield import flatfield
-from psmini.geometry import depth_to_points
+from psmini.geometry import depth_to_points, pixel_grid_mm
 from psmini.integrate import METHODS as INTEGRATORS
-from psmini.integrate import integrate
-from psmini.normals import albedo_normals, normals_to_gradients
+from psmini.integrate import dct_poisson, integrate
+from psmini.integrate.least_squares import _edge_system
+from psmini.integrate.poisson import solve_weighted_poisson
+from psmini.lights import LEDLights, PointLights
+from psmini.normals import normals_to_gradients, solve_normal_equations
 from psmini.render import normals_from_height
 from psmini.result import Reconstruction
 
 __all__ = [
+    "NearLightOptions",
+    "NearLightResult",
+    "RefineOptions",
     "near_light_vectors",
     "robust_near_light_normals",
     "estimate_height_offset",
-    "NearLightResult",
-    "near_light_photometric_stereo",
+    "solve_near_light",
     "refine_depth",
 ]
 
 logger = logging.getLogger(__name__)
 
-# Observations whose residual exceeds this fraction of the pixel's brightness scale are outliers (cast shadows,
-# highlights): about ten times the noise of an 8-bit sensor at the rig's exposure.
-_OUTLIER_FRACTION = 0.15
-# Observations darker than this fraction of the pixel's brightest are taken as shadowed from the start: a cast or
-# attached shadow reads only what the dark frame already removed.
-_SHADOW_FRACTION = 0.02
 # Light vectors within this cosine of the tangent plane count as attached shadows (grazing light).
 _GRAZING_COSINE = 0.02
 # Stride of the pixel grid on which the height offset is searched (the residual is smooth across pixels).
 _OFFSET_STRIDE = 4
-# An observation brighter than the fit of the others by more than this fraction of the pixel's brightness scale is
-# a highlight: a few per cent of specular lobe is already degrees of normal error, while the fit of the others
-# predicts a Lambertian observation to about the noise of an 8-bit sensor.
-_HIGHLIGHT_FRACTION = 0.02
-# ... or by more than this many times the image's typical residual per observation, when noise makes that larger.
+# Offsets tried by the first, coarse scan of the height offset, over the search interval.
+_SCAN_POINTS = 25
+# Half-width (mm) of the first parabolic step that refines the offset in later alternations.
+_NEWTON_STEP_MM = 0.1
+# ... and the width (mm) at which a search stops refining.
+_OFFSET_TOLERANCE_MM = 1e-3
+# Observations whose leave-one-out residual exceeds this many noise levels are highlights, when the noise makes
+# that larger than ``highlight_fraction``.
 _HIGHLIGHT_SIGMAS = 4.0
+# ... in the rounds before the noise model (whose noise level is cruder): only gross glints.
+_FIRST_HIGHLIGHT_SIGMAS = 8.0
 # A pixel is tested for a highlight only with at least this many observations: the fit of the others then stays
 # overdetermined (an exactly determined fit of three turns noise into false highlights where light is scarce).
 _HIGHLIGHT_MIN_OBS = 5
-# Observations within this many noise levels of zero (relative to the pixel's brightest) are shadows, not light.
-_SHADOW_SIGMAS = 3.0
-# ... but an observation above this fraction of the brightest is light whatever the noise estimate says (a lobe
-# spread over many LEDs inflates the estimate).
-_SHADOW_CAP = 0.1
-# Pixels next to an unsolved one get this confidence in the integration (see near_light_photometric_stereo).
+# Observations within this many zero-signal noise levels of zero are shadows, not light.
+_SHADOW_SIGMAS = 3.5
+# Observations near zero within this many noise levels of a prediction near zero are used (grazing light).
+_GRAZING_SIGMAS = 3.0
+_GRAZING_LOW = 1.0
+# Residuals within this many noise levels are never outliers.
+_OUTLIER_SIGMAS = 6.0
+# Pixels next to an unsolved one get this confidence in the integration (see solve_near_light).
 _EDGE_CONFIDENCE = 0.01
+# Images at least this large (and of even size) run their first alternations at half resolution.
+_MIN_COARSE_SIZE = 32
+# Interval (mm) scanned around the half-resolution offset by the first full-resolution alternation.
+_FINE_SEARCH_MM = (-0.5, 0.5)
+# ... with this many offsets (0.125 mm apart) before the parabolic steps.
+_FINE_SCAN_POINTS = 9
+# Updates of the observations' selection in one alternation at full resolution (after three highlight rounds);
+# later alternations keep it.
+_SELECTION_UPDATES = 2
+# The half-resolution alternations stop at this many times the tolerance (their depth only places the lights).
+_COARSE_TOLERANCE_FACTOR = 10.0
+# Relative residual at which the final integration stops (warm-started; a micrometre on the benchmark's depths).
+_FINE_CG_TOLERANCE = 1e-5
+# Relative residual at which the half-resolution integrations stop (their depth only places the light field).
+_COARSE_CG_TOLERANCE = 1e-4
+# Unsolved pixels inside the mask get this confidence and a zero slope: a membrane filled from their rims.
+_GAP_CONFIDENCE = 1e-3
+# Pixels fitted to exactly three observations get this share of their confidence (nothing checks their fit).
+_THREE_OBSERVATIONS_CONFIDENCE = 0.1
+# Side (pixels) of the window from which unconfident slopes are filled.
+_FILL_SIZE = 9
+
+
+@dataclass(frozen=True)
+class NearLightOptions:
+    """Options of the near-light solver (:func:`solve_near_light`); the defaults are what
+    ``benchmarks/nearlight.py`` measures.
+
+    Attributes:
+        max_iterations: most alternations (lights → normals → depth).
+        tolerance_deg: the solver stops when ``change_percentile`` of the solved pixels' normals moved less than
+            this since the previous alternation, degrees (the depth is then consistent with its normals).
+        change_percentile: the share of solved pixels whose normal change must fall below ``tolerance_deg``: a few
+            oscillating pixels (rims of crevices) cannot hold the iteration hostage.
+        estimate_offset: find the absolute height from the images (the light field is not uniform); otherwise
+            the mean height stays ``initial_height_mm``.
+        initial_height_mm: starting height of the cloth above the card plane's origin, mm (kept as the mean
+            height without ``estimate_offset``).
+        search_mm: interval of height offsets scanned in the first alternation, mm, around ``initial_height_mm``.
+        shadow_fraction: observations darker than this fraction of the pixel's brightest are shadows (raised to
+            three noise levels on noisy images, at most 0.1).
+        highlight_fraction: excess of an observation over the fit of the others, relative to the pixel's scale,
+            above which the brightest is a highlight (or four noise levels when larger); ``None`` keeps every
+            observation (purely Lambertian cloth).
+        outlier_fraction: residual, relative to the pixel's scale, above which an observation is an outlier (cast
+            shadows missed by the shadow test).
+        integrator: the final integration: ``"masked"`` (the default: weighted least squares on the mask, slopes
+            weighted by their inverse variance, by conjugate gradients warm-started from the alternations' depth),
+            ``"fill"`` (unconfident slopes filled from their surroundings, a Neumann DCT solve: several times
+            faster, depth errors 2-3 times larger on the benchmark's jute and knit) or another
+            method of :func:`psmini.integrate.integrate` (unweighted, on the solved pixels). The alternations always
+            use ``"fill"``.
+
+    Raises:
+        InputError: for values out of range.
+
+    Example:
+        >>> NearLightOptions(max_iterations=3).to_dict()["max_iterations"]
+        3
+    """
+
+    max_iterations: int = 8
+    tolerance_deg: float = 0.02
+    change_percentile: float = 0.99
+    estimate_offset: bool = True
+    initial_height_mm: float = 0.0
+    search_mm: tuple[float, float] = (-3.0, 3.0)
+    shadow_fraction: float = 0.02
+    highlight_fraction: float | None = 0.02
+    outlier_fraction: float = 0.15
+    integrator: str = "masked"
+
+    def __post_init__(self) -> None:
+        def bad(name: str, expected: str) -> InputError:
+            return InputError(f"NearLightOptions.{name} must be {expected}, got {getattr(self, name)!r}")
+
+        if not (isinstance(self.max_iterations, int) and not isinstance(self.max_iterations, bool)
+                and self.max_iterations >= 1):
+            raise bad("max_iterations", "an integer >= 1")
+        if not (isinstance(self.tolerance_deg, (int, float)) and 0 < self.tolerance_deg < math.inf):
+            raise bad("tolerance_deg", "a positive number")
+        if not (isinstance(self.change_percentile, (int, float)) and 0 < self.change_percentile <= 1):
+            raise bad("change_percentile", "in (0, 1]")
+        if not isinstance(self.estimate_offset, bool):
+            raise bad("estimate_offset", "a bool")
+        if not (isinstance(self.initial_height_mm, (int, float)) and math.isfinite(self.initial_height_mm)):
+            raise bad("initial_height_mm", "a finite number")
+        search = self.search_mm
+        if not (isinstance(search, (tuple, list)) and len(search) == 2
+                and all(isinstance(s, (int, float)) and math.isfinite(s) for s in search) and search[0] < search[1]):
+            raise bad("search_mm", "an increasing pair of finite numbers")
+        object.__setattr__(self, "search_mm", (float(search[0]), float(search[1])))
+        if not (isinstance(self.shadow_fraction, (int, float)) and 0 <= self.shadow_fraction < 1):
+            raise bad("shadow_fraction", "in [0, 1)")
+        if self.highlight_fraction is not None and not (
+                isinstance(self.highlight_fraction, (int, float)) and self.highlight_fraction > 0):
+            raise bad("highlight_fraction", "a positive number or None")
+        if not (isinstance(self.outlier_fraction, (int, float)) and self.outlier_fraction > 0):
+            raise bad("outlier_fraction", "a positive number")
+        if self.integrator != "fill" and self.integrator not in INTEGRATORS:
+            raise bad("integrator", f"'fill' or one of {', '.join(sorted(INTEGRATORS))}")
+
+    def to_dict(self) -> dict:
+        """The options as a JSON-serialisable dict (``NearLightOptions(**d)`` rebuilds them)."""
+        values = dataclasses.asdict(self)
+        values["search_mm"] = list(self.search_mm)
+        return values
+
+    def replace(self, **changes) -> NearLightOptions:
+        """A copy with some fields changed (validated again).
+
+        Raises:
+            InputError: for a name that is no option, or a value out of range.
+        """
+        unknown = set(changes) - {f.name for f in dataclasses.fields(self)}
+        if unknown:
+            raise InputError(f"unknown near-light options {sorted(unknown)}; expected some of "
+                             f"{[f.name for f in dataclasses.fields(self)]}")
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass
+class NearLightResult(Reconstruction):
+    """A :class:`~psmini.result.Reconstruction` with the near-light solver's diagnostics.
+
+    Attributes:
+        weights: observations used in the last solve, :math:`(B, K, H, W)` bool (False: shadow, outlier, invalid).
+        offset_mm: mean height of the cloth above the card plane, :math:`(B,)`, mm.
+        iterations: alternations run, at both resolutions (the first ones run on 2 × 2-averaged images).
+        changes_deg: the ``change_percentile`` quantile of the normals' change of each alternation after the first
+            at each resolution (over the batch, the largest), degrees.
+        converged: whether the change fell below the tolerance before ``max_iterations``.
+    """
+
+    weights: Tensor | None = None
+    offset_mm: Tensor | None = None
+    iterations: int = 0
+    changes_deg: tuple[float, ...] = ()
+    converged: bool = False
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Light field: per-pixel light vectors at a height map, the depth-independent parts computed once
+# ----------------------------------------------------------------------------------------------------------------
+
+
+class _LightField:
+    """Light vectors of a light model on the pixel grid, as three (B, K, H, W) components and their length.
+
+    For point and LED models the parts that do not depend on the height (the in-plane offsets to each light, their
+    squared length, the LED axis' in-plane product, the card's irradiance for flat-fielded images) are computed
+    once; each evaluation is then a handful of element-wise operations (one fused pass, no norms over a
+    component dimension). Other models go through their ``forward``. Differentiable in the height and in the
+    light model's parameters.
+    """
+
+    def __init__(self, model: nn.Module, height: int, width: int, pitch: float, card_height: float | None,
+                 like: Tensor, stride: int = 1) -> None:
+        self.model, self.pitch, self.stride = model, pitch, stride
+        x, y = pixel_grid_mm(height, width, pitch, device=like.device, dtype=like.dtype)
+        x, y = x[::stride, ::stride], y[::stride, ::stride]
+        self.shape = x.shape
+        self.fast = isinstance(model, PointLights)
+        if self.fast:
+            positions = model.positions_mm.to(like)
+            self.ox = positions[:, 0, None, None] - x  # (K, h, w)
+            self.oy = positions[:, 1, None, None] - y
+            self.pz = positions[:, 2, None, None]
+            self.rxy2 = self.ox.square() + self.oy.square()
+            self.phi = model.intensities.to(like)[:, None, None]
+            self.led = isinstance(model, LEDLights)
+            if self.led:
+                axis = model.principal_directions.to(like)
+                axis = axis / axis.norm(dim=-1, keepdim=True)
+                self.axy = self.ox * axis[:, 0, None, None] + self.oy * axis[:, 1, None, None]
+                self.az = axis[:, 2, None, None]
+                self.mu = model.mu.to(like)[:, None, None]
+                self.unit_mu = bool((self.mu.detach() == 1).all())
+        else:
+            self.points_xy = torch.stack([x, y])[None]
+        self.card_scale = None
+        if card_height is not None:
+            card = torch.full((1, 1, *self.shape), float(card_height), device=like.device, dtype=like.dtype)
+            lx, ly, lz, _ = self._raw(card)
+            if bool((lz.detach() <= 0).any()):
+                raise InputError("flat-fielding needs every light above the card plane at every pixel")
+            # the card reads E_k l_kz: flat-fielded vectors are L_k / (E_k(x_c) l_kz(x_c)), with l_kz = lz / E_k
+            self.card_scale = 1 / lz[0]
+
+    def _raw(self, depth: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Unnormalised-by-card vectors (x, y, z components) and their lengths, each (B, K, h, w)."""
+        if not self.fast:
+            points = torch.cat([self.points_xy.expand(depth.shape[0], -1, -1, -1), depth], dim=1)
+            directions, irradiance = self.model(points)
+            vectors = directions * irradiance
+            lx, ly, lz = vectors.unbind(dim=2)
+            return lx, ly, lz, irradiance[:, :, 0]
+        oz = self.pz - depth  # (B, K, h, w) by broadcasting (B, 1, h, w)
+        inverse = (self.rxy2 + oz.square()).rsqrt()
+        length = self.phi * inverse.square()  # irradiance φ / r²
+        if self.led:
+            cosine = ((self.axy + self.az * oz) * inverse).neg_().clamp_min_(torch.finfo(oz.dtype).tiny)
+            length = length * (cosine if self.unit_mu else cosine.pow(self.mu))
+        scale = length * inverse  # irradiance / r: the offsets become unit directions times irradiance
+        return self.ox * scale, self.oy * scale, oz * scale, length
+
+    def __call__(self, depth: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        lx, ly, lz, length = self._raw(depth)
+        if self.card_scale is None:
+            return lx, ly, lz, length
+        s = self.card_scale
+        return lx * s, ly * s, lz * s, length * s
 
 
 def near_light_vectors(
@@ -104,6 +327,10 @@ def near_light_vectors(
         light vectors :math:`(B, K, 3, H, W)`: unit direction times irradiance (relative to the card's when
         ``card_height_mm`` is given).
 
+    Raises:
+        ShapeError: when ``depth`` is not :math:`(B, 1, H, W)`.
+        InputError: for a light at or below the card plane with ``card_height_mm``, or a non-module light model.
+
     Example:
         >>> from psmini.lights import PointLights
         >>> lights = PointLights(torch.tensor([[10.0, 0, 10], [-10.0, 0, 10], [0, 10.0, 10]]))
@@ -111,36 +338,229 @@ def near_light_vectors(
         >>> torch.allclose(vectors[:, :, 2], torch.ones(1, 3, 4, 4))   # on the card itself l_z / l_z = 1
         True
     """
-    check_shape(depth, ["B", "1", "H", "W"], "depth")
-    directions, irradiance = light_model(depth_to_points(depth, pixel_pitch_mm))
-    vectors = directions * irradiance
-    if card_height_mm is None:
-        return vectors
-    card = depth_to_points(torch.full_like(depth[:1], float(card_height_mm)), pixel_pitch_mm)
-    card_directions, card_irradiance = light_model(card)
-    facing = card_directions[:, :, 2:3]
-    if bool((facing.detach() <= 0).any()):
-        raise InputError("flat-fielding needs every light above the card plane at every pixel")
-    return vectors / (card_irradiance * facing)
+    sizes = check_shape(depth, ["B", "1", "H", "W"], "depth")
+    check_positive(pixel_pitch_mm, "pixel_pitch_mm")
+    _check_light_model(light_model)
+    field = _LightField(light_model, sizes["H"], sizes["W"], pixel_pitch_mm, card_height_mm, depth)
+    lx, ly, lz, _ = field(depth)
+    return torch.stack([lx, ly, lz], dim=2)
 
 
-def _predict(albedo: Tensor, normals: Tensor, vectors: Tensor) -> Tensor:
-    """Unclamped Lambertian prediction ρ n·L_k, shape (B, K, H, W)."""
-    return albedo * (vectors * normals[:, None]).sum(dim=2)
+# ----------------------------------------------------------------------------------------------------------------
+# Per-pixel weighted least squares on component tensors (unchecked kernels)
+# ----------------------------------------------------------------------------------------------------------------
 
 
-def _candidates(intensities: Tensor, valid: Tensor, shadow_fraction: float) -> Tensor:
-    """Observations that may be lit: brighter than ``shadow_fraction`` of the pixel's brightest.
+def _fit(intensities: Tensor, lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) -> tuple[Tensor, Tensor]:
+    """Weighted per-pixel least squares m = ρ n; returns m (B, 3, H, W) and where it is well posed (B, 1, H, W)."""
+    wx, wy, wz = used * lx, used * ly, used * lz
+    gram = torch.stack([(wx * lx).sum(1), (wx * ly).sum(1), (wx * lz).sum(1),
+                        (wy * ly).sum(1), (wy * lz).sum(1), (wz * lz).sum(1)], dim=1)
+    rhs = torch.stack([(wx * intensities).sum(1), (wy * intensities).sum(1), (wz * intensities).sum(1)], dim=1)
+    return solve_normal_equations(gram, rhs, dim=1)
+
+
+def _split(m: Tensor, well_posed: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+    """Albedo |m| and unit normal; albedo 0 and normal (0, 0, 1) where not solved."""
+    solved = well_posed if mask is None else well_posed & mask.bool()
+    length = m.square().sum(dim=1, keepdim=True).clamp_min(torch.finfo(m.dtype).tiny).sqrt()
+    solved = solved & (length > torch.finfo(m.dtype).eps)
+    up = torch.tensor([0.0, 0.0, 1.0], device=m.device, dtype=m.dtype).view(1, 3, 1, 1)
+    return length.masked_fill(~solved, 0), torch.where(solved, m / length, up)
+
+
+def _predict(m: Tensor, lx: Tensor, ly: Tensor, lz: Tensor) -> Tensor:
+    """Unclamped Lambertian prediction m·L_k = ρ n·L_k, (B, K, H, W)."""
+    return m[:, 0:1] * lx + m[:, 1:2] * ly + m[:, 2:3] * lz
+
+
+def _adjugate(lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) -> tuple[tuple[Tensor, ...], Tensor]:
+    """The six entries of the adjugate of each pixel's normal matrix and its determinant, each (B, 1, H, W);
+    the determinant is +inf where the matrix is not well posed (its inverse is then 0)."""
+    wx, wy, wz = used * lx, used * ly, used * lz
+    a, b, c = (wx * lx).sum(1, keepdim=True), (wx * ly).sum(1, keepdim=True), (wx * lz).sum(1, keepdim=True)
+    d, e, f = (wy * ly).sum(1, keepdim=True), (wy * lz).sum(1, keepdim=True), (wz * lz).sum(1, keepdim=True)
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * c00 + b * c01 + c * c02
+    scale = ((a + d + f) / 3).pow(3).clamp_min(torch.finfo(lx.dtype).tiny)
+    det = torch.where(det > 1e-6 * scale, det, torch.full_like(det, torch.inf))
+    return (c00, c01, c02, c11, c12, c22), det
+
+
+def _leverage(lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) -> Tensor:
+    r"""Leverage :math:`L_k^T (\sum_{j} w_j L_j L_j^T)^{-1} L_k` of every light, (B, K, H, W) (adjugate form)."""
+    (c00, c01, c02, c11, c12, c22), det = _adjugate(lx, ly, lz, used)
+    quadratic = (c00 * lx * lx + c11 * ly * ly + c22 * lz * lz
+                 + 2 * (c01 * lx * ly + c02 * lx * lz + c12 * ly * lz))
+    return quadratic / det
+
+
+def _candidates(intensities: Tensor, valid: Tensor, level: Tensor | float) -> Tensor:
+    """Observations that may be lit: brighter than ``level`` times the pixel's brightest.
 
     Where fewer than three pass, a grazing light may still be real (0.01 next to 0.8 is lit, not shadowed): such
     pixels take their three brightest valid observations, provided the third is not zero. A pixel with fewer than
     three non-zero observations cannot be solved and gets none (it is left unsolved rather than fitted to shadows).
+    The ranks come from K comparisons of whole images (a reduction over K is slow on the CPU for K in dim 1).
     """
-    bright = valid & (intensities > shadow_fraction * intensities.amax(dim=1, keepdim=True))
     ranked = intensities.masked_fill(~valid, -torch.inf)
-    third = ranked.topk(min(3, intensities.shape[1]), dim=1).values[:, -1:]
-    brightest_three = valid & (intensities >= third) & (third > 0)
+    bright = valid & (intensities > level * ranked.amax(dim=1, keepdim=True))
+    above = torch.zeros_like(intensities)
+    for k in range(intensities.shape[1]):
+        above += (ranked[:, k : k + 1] > ranked).to(intensities.dtype)
+    nonzero = (valid & (intensities > 0)).sum(dim=1, keepdim=True) >= 3
+    brightest_three = valid & (above < 3) & nonzero
     return torch.where(bright.sum(dim=1, keepdim=True) >= 3, bright, brightest_three)
+
+
+def _median(values: Tensor, usable: Tensor) -> Tensor:
+    """Median of ``values`` over the ``usable`` pixels of each batch item, (B, 1, 1, 1); 0 where none."""
+    medians = [v[u].median() if bool(u.any()) else v.new_zeros(()) for v, u in zip(values, usable)]
+    return torch.stack(medians).view(-1, 1, 1, 1)
+
+
+def _noise_model(images: Tensor, pred: Tensor, used: Tensor, valid: Tensor, albedo: Tensor, scale: Tensor,
+                 mask: Tensor | None) -> tuple[Tensor, Tensor]:
+    r"""The images' noise as :math:`\sigma_k^2 = \sigma_0^2 + g\,\max(\hat I_k, 0)` (read noise and quantisation, then
+    shot noise, which grows with the signal), each (B, 1, 1, 1), in the images' units.
+
+    :math:`\sigma_0` comes from the observations that the fit puts well inside an attached shadow: they read noise
+    alone, clipped at zero by the dark subtraction, whose 75th percentile is :math:`0.674\,\sigma_0`. :math:`g`
+    is the median over pixels with at least five observations of (residual variance per degree of freedom minus
+    :math:`\sigma_0^2`) over the mean prediction.
+    """
+    usable = albedo > 0
+    if mask is not None:
+        usable = usable & mask.bool()
+    # (and that read little next to the pixel's brightest: a fit bent by a glint puts lit observations there too)
+    dark = valid & usable & (pred < -0.1 * scale) & (images < 0.1 * images.amax(dim=1, keepdim=True))
+    # noise clipped at zero: its 75th percentile is 0.674 sigma0 (robust to fits that a glint bent)
+    count = dark.sum(dim=(1, 2, 3), keepdim=True)
+    floor_sq = 2 * (images.square() * dark).sum(dim=(1, 2, 3), keepdim=True) / count.clamp_min(1)
+    n = used.sum(dim=1, keepdim=True)
+    variance = ((images - pred).square() * used).sum(dim=1, keepdim=True) / (n - 3).clamp_min(1)
+    level = ((pred.clamp_min(0) * used).sum(dim=1, keepdim=True) / n.clamp_min(1)).clamp_min(1e-12)
+    gain = _median((variance - floor_sq) / level, usable & (n >= _HIGHLIGHT_MIN_OBS)).clamp_min(0)
+    return floor_sq, gain
+
+
+class _Rejection:
+    r"""Which observations a pixel's fit uses: decided once, then updated once per alternation.
+
+    Shadows: observations darker than the shadow level (``shadow_fraction`` of the pixel's brightest, raised to
+    three noise levels, at most :data:`_SHADOW_CAP`). Highlights: per update, the brightest observation relative to
+    its light (:math:`I_k / |L_k|`) is dropped when the fit of the others misses it by more than the larger of
+    ``highlight_fraction`` and four noise levels times :math:`1/\sqrt{1 - h_k}` (relative to the pixel's scale;
+    :math:`r_k / (1 - h_k)` is the leave-one-out residual from the full fit, :math:`h_k` the hat matrix's diagonal,
+    Cook and Weisberg, "Residuals and influence in regression", 1982); a specular lobe only adds light, so only
+    positive excesses count, and only pixels with :data:`_HIGHLIGHT_MIN_OBS` observations are tested. Attached
+    shadows (:math:`n \cdot L_k \le 0.02\,|L_k|`) and outliers (residual above ``outlier_fraction`` of the scale)
+    leave the fit; each update starts from all candidates, so an early drop can be undone, and a pixel keeps its
+    previous observations rather than fall below three.
+    """
+
+    def __init__(self, intensities: Tensor, valid: Tensor, options: NearLightOptions) -> None:
+        self.intensities, self.valid, self.options = intensities, valid, options
+        self.candidates = _candidates(intensities, valid, options.shadow_fraction)
+        self.highlights = torch.zeros_like(valid)
+        self.shadows = torch.zeros_like(valid)
+        self.noise: tuple[Tensor, Tensor] | None = None
+        self.relative_noise: Tensor | None = None
+
+    def update(self, field: tuple[Tensor, Tensor, Tensor, Tensor], m: Tensor, albedo: Tensor, used: Tensor,
+               mask: Tensor | None, highlights_only: bool = False) -> Tensor:
+        """New weights from the fit ``m`` made with ``used``; (B, K, H, W) bool. With ``highlights_only`` only the
+        highlight test runs (its rounds come first: a glint bends the fit that the other tests judge by)."""
+        lx, ly, lz, length = field
+        images, options = self.intensities, self.options
+        pred = _predict(m, lx, ly, lz)
+        scale = albedo * length.mean(dim=1, keepdim=True)
+        relative = images / length.clamp_min(torch.finfo(length.dtype).tiny)
+        if highlights_only:
+            # before the glints are out, the noise model would take them for noise: the median over pixels of
+            # the residual of a fit without each pixel's brightest observation, relative to the pixel's scale
+            if self.relative_noise is None:
+                ranked = relative.masked_fill(~used, -torch.inf)
+                others = used & (ranked < ranked.amax(dim=1, keepdim=True))
+                m_others, posed = _fit(images, lx, ly, lz, others)
+                albedo_others, _ = _split(m_others, posed, mask)
+                n = others.sum(dim=1, keepdim=True)
+                squared = ((images - _predict(m_others, lx, ly, lz)).square() * others).sum(dim=1, keepdim=True)
+                residual = (squared / (n - 3).clamp_min(1)).sqrt() / (albedo_others * length.mean(dim=1, keepdim=True)
+                                                                     ).clamp_min(1e-12)
+                self.relative_noise = _median(residual, (n >= 4) & (albedo_others > 0)).nan_to_num(0.0, posinf=0.0)
+            # shot noise grows with the signal: scaled by the square root of the prediction over the pixel's mean
+            level = (pred.clamp_min(0) * used).sum(dim=1, keepdim=True) / used.sum(dim=1, keepdim=True).clamp_min(1)
+            sigma = self.relative_noise * scale * (pred.clamp_min(0) / level.clamp_min(1e-12)).sqrt()
+        else:
+            if self.noise is None:  # first full update: the noise model, and shadows relative to it
+                self.noise = _noise_model(images, pred, used, self.valid, albedo, scale, mask)
+                shadow = self.noise[0].sqrt() * _SHADOW_SIGMAS
+                self.candidates = _candidates(images, self.valid & (images > shadow), options.shadow_fraction)
+            floor_sq, gain = self.noise
+            sigma = (floor_sq + gain * pred.clamp_min(0)).sqrt()
+        leverage = _leverage(lx, ly, lz, used)
+        # residuals of each observation against the fit of the others: r / (1 - h) for the observations in the
+        # fit (leave-one-out, from the hat matrix), r itself for the others; and their spread in noise levels
+        kept = torch.where(used, (1 - leverage).clamp_min(1e-6), torch.ones_like(leverage))
+        spread = torch.where(used, 1 / kept, 1 + leverage).sqrt()
+        left_out = (images - pred) / kept
+        count = used.sum(dim=1, keepdim=True)
+        if options.highlight_fraction is not None:
+            ranked = relative.masked_fill(~used, -torch.inf)
+            suspect = used & (ranked == ranked.amax(dim=1, keepdim=True))  # the brightest (amax: argmax is slow)
+            sigmas = _FIRST_HIGHLIGHT_SIGMAS if highlights_only else _HIGHLIGHT_SIGMAS
+            threshold = torch.maximum(sigma * sigmas * spread, options.highlight_fraction * scale)
+            testable = (count >= _HIGHLIGHT_MIN_OBS) & (albedo > 0)
+            glint = suspect & testable & (left_out > threshold)
+            self.highlights = self.highlights | glint
+            glinting = glint.any(dim=1, keepdim=True)  # a glint bends the fit: no shadow test there this time
+        else:
+            glinting = torch.zeros_like(albedo, dtype=torch.bool)
+        if highlights_only:
+            return used & ~self.highlights
+        # cast shadows only darken: the darkest observation relative to its light leaves when the fit of the others
+        # predicts it far brighter (with four observations the others still determine the normal)
+        ranked = relative.masked_fill(~used, torch.inf)
+        suspect = used & (ranked == ranked.amin(dim=1, keepdim=True))
+        threshold = torch.maximum(options.outlier_fraction * scale, _OUTLIER_SIGMAS * sigma * spread)
+        self.shadows = self.shadows | (suspect & ~glinting & (count >= 4) & (albedo > 0) & (left_out < -threshold))
+        lit = pred > _GRAZING_COSINE * albedo * length
+        bright = self.candidates & lit
+        # grazing light: an observation near zero that the fit of the others also puts near zero (but above it) is
+        # lit, and n·L ≈ 0 is information that a shadow test on the reading alone would drop; judged against the
+        # fit of the others, so that a cast shadow cannot bend the fit of a pixel with few lights toward itself
+        others = images - left_out
+        grazing = self.valid & ~bright & (others > _GRAZING_LOW * sigma) \
+            & (left_out.abs() <= _GRAZING_SIGMAS * sigma * spread)
+        proposal = (bright | grazing) & ~self.highlights & ~self.shadows
+        enough = proposal.sum(dim=1, keepdim=True) >= 3
+        fallback = torch.where(count >= 3, used, self.candidates & ~self.highlights)
+        return torch.where(enough, proposal, fallback)
+
+
+def _select(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], used: Tensor, m: Tensor,
+            albedo: Tensor, normals: Tensor, mask: Tensor | None, updates: int,
+            highlight_rounds: int | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Highlight rounds (at most ``highlight_rounds``, K - 3 by default, each dropping at most one observation per
+    pixel), then ``updates`` full updates of the selection, re-solving after each change; returns the selection
+    and its fit."""
+    highlight_rounds = (images.shape[1] - 3) if highlight_rounds is None else highlight_rounds
+    searching = rejection.options.highlight_fraction is not None
+    for highlights_only in [True] * highlight_rounds + [False] * updates:
+        if highlights_only and not searching:
+            continue
+        new = rejection.update(vectors, m, albedo, used, mask, highlights_only)
+        if bool((new == used).all()):
+            if highlights_only:  # no glint left: on to the full updates
+                searching = False
+                continue
+            break
+        used = new
+        m, posed = _fit(images, *vectors[:3], used)
+        albedo, normals = _split(m, posed, mask)
+    return used, m, albedo, normals
 
 
 def robust_near_light_normals(
@@ -148,41 +568,31 @@ def robust_near_light_normals(
     light_vectors: Tensor,
     valid: Tensor | None = None,
     mask: Tensor | None = None,
-    iterations: int = 3,
-    outlier_fraction: float = _OUTLIER_FRACTION,
-    shadow_fraction: float = _SHADOW_FRACTION,
-    highlight_fraction: float | None = _HIGHLIGHT_FRACTION,
+    options: NearLightOptions | None = None,
+    rounds: int = 4,
 ) -> tuple[Tensor, Tensor, Tensor]:
     r"""Per-pixel least squares with per-pixel lights, dropping shadowed, specular and outlying observations.
 
-    Observations darker than ``shadow_fraction`` of the pixel's brightest are left out throughout (a shadow
-    reads about zero once the dark frame is subtracted), unless that leaves fewer than three: then the three
-    brightest are used when none of them is zero. Highlights go next, before any fit can be pulled by them: while a
-    pixel keeps five or more observations, its brightest relative to the light's strength (:math:`I_k / |L_k|`) is
-    dropped when the least-squares fit of the others misses it by more than ``highlight_fraction`` of the
-    pixel's scale :math:`\rho\,\overline{|L|}`, or by more than four times the image's noise level where that is
-    larger (a specular lobe only adds light; leaving the suspect out of its own test avoids the masking of a plain
-    residual test, where a glint tilts the fit until good observations look like the outliers). A shadow left
-    among the others would make the brightest look like a highlight, so with the highlight test the shadow
-    threshold also rises to three noise levels when that exceeds ``shadow_fraction``. After each solve, an
-    observation is dropped when the light grazes or lies behind the estimated tangent plane (attached shadow:
-    :math:`n \cdot L_k \le 0.02\,|L_k|`) or when its residual exceeds ``outlier_fraction`` of the pixel's scale
-    (cast shadows); a pixel keeps its previous observations rather than fall below three. Pixels with fewer than three non-zero observations are left unsolved (albedo 0, normal
-    (0, 0, 1)) with no weights.
+    The rejection of :func:`solve_near_light` at fixed light vectors: shadows are left out from the start, then
+    ``rounds`` updates each drop at most one highlight per pixel (the brightest relative to its light, when the
+    fit of the others misses it by more than ``options.highlight_fraction`` of the pixel's scale or four noise
+    levels), attached shadows (:math:`n \cdot L_k \le 0.02\,|L_k|`) and outliers, and re-solve. Pixels with fewer
+    than three non-zero observations are left unsolved (albedo 0, normal (0, 0, 1)) with no weights.
 
     Args:
         intensities: images, shape :math:`(B, K, H, W)` (flat-fielded or dark-subtracted).
         light_vectors: per-pixel light vectors, shape :math:`(B, K, 3, H, W)` (:func:`near_light_vectors`).
         valid: observations to use at all, shape :math:`(B, K, H, W)` bool (saturation, untrusted card).
         mask: pixels to solve, shape :math:`(B, 1, H, W)`.
-        iterations: re-solves after the first.
-        outlier_fraction: residual threshold relative to the pixel's brightness scale.
-        shadow_fraction: observations darker than this fraction of the pixel's brightest start as shadowed.
-        highlight_fraction: excess over the fit of the others, relative to the pixel's brightness scale, at which
-            the brightest observation is a highlight; ``None`` keeps every observation (purely Lambertian cloth).
+        options: :class:`NearLightOptions` (its fractions); defaults when omitted.
+        rounds: updates of the weights after the first solve.
 
     Returns:
         albedo :math:`(B, 1, H, W)`, unit normals :math:`(B, 3, H, W)` and the weights used :math:`(B, K, H, W)`.
+
+    Raises:
+        ShapeError: when the shapes do not match.
+        InputError: for NaN input or ``rounds < 0``.
 
     Example:
         >>> vectors = torch.tensor([[1.0, 0, 1], [-1.0, 0, 1], [0, 1.0, 1], [0, -1.0, 1]])[None, :, :, None, None]
@@ -192,105 +602,74 @@ def robust_near_light_normals(
         >>> normals.flatten().tolist()
         [0.0, 0.0, 1.0]
     """
-    if iterations < 0 or not 0 < outlier_fraction or not 0 <= shadow_fraction < 1:
-        raise InputError(
-            "iterations must be >= 0, outlier_fraction > 0 and shadow_fraction in [0, 1); "
-            f"got {iterations}, {outlier_fraction}, {shadow_fraction}"
-        )
-    if highlight_fraction is not None and not highlight_fraction > 0:
-        raise InputError(f"highlight_fraction must be > 0 or None, got {highlight_fraction}")
-    valid_observations = torch.ones_like(intensities, dtype=torch.bool) if valid is None else valid.bool()
-    candidates = _candidates(intensities, valid_observations, shadow_fraction)
-    length = light_vectors.norm(dim=2)
-    if highlight_fraction is not None:
-        noise = _noise_level(intensities, light_vectors, length, candidates, mask)
-        shadow_level = (noise * _SHADOW_SIGMAS).clamp(min=shadow_fraction, max=max(shadow_fraction, _SHADOW_CAP))
-        candidates = _candidates(intensities, valid_observations, shadow_level)
-        candidates = _reject_highlights(intensities, light_vectors, length, candidates, mask, highlight_fraction, noise)
-    weights = candidates
-    albedo, normals = albedo_normals(intensities, light_vectors, mask, weights)
-    for _ in range(iterations):
-        predicted = _predict(albedo, normals, light_vectors)
-        scale = albedo * length.mean(dim=1, keepdim=True)
-        lit = predicted > _GRAZING_COSINE * albedo * length
-        inlier = (intensities - predicted).abs() <= outlier_fraction * scale
-        proposal = candidates & lit & inlier  # from all candidates each time: an early drop can be undone
-        enough = proposal.sum(dim=1, keepdim=True) >= 3
-        weights = torch.where(enough, proposal, weights)
-        albedo, normals = albedo_normals(intensities, light_vectors, mask, weights)
-    return albedo, normals, weights & (albedo > 0)
+    sizes = check_shape(intensities, ["B", "K", "H", "W"], "intensities")
+    check_shape(light_vectors, ["B", "K", "3", "H", "W"], "light_vectors")
+    if light_vectors.shape[1] != sizes["K"] or tuple(light_vectors.shape[3:]) != (sizes["H"], sizes["W"]):
+        raise ShapeError(f"light_vectors must have shape (B, {sizes['K']}, 3, {sizes['H']}, {sizes['W']}), "
+                         f"got {tuple(light_vectors.shape)}")
+    check_finite(intensities, "intensities")
+    check_finite(light_vectors, "light_vectors")
+    if not (isinstance(rounds, int) and rounds >= 0):
+        raise InputError(f"rounds must be an integer >= 0, got {rounds!r}")
+    mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
+    valid = _check_valid(valid, intensities)
+    options = _check_options(options)
+    lx, ly, lz = light_vectors.expand(sizes["B"], -1, -1, -1, -1).unbind(dim=2)
+    field = (lx, ly, lz, (lx.square() + ly.square() + lz.square()).sqrt())
+    rejection = _Rejection(intensities, valid, options)
+    used = rejection.candidates
+    m, posed = _fit(intensities, lx, ly, lz, used)
+    albedo, normals = _split(m, posed, mask)
+    if rounds:
+        used, m, albedo, normals = _select(rejection, intensities, field, used, m, albedo, normals, mask, rounds)
+    return albedo, normals, used & (albedo > 0)
 
 
-def _reject_highlights(
-    intensities: Tensor, vectors: Tensor, length: Tensor, weights: Tensor, mask: Tensor | None, fraction: float,
-    noise: Tensor,
-) -> Tensor:
-    r"""Drop, one per pixel and round, the brightest observation (relative to its light) while the others find it too
-    bright.
-
-    For linear least squares the leave-one-out residual follows from the full fit: :math:`r_k / (1 - h_k)`, with
-    :math:`r_k` the residual and :math:`h_k = L_k^T (\sum_j L_j L_j^T)^{-1} L_k` the leverage of light k (the hat
-    matrix's diagonal; Cook and Weisberg, "Residuals and influence in regression", 1982). The brightest is a
-    highlight when the magnitude of that residual exceeds, relative to the pixel's scale
-    :math:`\rho\,\overline{|L|}`, ``fraction`` or :data:`_HIGHLIGHT_SIGMAS` times the image's noise level
-    (:func:`_noise_level`) times the prediction's spread :math:`1 / \sqrt{1 - h_k}`, whichever is larger. At most K - 3 rounds; only pixels with
-    :data:`_HIGHLIGHT_MIN_OBS` observations are tested, so a pixel keeps at least four.
-    """
-    scale = length.mean(dim=1, keepdim=True)
-    relative = intensities / length.clamp_min(torch.finfo(length.dtype).tiny)
-    for _ in range(intensities.shape[1] - 3):
-        albedo, normals = albedo_normals(intensities, vectors, mask, weights)
-        kept = (1 - _leverage(vectors, weights)).clamp_min(1e-6)  # 1 - h_k
-        left_out = (intensities - _predict(albedo, normals, vectors)) / kept
-        threshold = torch.maximum(noise * _HIGHLIGHT_SIGMAS / kept.sqrt(), torch.full_like(kept, fraction))
-        brightest = relative.masked_fill(~weights, -torch.inf).argmax(dim=1, keepdim=True)
-        suspect = torch.zeros_like(weights).scatter_(1, brightest, True)
-        testable = (weights.sum(dim=1, keepdim=True) >= _HIGHLIGHT_MIN_OBS) & (albedo > 0)
-        highlight = suspect & testable & (left_out.abs() > threshold * albedo * scale)
-        if not bool(highlight.any()):  # one sync per round: most pixels of matte cloth stop after the first
-            break
-        weights = weights & ~highlight
-    return weights
+# ----------------------------------------------------------------------------------------------------------------
+# Height offset
+# ----------------------------------------------------------------------------------------------------------------
 
 
-def _leverage(vectors: Tensor, weights: Tensor) -> Tensor:
-    r"""Leverage :math:`L_k^T (\sum_{j \in weights} L_j L_j^T)^{-1} L_k` of every light, shape (B, K, H, W)."""
-    moved = vectors.permute(0, 3, 4, 1, 2)  # (B, H, W, K, 3)
-    used = weights.permute(0, 2, 3, 1).unsqueeze(-1).to(vectors)
-    gram = (moved * used).transpose(-1, -2) @ moved
-    ridge = 1e-9 * gram.diagonal(dim1=-2, dim2=-1).sum(dim=-1).clamp_min(1e-30)  # keeps dark pixels invertible
-    gram = gram + ridge[..., None, None] * torch.eye(3, device=vectors.device, dtype=vectors.dtype)
-    leverage = (moved * torch.linalg.solve(gram, moved.transpose(-1, -2)).transpose(-1, -2)).sum(dim=-1)
-    return leverage.permute(0, 3, 1, 2)
+def _offset_cost(field: _LightField, images: Tensor, used: Tensor, depth: Tensor, offsets: Tensor) -> Tensor:
+    """Relative least-squares residual of each batch item at ``depth + offsets``; offsets (B, n) → costs (B, n).
+
+    All offsets are evaluated in one batched pass (the batch becomes B·n)."""
+    batch, count = offsets.shape
+    heights = (depth[:, None] + offsets[:, :, None, None, None]).flatten(0, 1)  # (B·n, 1, h, w)
+    lx, ly, lz, _ = field(heights)
+    images = images.repeat_interleave(count, dim=0)
+    used = used.repeat_interleave(count, dim=0)
+    m, _ = _fit(images, lx, ly, lz, used)
+    error = (images - _predict(m, lx, ly, lz)).square() * used
+    cost = error.flatten(1).sum(1) / (images.square() * used).flatten(1).sum(1).clamp_min(1e-30)
+    return cost.view(batch, count)
 
 
-def _noise_level(intensities: Tensor, vectors: Tensor, length: Tensor, weights: Tensor, mask: Tensor | None) -> Tensor:
-    """The image's noise level relative to each pixel's scale, shape (B, 1, 1, 1).
-
-    The median over pixels of the RMS residual per degree of freedom of a fit without the pixel's brightest
-    observation (relative to its light), on pixels left with at least four: leaving the brightest out keeps a
-    glint, which lifts mostly one observation, from passing for noise (a lobe spread over several LEDs still
-    does, which makes the highlight test stricter, never looser).
-    """
-    relative = intensities / length.clamp_min(torch.finfo(length.dtype).tiny)
-    brightest = relative.masked_fill(~weights, -torch.inf).argmax(dim=1, keepdim=True)
-    weights = weights & ~torch.zeros_like(weights).scatter_(1, brightest, True)
-    albedo, normals = albedo_normals(intensities, vectors, mask, weights)
-    count = weights.sum(dim=1, keepdim=True)
-    squared = ((intensities - _predict(albedo, normals, vectors)).square() * weights).sum(dim=1, keepdim=True)
-    scale = (albedo * length.mean(dim=1, keepdim=True)).clamp_min(1e-12)
-    residual = (squared / (count - 3).clamp_min(1)).sqrt() / scale
-    usable = (count >= 4) & (albedo > 0)
-    ranked = residual.masked_fill(~usable, torch.inf).flatten(1).sort(dim=1).values
-    middle = (usable.flatten(1).sum(dim=1, keepdim=True) - 1).clamp_min(0) // 2
-    return ranked.gather(1, middle).nan_to_num(0.0, posinf=0.0).view(-1, 1, 1, 1)
+def _parabola_step(field, images, used, depth, centre: Tensor, step: float) -> Tensor:
+    """One Newton step on the cost, from three values at ``centre`` ± ``step`` (B,), kept within ± ``step``."""
+    offsets = centre[:, None] + torch.tensor([-step, 0.0, step], device=centre.device, dtype=centre.dtype)
+    f0, f1, f2 = _offset_cost(field, images, used, depth, offsets).unbind(1)
+    curvature = f0 - 2 * f1 + f2
+    newton = step * (f0 - f2) / (2 * curvature).clamp_min(torch.finfo(centre.dtype).tiny)
+    downhill = torch.where(f0 < f2, -step, step) * torch.ones_like(centre)
+    return centre + torch.where(curvature > 0, newton.clamp(-step, step), downhill)
 
 
-def _residual(intensities: Tensor, vectors: Tensor, weights: Tensor) -> Tensor:
-    """Weighted least-squares residual per batch item, relative to the weighted signal, shape (B,)."""
-    albedo, normals = albedo_normals(intensities, vectors, weights=weights)
-    error = (intensities - _predict(albedo, normals, vectors)).square() * weights
-    return error.flatten(1).sum(1) / (intensities.square() * weights).flatten(1).sum(1).clamp_min(1e-30)
+def _search_offset(field, images, used, depth, centre: Tensor, search: tuple[float, float] | None,
+                   tolerance: float, points: int = _SCAN_POINTS) -> Tensor:
+    """Scan :data:`_SCAN_POINTS` offsets over ``search`` around ``centre``, then parabolic steps of shrinking width
+    (fourfold each) down to ``tolerance``; without ``search``, the steps alone from :data:`_NEWTON_STEP_MM`."""
+    if search is None:  # refine around the centre only
+        best, step = centre, _NEWTON_STEP_MM
+    else:
+        grid = torch.linspace(search[0], search[1], points, device=centre.device, dtype=centre.dtype)
+        costs = _offset_cost(field, images, used, depth, centre[:, None] + grid)
+        best = centre + grid[costs.argmin(dim=1)]
+        step = (search[1] - search[0]) / (points - 1)
+    while step > tolerance:
+        best = _parabola_step(field, images, used, depth, best, step)
+        step /= 4
+    return best
 
 
 def estimate_height_offset(
@@ -301,13 +680,14 @@ def estimate_height_offset(
     weights: Tensor,
     card_height_mm: float | None = None,
     search_mm: tuple[float, float] = (-3.0, 3.0),
-    tolerance_mm: float = 1e-3,
+    tolerance_mm: float = _OFFSET_TOLERANCE_MM,
 ) -> Tensor:
     r"""The height offset :math:`c` that makes ``relative_depth + c`` explain the images best.
 
     Minimises the per-pixel least-squares residual of the images under the light vectors at
-    ``relative_depth + c`` over :math:`c`: a scan of 25 values over ``search_mm`` followed by a golden-section
-    search in the best bracket, on every fourth pixel. Each batch item gets its own offset.
+    ``relative_depth + c`` over :math:`c`, on every fourth pixel: a scan of 25 values over ``search_mm`` (one
+    batched evaluation), then parabolic (Newton) steps on three values at a time, the step shrinking fourfold
+    until below ``tolerance_mm``. Each batch item gets its own offset. Not differentiated (a search).
 
     Args:
         intensities: images, shape :math:`(B, K, H, W)`.
@@ -317,10 +697,14 @@ def estimate_height_offset(
         weights: observations to use, shape :math:`(B, K, H, W)`.
         card_height_mm: see :func:`near_light_vectors`.
         search_mm: interval of offsets searched, mm, relative to the mean of ``relative_depth``.
-        tolerance_mm: width at which the golden-section search stops, mm.
+        tolerance_mm: step at which the refinement stops, mm.
 
     Returns:
         offsets :math:`(B, 1, 1, 1)`, mm, such that ``relative_depth + offsets`` is the absolute height.
+
+    Raises:
+        ShapeError: for shapes that do not match.
+        InputError: for a bad ``search_mm`` or ``tolerance_mm``.
 
     Example:
         >>> from psmini.lights import PointLights, ring_lights
@@ -332,213 +716,372 @@ def estimate_height_offset(
         >>> round(float(offset), 2)
         0.7
     """
-    low, high = search_mm
-    if not low < high:
+    sizes = check_shape(intensities, ["B", "K", "H", "W"], "intensities")
+    check_shape(relative_depth, ["B", "1", "H", "W"], "relative_depth")
+    if relative_depth.shape[0] != sizes["B"] or relative_depth.shape[2:] != intensities.shape[2:]:
+        raise ShapeError(f"relative_depth must have shape ({sizes['B']}, 1, {sizes['H']}, {sizes['W']}), "
+                         f"got {tuple(relative_depth.shape)}")
+    if tuple(weights.shape) != tuple(intensities.shape):
+        raise ShapeError(f"weights must have the shape of intensities {tuple(intensities.shape)}, "
+                         f"got {tuple(weights.shape)}")
+    check_positive(pixel_pitch_mm, "pixel_pitch_mm")
+    _check_light_model(light_model)
+    if not (len(search_mm) == 2 and search_mm[0] < search_mm[1]):
         raise InputError(f"search_mm must be an increasing pair, got {search_mm}")
-    stride = _OFFSET_STRIDE
-    images = intensities[..., ::stride, ::stride]
-    used = weights[..., ::stride, ::stride].to(images)
-    depth = relative_depth[..., ::stride, ::stride] - relative_depth.mean(dim=(2, 3), keepdim=True)
-    pitch = pixel_pitch_mm * stride
-    offsets = []
+    check_positive(tolerance_mm, "tolerance_mm")
     with torch.no_grad():
-        for b in range(images.shape[0]):  # one scalar search per sample; the work inside is batched over pixels
-
-            def cost(c: float, b: int = b) -> float:
-                vectors = near_light_vectors(light_model, depth[b : b + 1] + c, pitch, card_height_mm)
-                return float(_residual(images[b : b + 1], vectors, used[b : b + 1])[0])
-
-            grid = torch.linspace(low, high, 25).tolist()
-            values = [cost(c) for c in grid]
-            best = min(range(len(grid)), key=values.__getitem__)
-            a, z = grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]
-            offsets.append(_golden_section(cost, a, z, tolerance_mm))
-    mean = relative_depth.mean(dim=(2, 3), keepdim=True)
-    return torch.tensor(offsets, device=relative_depth.device, dtype=relative_depth.dtype).view(-1, 1, 1, 1) - mean
+        field = _LightField(light_model, sizes["H"], sizes["W"], pixel_pitch_mm, card_height_mm, intensities,
+                            _OFFSET_STRIDE)
+        s = _OFFSET_STRIDE
+        mean = relative_depth.mean(dim=(2, 3), keepdim=True)
+        images, used = intensities[..., ::s, ::s], weights[..., ::s, ::s].to(intensities)
+        depth = (relative_depth - mean)[..., ::s, ::s]
+        centre = torch.zeros(sizes["B"], device=intensities.device, dtype=intensities.dtype)
+        best = _search_offset(field, images, used, depth, centre, tuple(search_mm), tolerance_mm)
+    return best.view(-1, 1, 1, 1) - mean
 
 
-def _golden_section(cost, a: float, b: float, tolerance: float) -> float:
-    """Minimum of a unimodal function on [a, b] by golden-section search."""
-    ratio = (math.sqrt(5) - 1) / 2
-    c, d = b - ratio * (b - a), a + ratio * (b - a)
-    fc, fd = cost(c), cost(d)
-    while b - a > tolerance:
-        if fc < fd:
-            b, d, fd = d, c, fc
-            c = b - ratio * (b - a)
-            fc = cost(c)
-        else:
-            a, c, fc = c, d, fd
-            d = a + ratio * (b - a)
-            fd = cost(d)
-    return (a + b) / 2
+# ----------------------------------------------------------------------------------------------------------------
+# Integration of the solved pixels
+# ----------------------------------------------------------------------------------------------------------------
 
 
-@dataclass
-class NearLightResult(Reconstruction):
-    """A :class:`~psmini.pipeline.Reconstruction` with the near-light solver's diagnostics.
+def _confidence(fit: tuple[Tensor, Tensor, Tensor], vectors: tuple[Tensor, ...], used: Tensor,
+                domain: Tensor) -> Tensor:
+    r"""Per-pixel confidence of the slopes in the integration, (B, 1, H, W), in [0, 1].
 
-    Attributes:
-        weights: observations used in the last solve, :math:`(B, K, H, W)` bool (False: shadow, outlier, invalid).
-        offset_mm: estimated mean height of the cloth above the card plane, :math:`(B,)`, mm.
-        iterations: alternations run.
-        changes_mm: largest depth change of each alternation, mm.
+    The inverse of the slope's variance, relative to its median over the solved pixels: a pixel's normal varies
+    as :math:`\sigma^2 \operatorname{tr}(G^{-1}) / \rho^2` (:math:`G` its normal matrix) and its slope
+    :math:`-n_x / n_z` as that over :math:`n_z^4`, so steep walls seen by few grazing lights (a knit's loops) get
+    little weight where they would otherwise add up to millimetres of tilt. Pixels fitted to exactly three
+    observations (no check of their fit) get a tenth; pixels next to an unsolved one (a crevice lit by fewer than
+    three LEDs) :data:`_EDGE_CONFIDENCE`, since their normal sees the crevice's wall; unsolved pixels 0.
     """
+    albedo, normals, solved = fit
+    (c00, _, _, c11, _, c22), det = _adjugate(*vectors[:3], used)
+    variance = (c00 + c11 + c22) / det  # tr(G^-1)
+    inverse = albedo.square() * normals[:, 2:3].pow(4) / variance.clamp_min(torch.finfo(albedo.dtype).tiny)
+    inverse = torch.where(solved, inverse, torch.zeros_like(inverse)).nan_to_num(0.0, posinf=0.0)
+    confidence = (inverse / _median(inverse, solved).clamp_min(torch.finfo(albedo.dtype).tiny)).clamp(0, 1)
+    confidence = confidence * torch.where(used.sum(dim=1, keepdim=True) >= 4, 1.0, _THREE_OBSERVATIONS_CONFIDENCE)
+    gap = (domain & ~solved).to(albedo.dtype)
+    padded = F.pad(gap, (1, 1, 1, 1), value=0.0)  # the image border is no gap
+    beside = (padded[..., 1:-1, :-2] + padded[..., 1:-1, 2:] + padded[..., :-2, 1:-1] + padded[..., 2:, 1:-1]) > 0
+    confidence = torch.where(beside, confidence.clamp(max=_EDGE_CONFIDENCE), confidence)
+    return torch.where(solved, confidence, torch.zeros_like(confidence))
 
-    weights: Tensor | None = None
-    offset_mm: Tensor | None = None
-    iterations: int = 0
-    changes_mm: tuple[float, ...] = ()
+
+def _fill(g: Tensor, confidence: Tensor) -> Tensor:
+    """Slopes with the unconfident ones replaced, in proportion, by the confidence-weighted mean around them
+    (normalised convolution over :data:`_FILL_SIZE` pixels)."""
+    k = _FILL_SIZE
+    num = F.avg_pool2d(g * confidence, k, 1, k // 2, count_include_pad=False)
+    den = F.avg_pool2d(confidence, k, 1, k // 2, count_include_pad=False)
+    return confidence * g + (1 - confidence) * num / den.clamp_min(1e-6)
+
+
+def _integrate(p: Tensor, q: Tensor, confidence: Tensor, domain: Tensor, method: str, pitch: float,
+               previous: Tensor | None, mask_given: bool, tol: float | None = None) -> Tensor:
+    """Height (zero mean over the domain) from the slopes, weighted by ``confidence`` (:func:`_confidence`).
+
+    ``"fill"``: unconfident slopes replaced by their confident surroundings (:func:`_fill`), then a Neumann (DCT)
+    solve on the rectangle (fast; the rest of the rectangle is a membrane when a mask is given). ``"masked"``:
+    weighted least squares on the domain (edges carry the confidence-weighted mean of their two pixels' slopes,
+    unsolved pixels a tiny confidence and zero slope), by multigrid-preconditioned conjugate gradients
+    warm-started from ``previous`` (mm): closer on knits, several times slower. Other integrators of
+    :func:`psmini.integrate.integrate` get the pixels with any confidence as their mask.
+    """
+    if method == "fill":
+        return dct_poisson(_fill(p, confidence), _fill(q, confidence), pitch, domain if mask_given else None)
+    if method != "masked":
+        return integrate(p, q, method=method, pixel_pitch_mm=pitch, mask=confidence > 0)
+    confidence = torch.where(confidence > 0, confidence, torch.full_like(confidence, _GAP_CONFIDENCE))
+    half = torch.full_like(p, 0.5)
+    wu, wv, tu, tv = _edge_system(p, -q, confidence, half, half)
+    start = None if previous is None else previous / pitch
+    return pitch * solve_weighted_poisson(wu, wv, tu, tv, domain.to(p.dtype), start, tol)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The stage
+# ----------------------------------------------------------------------------------------------------------------
 
 
 def _check_light_model(light_model: nn.Module) -> nn.Module:
-    if not isinstance(light_model, nn.Module):
+    if not isinstance(light_model, nn.Module) or not hasattr(light_model, "count"):
         raise InputError(f"light_model must be a module of psmini.lights, got {type(light_model).__name__}")
     return light_model
 
 
-def near_light_photometric_stereo(
-    images: Tensor,
+def _check_options(options: NearLightOptions | None) -> NearLightOptions:
+    if options is None:
+        return NearLightOptions()
+    if not isinstance(options, NearLightOptions):
+        raise InputError(f"options must be a NearLightOptions, got {type(options).__name__}")
+    return options
+
+
+def _check_valid(valid: Tensor | None, intensities: Tensor) -> Tensor:
+    if valid is None:
+        return torch.ones_like(intensities, dtype=torch.bool)
+    if not isinstance(valid, Tensor) or valid.shape not in (intensities.shape, (1, *intensities.shape[1:])):
+        got = tuple(valid.shape) if isinstance(valid, Tensor) else type(valid).__name__
+        raise ShapeError(f"valid must have the shape of the intensities {tuple(intensities.shape)}, got {got}")
+    return valid.bool().expand_as(intensities)
+
+
+def solve_near_light(
+    intensities: Tensor,
     light_model: nn.Module,
     pixel_pitch_mm: float,
-    *,
-    reference: Tensor | None = None,
-    dark: Tensor | None = None,
-    reference_dark: Tensor | None = None,
-    card_albedo: float = 1.0,
-    card_height_mm: float = 0.0,
-    initial_depth: Tensor | float = 0.0,
-    estimate_offset: bool = True,
+    card_height_mm: float | None,
+    valid: Tensor | None = None,
     mask: Tensor | None = None,
-    saturation_level: float | None = None,
-    min_reference: float = 0.02,
-    integrator: str = "masked",
-    max_iterations: int = 10,
-    tolerance_mm: float = 1e-3,
-    highlight_fraction: float | None = _HIGHLIGHT_FRACTION,
+    options: NearLightOptions | None = None,
 ) -> NearLightResult:
-    r"""Near-light photometric stereo by alternating per-pixel lights, normals and integrated depth.
+    r"""The near-light stage: flat-fielded images → albedo, normals, absolute depth, by alternation.
 
-    Starting from ``initial_depth`` (the card plane by default): the light vectors at the current depth
-    (:func:`near_light_vectors`), robust per-pixel normals (:func:`robust_near_light_normals`), integration of
-    their gradients, and, with ``estimate_offset``, the height offset that best explains the images
-    (:func:`estimate_height_offset`); until the depth changes by less than ``tolerance_mm``.
+    Starting from the plane at ``options.initial_height_mm``, each alternation evaluates the light vectors at the
+    current depth (one fused pass from parts computed once), solves the per-pixel weighted least squares, and
+    integrates the slopes weighted by their inverse variance; the result is placed at the height that explains the
+    images best (a scan in the first alternation, parabolic Newton steps later). The selection of observations
+    (shadows by a noise model :math:`\sigma^2 = \sigma_0^2 + g I`, highlights and cast shadows by leave-one-out
+    residuals, grazing light kept) is decided once, in one alternation, and then kept. The first alternations run
+    on 2 × 2-averaged images; at full resolution the alternations stop when ``options.change_percentile`` of the
+    solved pixels' normals moved less than ``options.tolerance_deg`` since the previous one, and the last normals
+    are integrated by ``options.integrator`` (warm-started). The images are not flat-fielded here: that is the
+    pipeline's first stage (:func:`psmini.flatfield.flatfield`).
+
+    Differentiable with respect to the intensities and the light model's parameters through the last
+    alternation's solve (the offset search and the observations' selection are not differentiated).
 
     Args:
-        images: raw images, shape :math:`(B, K, H, W)`, linear.
-        light_model: a module of :mod:`psmini.lights` (LED positions in mm, origin on the axis at the card plane).
+        intensities: flat-fielded images :math:`(B, K, H, W)` (divided by the card under the same LEDs and
+            multiplied by its albedo), or dark-subtracted raw images when ``card_height_mm`` is ``None``.
+        light_model: a point or LED model of :mod:`psmini.lights` (positions in mm, origin on the optical axis at
+            the card plane).
         pixel_pitch_mm: pixel size on the cloth, mm.
-        reference: card images under the same LEDs (see :func:`psmini.flatfield.flatfield`); with it the images are
-            flat-fielded and the vectors made relative to the card (gain, vignetting and LED intensities cancel).
-        dark: the sample's dark frame.
-        reference_dark: the card capture's dark frame.
-        card_albedo: the card's albedo.
-        card_height_mm: height of the card plane when its images were taken, mm.
-        initial_depth: starting height, a number or :math:`(B, 1, H, W)`, mm.
-        estimate_offset: search the absolute height after each integration; otherwise keep the mean height of
-            ``initial_depth``.
-        mask: pixels to solve, :math:`(B, 1, H, W)`.
-        saturation_level: raw level of saturation, or ``None``.
-        min_reference: see :func:`psmini.flatfield.flatfield`.
-        integrator: method of :func:`psmini.integrate.integrate`. The default, least squares on the solved pixels
-            (``"masked"``), keeps pixels left unsolved (lit by fewer than three LEDs: deep crevices of knits) from
-            pulling the whole surface, as a solve on the full rectangle (``"fc"``) would; their depth is the
-            solver's 0 plus the offset, and ``mask`` marks them. Pixels beside an unsolved one get a low
-            confidence in integrators that take per-pixel weights (their normals see the crevice's wall; without
-            this the knits' crevices added up to a dome of 17–29 µm, see ``benchmarks/nearlight.py``).
-        max_iterations: most alternations.
-        tolerance_mm: stop when the largest depth change falls below it, mm.
-        highlight_fraction: see :func:`robust_near_light_normals`; ``None`` turns the highlight test off.
+        card_height_mm: height of the card the images were divided by, mm; ``None`` for raw images (the height is
+            then observable only through the inverse-square law).
+        valid: observations to use at all, :math:`(B, K, H, W)` bool (the flat-field's validity: saturation,
+            untrusted card); all when omitted.
+        mask: pixels to solve and integrate, :math:`(B, 1, H, W)`; all when omitted.
+        options: :class:`NearLightOptions`; defaults when omitted.
 
     Returns:
-        :class:`NearLightResult`; ``depth`` is the absolute height above the card plane's origin, mm.
+        :class:`NearLightResult`; ``depth`` is the absolute height above the card plane's origin, mm (unsolved
+        pixels inside the mask are filled from their rims), ``mask`` the solved pixels, ``iterations`` the
+        alternations run.
 
     Raises:
-        ShapeError: when the shapes do not match (K of images vs the light model, mask, initial depth).
-        InputError: for NaN input or bad options.
+        ShapeError: when the shapes do not match (K of the images vs the light model, mask, valid).
+        InputError: for NaN input, a light model without positions, bad options or a light below the card.
 
     Example:
         >>> from psmini.lights import LEDLights, ring_lights
         >>> ring = ring_lights(8, 58.0)
         >>> leds = LEDLights(ring * 18.6, -ring)
-        >>> result = near_light_photometric_stereo(torch.rand(1, 8, 16, 16) + 0.5, leds, 0.025, max_iterations=2)
-        >>> result.depth.shape
-        torch.Size([1, 1, 16, 16])
+        >>> result = solve_near_light(torch.rand(1, 8, 16, 16) + 0.5, leds, 0.025, 0.0,
+        ...                           options=NearLightOptions(max_iterations=2))
+        >>> result.depth.shape, result.iterations <= 2
+        (torch.Size([1, 1, 16, 16]), True)
     """
-    sizes = check_shape(images, ["B", "K", "H", "W"], "images")
+    sizes = check_shape(intensities, ["B", "K", "H", "W"], "intensities")
+    check_finite(intensities, "intensities")
     check_positive(pixel_pitch_mm, "pixel_pitch_mm")
+    if not isinstance(light_model, PointLights) and not hasattr(light_model, "positions_mm"):
+        raise InputError(f"the near-light solver needs a point or LED model, got {type(light_model).__name__}")
     _check_light_model(light_model)
-    if getattr(light_model, "count", sizes["K"]) != sizes["K"]:
-        raise ShapeError(f"the light model has {light_model.count} lights but images has K={sizes['K']}")
-    if max_iterations < 1 or not tolerance_mm > 0:
-        raise InputError(f"max_iterations must be >= 1 and tolerance_mm > 0, got {max_iterations}, {tolerance_mm}")
+    if light_model.count != sizes["K"]:
+        raise ShapeError(f"the light model has {light_model.count} lights but intensities has K={sizes['K']}")
+    if card_height_mm is not None and not (isinstance(card_height_mm, (int, float)) and math.isfinite(card_height_mm)):
+        raise InputError(f"card_height_mm must be a finite number or None, got {card_height_mm!r}")
     mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
-    flat = flatfield(images, reference, dark, reference_dark, card_albedo, min_reference, saturation_level)
-    card_height = card_height_mm if reference is not None else None
-    depth = _initial_depth(initial_depth, images, sizes)
-    fixed_mean = depth.mean(dim=(2, 3), keepdim=True)
-    changes: list[float] = []
-    offset = fixed_mean
-    for _ in range(max_iterations):
-        vectors = near_light_vectors(light_model, depth, pixel_pitch_mm, card_height)
-        albedo, normals, weights = robust_near_light_normals(
-            flat.images, vectors, flat.valid, mask, highlight_fraction=highlight_fraction
-        )
-        relative = _integrate_solved(normals, albedo > 0, integrator, pixel_pitch_mm)
-        if estimate_offset:
-            offset = estimate_height_offset(flat.images, light_model, relative, pixel_pitch_mm, weights, card_height)
-        else:
-            offset = fixed_mean - relative.mean(dim=(2, 3), keepdim=True)
-        new_depth = relative + offset
-        changes.append(float((new_depth - depth).abs().max()))
-        depth = new_depth
-        logger.info("near-light iteration %d: largest depth change %.2e mm", len(changes), changes[-1])
-        if changes[-1] < tolerance_mm:
-            break
-    vectors = near_light_vectors(light_model, depth, pixel_pitch_mm, card_height)
-    albedo, normals, weights = robust_near_light_normals(
-        flat.images, vectors, flat.valid, mask, highlight_fraction=highlight_fraction
-    )
-    p, q = normals_to_gradients(normals)
-    return NearLightResult(
-        albedo, normals, p, q, depth, albedo > 0,
-        weights=weights, offset_mm=depth.mean(dim=(1, 2, 3)), iterations=len(changes), changes_mm=tuple(changes),
-    )
+    valid = _check_valid(valid, intensities)
+    options = _check_options(options)
+    return _solve(intensities, valid, mask, light_model, pixel_pitch_mm, card_height_mm, options)
 
 
-def _integrate_solved(normals: Tensor, solved: Tensor, method: str, pixel_pitch_mm: float) -> Tensor:
-    """Height (up to an offset) from the normals of the solved pixels, beside-the-gap pixels nearly left out.
+def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, light_model: nn.Module, pitch: float,
+           card_height: float | None, options: NearLightOptions) -> NearLightResult:
+    """:func:`solve_near_light` without its guards: alternations at half resolution, then at full resolution.
 
-    A pixel next to an unsolved one (a crevice lit by fewer than three LEDs) sees the crevice's wall: its normal,
-    the slope over its footprint, takes in a drop that does not lie between it and its solved neighbours. Edges
-    of the integration grid carry the confidence-weighted mean of their two pixels' slopes, so such a pixel gets
-    confidence :data:`_EDGE_CONFIDENCE` and its edges take the slope of the pixel on the solved side; otherwise
-    each crevice pulls its rim down and the knits' many crevices add up to a dome (26 µm on data_synth's knit).
-    Integrators without per-pixel weights get the plain solved mask.
+    The light field varies slowly with the height (about a degree per millimetre), so the alternations that move
+    the surface by tenths of a millimetre run on 2 × 2-averaged images (a quarter of the work, and an integration
+    that converges faster); the full-resolution alternations then start from that depth (upsampled), with a
+    warm-started integration, and usually stop after two.
     """
+    batch, _, height, width = images.shape
+    domain = torch.ones(batch, 1, height, width, dtype=torch.bool, device=images.device) if mask is None \
+        else mask.bool()
+    start = torch.full((batch,), float(options.initial_height_mm), device=images.device, dtype=images.dtype)
+    state = _State(depth=start.view(-1, 1, 1, 1).expand(batch, 1, height, width).clone(), offset=start)
+    with torch.no_grad():
+        if height % 2 == 0 and width % 2 == 0 and min(height, width) >= _MIN_COARSE_SIZE:
+            small_mask = None if mask is None else F.avg_pool2d(mask.to(images.dtype), 2) > 0.5
+            small_valid = F.avg_pool2d(valid.to(images.dtype), 2) > 0.999
+            small_domain = torch.ones_like(small_mask if small_mask is not None else small_valid[:, :1]) \
+                if small_mask is None else small_mask
+            coarse = _State(depth=F.avg_pool2d(state.depth, 2), offset=start)
+            _alternate(F.avg_pool2d(images, 2), small_valid, small_mask, small_domain, light_model, 2 * pitch,
+                       card_height, options, coarse, scan=options.search_mm, cg_tol=_COARSE_CG_TOLERANCE,
+                       tolerance=_COARSE_TOLERANCE_FACTOR * options.tolerance_deg, final=False,
+                       first_level=True, s=_OFFSET_STRIDE // 2)
+            size = (height, width)
+            state = _State(depth=F.interpolate(coarse.depth, size=size, mode="bilinear", align_corners=False),
+                           offset=coarse.offset, changes=coarse.changes, iterations=coarse.iterations,
+                           relative=F.interpolate(coarse.relative, size=size, mode="bilinear", align_corners=False))
+            scan, first = _FINE_SEARCH_MM, False  # pooling biases the coarse level's offset: scan again
+        else:
+            scan, first = options.search_mm, True
+        field = _alternate(images, valid, mask, domain, light_model, pitch, card_height, options, state, scan=scan,
+                           cg_tol=_FINE_CG_TOLERANCE, tolerance=options.tolerance_deg, final=True, first_level=first)
+    # the last solve, at the final depth, carries the gradients (intensities, light model's parameters)
+    vectors = field(state.depth)
+    m, posed = _fit(images, *vectors[:3], state.used)
+    albedo, normals = _split(m, posed, mask)
     p, q = normals_to_gradients(normals)
-    accepts_weights = method in INTEGRATORS and "weights" in inspect.signature(INTEGRATORS[method]).parameters
-    if not accepts_weights:  # an unknown method is reported by integrate itself
-        return integrate(p, q, method=method, pixel_pitch_mm=pixel_pitch_mm, mask=solved)
-    inside = F.pad(solved.to(p.dtype), (1, 1, 1, 1), value=1.0)  # the image border is no gap
-    neighbours = torch.stack(
-        [inside[..., 1:-1, :-2], inside[..., 1:-1, 2:], inside[..., :-2, 1:-1], inside[..., 2:, 1:-1]]
-    )
-    beside_gap = solved & (neighbours.amin(dim=0) < 1)
-    confidence = torch.where(beside_gap, torch.full_like(p, _EDGE_CONFIDENCE), torch.ones_like(p))
-    return integrate(p, q, method=method, pixel_pitch_mm=pixel_pitch_mm, mask=solved, weights=confidence)
+    return NearLightResult(albedo, normals, p, q, state.depth, albedo > 0, weights=state.used & (albedo > 0),
+                           offset_mm=_masked_mean(state.depth, domain).view(-1), iterations=state.iterations,
+                           changes_deg=tuple(state.changes), converged=state.converged)
 
 
-def _initial_depth(initial: Tensor | float, images: Tensor, sizes: dict[str, int]) -> Tensor:
-    shape = (sizes["B"], 1, sizes["H"], sizes["W"])
-    if isinstance(initial, Tensor):
-        check_finite(initial, "initial_depth")
-        if initial.ndim != 4 or initial.shape[1:] != shape[1:] or initial.shape[0] not in (1, sizes["B"]):
-            raise ShapeError(f"initial_depth must have shape {shape}, got {tuple(initial.shape)}")
-        return initial.to(images).expand(shape).clone()
-    if not math.isfinite(float(initial)):
-        raise InputError(f"initial_depth must be finite, got {initial}")
-    return torch.full(shape, float(initial), device=images.device, dtype=images.dtype)
+@dataclass
+class _State:
+    """What the alternations carry from one to the next (and from the coarse level to the fine one)."""
+
+    depth: Tensor
+    offset: Tensor
+    relative: Tensor | None = None
+    used: Tensor | None = None
+    changes: list[float] = dataclasses.field(default_factory=list)
+    converged: bool = False
+    iterations: int = 0
+    normals: Tensor | None = None
+    solved: Tensor | None = None
+    confidence: Tensor | None = None
+
+
+def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tensor, light_model: nn.Module,
+               pitch: float, card_height: float | None, options: NearLightOptions, state: _State,
+               scan: tuple[float, float], cg_tol: float | None, tolerance: float, final: bool,
+               first_level: bool, s: int = _OFFSET_STRIDE) -> _LightField:
+    """Alternations at one resolution, updating ``state`` in place; returns the level's light field.
+
+    Each alternation: light vectors at the current depth, normals (with the selection of observations updated in
+    the first :data:`_SELECTION_UPDATES`), then, unless the normals moved less than ``tolerance`` degrees (the
+    ``change_percentile`` quantile over the solved pixels) since the last alternation, a new depth: integration
+    (warm-started) and the offset (scanned over ``scan`` in the first alternation, on every ``s``-th pixel). The
+    test on the normals stops without one more integration: the depth is then consistent with its normals.
+    The alternations integrate by a Neumann (DCT) solve on the rectangle; with ``final``, the last normals are
+    integrated once more by ``options.integrator`` (warm-started from the last depth) and the offset refined.
+    """
+    height, width = images.shape[-2:]
+    field = _LightField(light_model, height, width, pitch, card_height, images)
+    coarse = _LightField(light_model, height, width, pitch, card_height, images, s)
+    rejection = _Rejection(images, valid, options)
+    used = rejection.candidates
+    state.converged = False
+    previous: Tensor | None = None
+    select_at = 1 if first_level and options.max_iterations > 1 else 0
+    for iteration in range(options.max_iterations):
+        state.iterations += 1
+        vectors = field(state.depth)
+        m, posed = _fit(images, *vectors[:3], used)
+        albedo, normals = _split(m, posed, mask)
+        # the observations' selection: its updates (one highlight and one cast shadow per pixel and update) run in
+        # one alternation, at fixed lights, once the surface is near its height (the second alternation when the
+        # height is still unknown: far from it, model errors look like highlights and shadows); then the selection
+        # stays: flips of a few pixels in every alternation would keep the iteration from converging
+        if iteration == select_at:  # fewer rounds at half resolution, which only places the surface
+            used, m, albedo, normals = _select(rejection, images, vectors, used, m, albedo, normals, mask,
+                                               _SELECTION_UPDATES if final else 1, 3 if final else 1)
+        solved = albedo > 0
+        state.used = used
+        if previous is not None:
+            change = _change(normals - previous, solved & domain, options.change_percentile)
+            state.changes.append(change)
+            logger.info("near-light alternation %d at %d x %d: %.0f%% of the normals moved less than %.2e deg",
+                        len(state.changes), height, width, 100 * options.change_percentile, change)
+            if change < tolerance:
+                state.converged = True
+                break
+        previous = normals
+        p, q = normals_to_gradients(normals)
+        # the depth of an alternation only places the light field: the fast "fill" integration is enough there;
+        # the final integration (below) is the chosen integrator's
+        confidence = _confidence((albedo, normals, solved), vectors, used, domain)
+        relative = _integrate(p, q, confidence, domain, "fill", pitch, None, mask is not None)
+        _place(images, used & solved, relative, domain, coarse, state, scan if iteration == 0 else None, options, s)
+        state.normals, state.solved, state.confidence = normals, solved, confidence
+    if final and options.integrator != "fill" and state.normals is not None:
+        p, q = normals_to_gradients(state.normals)
+        relative = _integrate(p, q, state.confidence, domain, options.integrator, pitch, state.relative,
+                              mask is not None, cg_tol)
+        _place(images, used & state.solved, relative, domain, coarse, state, None, options, s)
+    return field
+
+
+def _place(images: Tensor, used: Tensor, relative: Tensor, domain: Tensor, coarse: _LightField, state: _State,
+           search: tuple[float, float] | None, options: NearLightOptions, s: int) -> None:
+    """Set ``state``'s depth to ``relative`` (re-centred on the domain) plus the offset that explains the images
+    best (scanned over ``search`` when given, then parabolic steps; kept without ``options.estimate_offset``)."""
+    relative = relative - _masked_mean(relative, domain)
+    offset = state.offset
+    if options.estimate_offset:
+        sub_images, sub_used, sub_depth = images[..., ::s, ::s], used[..., ::s, ::s].to(images), relative[..., ::s, ::s]
+        points = _SCAN_POINTS if search is None or search[1] - search[0] > 1.5 else _FINE_SCAN_POINTS
+        offset = _search_offset(coarse, sub_images, sub_used, sub_depth, offset, search, _OFFSET_TOLERANCE_MM, points)
+    state.depth, state.offset, state.relative = relative + offset.view(-1, 1, 1, 1), offset, relative
+
+
+def _masked_mean(x: Tensor, region: Tensor) -> Tensor:
+    weight = region.to(x.dtype)
+    return (x * weight).sum(dim=(1, 2, 3), keepdim=True) / weight.sum(dim=(1, 2, 3), keepdim=True).clamp_min(1)
+
+
+def _change(difference: Tensor, region: Tensor, percentile: float) -> float:
+    """The ``percentile`` quantile over the region of the angle between unit normals whose difference is given,
+    degrees, the largest over the batch (2 asin(|a - b| / 2))."""
+    chord = difference.square().sum(dim=1, keepdim=True).sqrt()
+    largest = 0.0
+    for c, r in zip(chord, region):
+        values = c[r]
+        if values.numel():
+            rank = min(values.numel(), max(1, math.ceil(percentile * values.numel())))
+            largest = max(largest, float(values.kthvalue(rank).values))
+    return math.degrees(2 * math.asin(min(1.0, largest / 2)))
+
+
+@dataclass(frozen=True)
+class RefineOptions:
+    """Options of :func:`refine_depth`.
+
+    Attributes:
+        scales: downsampling factors, coarse to fine.
+        steps: L-BFGS iterations per scale.
+        huber_delta: Huber threshold, relative to the mean intensity.
+        estimate_offset: re-estimate the mean height after refining; otherwise keep the mean of the start.
+
+    Raises:
+        InputError: for values out of range.
+
+    Example:
+        >>> RefineOptions(scales=(2, 1)).scales
+        (2, 1)
+    """
+
+    scales: tuple[int, ...] = (4, 2, 1)
+    steps: int = 30
+    huber_delta: float = 0.02
+    estimate_offset: bool = True
+
+    def __post_init__(self) -> None:
+        if not self.scales or any(not isinstance(s, int) or s < 1 for s in self.scales) or not (
+                isinstance(self.steps, int) and self.steps >= 1) or not self.huber_delta > 0:
+            raise InputError(f"scales must be positive integers, steps >= 1, huber_delta > 0; got {self.scales}, "
+                             f"{self.steps}, {self.huber_delta}")
+        object.__setattr__(self, "scales", tuple(self.scales))
 
 
 def refine_depth(
@@ -548,10 +1091,7 @@ def refine_depth(
     pixel_pitch_mm: float,
     weights: Tensor | None = None,
     card_height_mm: float | None = None,
-    scales: tuple[int, ...] = (4, 2, 1),
-    steps: int = 30,
-    huber_delta: float = 0.02,
-    estimate_offset: bool = True,
+    options: RefineOptions | None = None,
 ) -> tuple[Tensor, Tensor, list[float]]:
     r"""Refine a depth map by minimising a robust re-rendering loss, coarse to fine (L-BFGS).
 
@@ -570,10 +1110,8 @@ def refine_depth(
         pixel_pitch_mm: pixel size, mm.
         weights: observations to use, :math:`(B, K, H, W)`; all when omitted.
         card_height_mm: see :func:`near_light_vectors`.
-        scales: downsampling factors, coarse to fine.
-        steps: L-BFGS iterations per scale.
-        huber_delta: Huber threshold, relative to the mean intensity.
-        estimate_offset: re-estimate the mean height after refining; otherwise keep the mean of ``depth``.
+        options: :class:`RefineOptions` (scales, L-BFGS steps, Huber threshold, whether to re-estimate the mean
+            height); defaults when omitted.
 
     Returns:
         refined depth :math:`(B, 1, H, W)` (detached), its albedo :math:`(B, 1, H, W)` and the loss after each scale.
@@ -582,7 +1120,7 @@ def refine_depth(
         >>> from psmini.lights import PointLights
         >>> lights = PointLights(torch.tensor([[10.0, 0, 10], [-10.0, 0, 10], [0, 10.0, 10], [0, -10.0, 10]]))
         >>> images = torch.rand(1, 4, 8, 8) + 0.5
-        >>> depth, albedo, losses = refine_depth(images, lights, torch.zeros(1, 1, 8, 8), 0.1, scales=(1,), steps=3)
+        >>> depth, albedo, losses = refine_depth(images, lights, torch.zeros(1, 1, 8, 8), 0.1, options=RefineOptions(scales=(1,), steps=3))
         >>> depth.shape
         torch.Size([1, 1, 8, 8])
     """
@@ -590,8 +1128,12 @@ def refine_depth(
     check_shape(depth, ["B", "1", "H", "W"], "depth")
     check_finite(intensities, "intensities")
     check_finite(depth, "depth")
-    if not scales or any(int(s) < 1 for s in scales) or steps < 1 or not huber_delta > 0:
-        raise InputError(f"scales must be positive integers, steps >= 1, huber_delta > 0; got {scales}, {steps}, {huber_delta}")
+    options = RefineOptions() if options is None else options
+    if not isinstance(options, RefineOptions):
+        raise InputError(f"options must be a RefineOptions, got {type(options).__name__}")
+    check_positive(pixel_pitch_mm, "pixel_pitch_mm")
+    _check_light_model(light_model)
+    scales, steps, huber_delta = options.scales, options.steps, options.huber_delta
     weights = torch.ones_like(intensities) if weights is None else weights.to(intensities)
     norm = intensities.mean().clamp_min(1e-12)
     losses: list[float] = []
@@ -622,7 +1164,7 @@ def refine_depth(
                                               align_corners=False)
         else:
             current = refined
-    if estimate_offset:
+    if options.estimate_offset:
         current = current + estimate_height_offset(
             intensities, light_model, current, pixel_pitch_mm, weights > 0, card_height_mm
         )

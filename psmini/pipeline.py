@@ -16,9 +16,10 @@ from psmini._checks import check_mask, check_positive, check_shape, check_tensor
 from psmini.config import ReconstructionConfig
 from psmini.errors import InputError
 from psmini.flatfield import flatfield
+from psmini.integrate import METHODS as INTEGRATION_METHODS
 from psmini.integrate import integrate
 from psmini.lights import DirectionalLights, LightModel, check_spans_3d
-from psmini.nearlight import near_light_photometric_stereo
+from psmini.nearlight import solve_near_light
 from psmini.nonlambertian import nonlambertian_normals
 from psmini.normals import albedo_normals, normals_to_gradients
 from psmini.robust import ROBUST_METHODS, robust_normals
@@ -91,9 +92,10 @@ class PhotometricStereo(nn.Module):
 
     ``config`` chooses the solver (:meth:`~psmini.config.ReconstructionConfig.solver_for`: near light for point
     and LED models, the classical distant-light pipeline for directions, unless forced), the estimator of the
-    distant solver (:data:`NORMAL_ESTIMATORS`) and the integrator. The distant solver uses the light model as seen
-    from the field centre (:func:`distant_light_matrix`); the near solver evaluates it on the surface itself
-    (:func:`psmini.nearlight.near_light_photometric_stereo`).
+    distant solver (:data:`NORMAL_ESTIMATORS`) and the integrator. Both solvers work on the same flat-fielded
+    images: the distant solver uses the light model as seen from the field centre (:func:`distant_light_matrix`);
+    the near solver evaluates it on the surface itself, alternating with integration until the depth settles
+    (:func:`psmini.nearlight.solve_near_light`).
 
     Args:
         lights: a :class:`~psmini.lights.LightModel`, or a :math:`(K, 3)` tensor of directions scaled by
@@ -130,6 +132,12 @@ class PhotometricStereo(nn.Module):
             check_positive(pixel_pitch_mm, "pixel_pitch_mm")
         elif self.solver == "near":
             raise InputError("the near-light solver needs the pixel pitch (mm per pixel on the cloth); got None")
+        if self.solver == "distant" and self.config.integrator == "fill":
+            raise InputError("integrator 'fill' is the near solver's; the distant solver takes one of "
+                             + ", ".join(sorted(INTEGRATION_METHODS)))
+        if self.solver == "near" and self.config.integrator_options:
+            raise InputError(f"integrator options {sorted(self.config.integrator_options)} are for the distant "
+                             "solver's integrator; the near solver weights its own (set NearLightOptions)")
         self.pixel_pitch_mm = pixel_pitch_mm
 
     def forward(
@@ -141,24 +149,24 @@ class PhotometricStereo(nn.Module):
         mask: Tensor | None = None,
         card_albedo: float = 1.0,
         saturation_level: float | None = None,
+        card_height_mm: float = 0.0,
     ) -> Reconstruction:
         """Reconstruct ``images`` :math:`(B, K, H, W)`; see :func:`psmini.flatfield.flatfield` for the rest.
 
         ``saturation_level``: raw level at which an observation counts as saturated and is dropped (``None``
-        keeps all). Returns a :class:`Reconstruction` whose depth is in mm, or pixel units without a pitch.
+        keeps all). ``card_height_mm``: height of the card plane when its images were taken (near light).
+        Returns a :class:`Reconstruction` (a :class:`~psmini.nearlight.NearLightResult` with near light) whose
+        depth is in mm, or pixel units without a pitch.
         """
         config = self.config
-        integrator = config.integrator_for(self.solver, mask is not None)
-        if self.solver == "near":
-            return near_light_photometric_stereo(
-                images, self.lights, self.pixel_pitch_mm, reference=reference, dark=dark,
-                reference_dark=reference_dark, card_albedo=card_albedo, mask=mask,
-                saturation_level=saturation_level, min_reference=config.min_reference,
-                integrator=integrator, **config.near,
-            )
         sizes = check_shape(images, ["B", "K", "H", "W"], "images")
         mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
         flat = flatfield(images, reference, dark, reference_dark, card_albedo, config.min_reference, saturation_level)
+        integrator = config.integrator_for(self.solver, mask is not None)
+        if self.solver == "near":
+            card_height = card_height_mm if reference is not None else None
+            return solve_near_light(flat.images, self.lights, self.pixel_pitch_mm, card_height, flat.valid, mask,
+                                    config.near_options(mask is not None))
         matrix = distant_light_matrix(self.lights, reference is not None, images)
         all_valid = flat.all_valid if flat.all_valid is not None else bool(flat.valid.all())
         weights = None if all_valid else flat.valid

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from psmini import DirectionalLights, InputError, LEDLights, ReconstructionConfig, ring_lights
+from psmini.nearlight import NearLightOptions
 
 
 def leds():
@@ -19,6 +20,7 @@ class TestReconstructionConfig:
                                       dtype="float64")
         back = ReconstructionConfig.from_dict(json.loads(json.dumps(config.to_dict())))
         assert back == config and back.torch_dtype == torch.float64
+        assert isinstance(back.near, NearLightOptions) and back.near.max_iterations == 3
 
     def test_auto_resolves_from_the_light_model(self):
         near = ReconstructionConfig().resolved(leds(), has_mask=False)
@@ -41,7 +43,9 @@ class TestReconstructionConfig:
             ({"integrator": "bilateral", "integrator_options": {"boundary": "mirror"}}, "bilateral_integration takes"),
             ({"solver": "near", "estimator": "tukey"}, "near-light solver has its own"),
             ({"near": {"max_iterations": 2}, "solver": "distant"}, "solver is 'distant'"),
-            ({"near": {"speed": "fast"}}, "unknown \\['speed'\\]"),
+            ({"near": {"speed": "fast"}}, "speed"),
+            ({"near": {"max_iterations": 0}}, "max_iterations"),
+            ({"solver": "distant", "integrator": "fill"}, "near solver's"),
             ({"estimator": "lstsq", "estimator_options": {"low": 0.2}}, "takes no options"),
             ({"estimator": "tukey", "estimator_options": {"window": 3}}, "unknown \\['window'\\]"),
             ({"min_reference": 1.5}, "min_reference"),

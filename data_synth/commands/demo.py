@@ -55,11 +55,13 @@ def run(args: argparse.Namespace) -> int:
 
     from data_synth.rig import write_synthetic_capture
     from psmini.evaluation import score_reconstruction
+    from psmini.nearlight import NearLightOptions
     from psmini.io import load_sample, write_outputs
     from psmini.pipeline import reconstruct
 
     config = config_from_args(args)
-    classical = dataclasses.replace(config, solver="distant", estimator="auto", near={})
+    classical = dataclasses.replace(config, solver="distant", estimator="auto", near=NearLightOptions(),
+                                    integrator="auto")
     out: Path = args.out
     replace = _is_previous_demo(out)
     start = time.perf_counter()
