@@ -455,13 +455,15 @@ def _check_arguments(root: str | Path, batch_size: int, workers: int, light_mode
     return root, device
 
 
-def _samples_under(root: Path) -> list[Path]:
-    from psmini.io import find_samples
+def _samples_under(root: Path) -> tuple[list[Path], dict[str, str]]:
+    """The sample folders under ``root`` (links followed) and the links that could not be followed, by the path
+    relative to ``root`` (each becomes a failed sample of the summary: the other samples go on)."""
+    from psmini.io import scan_samples
 
-    folders = find_samples(root)
-    if not folders:
+    scan = scan_samples(root)
+    if not scan.samples and not scan.problems:
         raise InputError(f"no sample folders (capture.json, or DiLiGenT filenames.txt + light_directions.txt) under {root}")
-    return folders
+    return scan.samples, {_relative(root, path): message for path, message in scan.problems.items()}
 
 
 def iter_reconstructions(
@@ -507,7 +509,7 @@ def iter_reconstructions(
         ...     print(name, result.depth.std())
     """
     root, device = _check_arguments(root, batch_size, workers, light_model, method, device)
-    folders = _samples_under(root)
+    folders, _ = _samples_under(root)  # scan_samples has logged the links it could not follow
     settings = _Settings(str(device), dtype, integrator, light_model, method, min_reference)
     for solved in _solved_stream(root, folders, settings, batch_size, workers):
         if solved.result is None:
@@ -671,8 +673,12 @@ def reconstruct_dataset(
 
         parse_scheduler(scheduler)  # a malformed local:N fails before any work
     out = Path(out)
-    folders = _samples_under(root)
+    folders, problems = _samples_under(root)
     records: dict[str, BatchRecord] = {}
+    for rel, message in problems.items():  # dangling links and cycles: failed, the others go on
+        records[rel] = BatchRecord(rel, "failed", error=f"DataFormatError: {message}")
+        if progress is not None:
+            progress(records[rel])
     todo = []
     for folder in folders:
         rel = _relative(root, folder)
@@ -700,7 +706,8 @@ def reconstruct_dataset(
                     "dtype": str(dtype).replace("torch.", ""), "batch_size": batch_size, "workers": workers,
                     "light_model": light_model, "integrator": integrator, "outputs": list(kinds), "score": score,
                     "scheduler": _scheduler_name(scheduler, client)}
-    return _write_summary(out, [records[_relative(root, f)] for f in folders], settings_row)
+    return _write_summary(out, [records[_relative(root, f)] for f in folders] + [records[rel] for rel in problems],
+                          settings_row)
 
 
 def _scheduler_name(scheduler: str | None, client: Any) -> str | None:

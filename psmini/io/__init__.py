@@ -15,7 +15,15 @@ from psmini.io.capture import (
     write_capture,
 )
 from psmini.io.diligent import is_diligent_folder, read_diligent
-from psmini.io.export import robust_max, save_albedo_png, save_depth, save_normal_png, save_ply, write_outputs
+from psmini.io.export import (
+    robust_max,
+    save_albedo_png,
+    save_depth,
+    save_mesh_ply,
+    save_normal_png,
+    save_ply,
+    write_outputs,
+)
 from psmini.io.images import (
     DILIGENT_GRAY_WEIGHTS,
     read_gray,
@@ -26,7 +34,7 @@ from psmini.io.images import (
     rgb_to_gray,
     write_image,
 )
-from psmini.io.load import find_samples, load_sample
+from psmini.io.load import SampleScan, find_samples, load_sample, scan_samples
 from psmini.io.matfile import read_mat
 from psmini.io.sample import Sample
 
@@ -45,6 +53,8 @@ __all__ = [
     "Sample",
     "load_sample",
     "find_samples",
+    "scan_samples",
+    "SampleScan",
     "read_diligent",
     "is_diligent_folder",
     # capture folders
@@ -58,6 +68,7 @@ __all__ = [
     "robust_max",
     "save_albedo_png",
     "save_normal_png",
+    "save_mesh_ply",
     "save_depth",
     "save_ply",
     "write_outputs",
