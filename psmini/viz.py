@@ -654,21 +654,22 @@ def surface_figure(depth: Any, albedo: Any = None, mask: Any = None, pixel_pitch
             raise ShapeError(f"albedo must be {_plane(depth, 'depth').shape} (HxW) like depth, got {rho.shape}")
         rho = rho[::stride, ::stride].reshape(-1)[index]
         rho = np.nan_to_num(rho / robust_limits(rho, None, (0.0, 99.5))[1])
-        intensity, colorscale, cmin, cmax = np.clip(rho, 0.0, 1.0), "gray", 0.0, 1.0
+        # the brightest albedo maps to light gray, not white, so that the lighting's shading still shows on it
+        intensity, colorscale, cmin, cmax = np.clip(rho, 0.0, 1.0), "gray", 0.0, 1.3
     else:
         low, high = robust_limits(height)
         intensity, colorscale, cmin, cmax = height, "viridis", low, high
     mesh = go.Mesh3d(x=x, y=y, z=height, i=faces[:, 0], j=faces[:, 1], k=faces[:, 2], intensity=intensity,
                      colorscale=colorscale, cmin=cmin, cmax=cmax, showscale=albedo is None, flatshading=False,
-                     lighting={"ambient": 0.55, "diffuse": 0.6, "specular": 0.05, "roughness": 0.9},
-                     lightposition={"x": -5e4, "y": 5e4, "z": 1e5}, hoverinfo="skip", name="surface")
+                     lighting={"ambient": 0.45, "diffuse": 0.65, "specular": 0.05, "roughness": 0.9},
+                     lightposition={"x": -5e4, "y": 5e4, "z": 5e4}, hoverinfo="skip", name="surface")
     scale_note = "true proportions" if exaggeration == 1 else f"height exaggerated {exaggeration:g}×"
     fig = go.Figure(mesh)
     fig.update_layout(
         title=title if title is not None else f"surface, {unit} ({scale_note})",
         scene={"aspectmode": "data", "xaxis_title": f"x ({unit})", "yaxis_title": f"y ({unit})",
-               "zaxis_title": f"height ({unit})", "camera": {"eye": {"x": 0.0, "y": -1.2, "z": 1.6}}},
-        margin={"l": 0, "r": 0, "t": 40, "b": 0},
+               "zaxis_title": f"height ({unit})", "camera": {"eye": {"x": 0.0, "y": -1.9, "z": 1.7}}},
+        margin={"l": 0, "r": 0, "t": 40, "b": 0}, height=720,
     )
     return fig
 
@@ -694,7 +695,7 @@ def write_html(figure: Any, path: str | Path) -> Path:
 
     path = Path(path)
     try:
-        figure.write_html(str(path), include_plotlyjs=True, full_html=True, auto_open=False, default_height="95vh")
+        figure.write_html(str(path), include_plotlyjs=True, full_html=True, auto_open=False)
     except OSError as error:
         raise DataFormatError(f"cannot write {path}: {error}") from error
     return path
