@@ -96,7 +96,8 @@ def _valid(values: np.ndarray, mask: Any) -> np.ndarray:
     if mask is not None:
         inside = _plane(mask, "mask") != 0
         if inside.shape != values.shape:
-            raise ShapeError(f"mask must be {values.shape[0]}x{values.shape[1]} (HxW) like the data, got {inside.shape}")
+            raise ShapeError(f"mask must be {values.shape[0]}x{values.shape[1]} (HxW) like the data, "
+                             f"got {inside.shape}")
         valid &= inside
     return valid
 
@@ -104,7 +105,8 @@ def _valid(values: np.ndarray, mask: Any) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------ arrays
 
 
-def robust_limits(values: Any, mask: Any = None, percentiles: tuple[float, float] = DEFAULT_PERCENTILES) -> tuple[float, float]:
+def robust_limits(values: Any, mask: Any = None,
+                  percentiles: tuple[float, float] = DEFAULT_PERCENTILES) -> tuple[float, float]:
     """Colour limits that a few outliers do not set: percentiles of the finite values inside ``mask``.
 
     Args:
@@ -213,7 +215,8 @@ def hillshade(depth: Any, pixel_pitch_mm: float = 1.0, *, azimuth_deg: float = 3
         g_row, g_col = np.gradient(z, pixel_pitch_mm)
         gx, gy = g_col, -g_row  # x right along columns, y up against rows
     azimuth, altitude = math.radians(azimuth_deg), math.radians(altitude_deg)
-    light = np.array([math.sin(azimuth) * math.cos(altitude), math.cos(azimuth) * math.cos(altitude), math.sin(altitude)])
+    light = np.array([math.sin(azimuth) * math.cos(altitude), math.cos(azimuth) * math.cos(altitude),
+                      math.sin(altitude)])
     shade = (-gx * light[0] - gy * light[1] + light[2]) / np.sqrt(gx**2 + gy**2 + 1.0)
     return np.clip(shade, 0.0, 1.0)
 
@@ -251,8 +254,9 @@ def _hatch(shape: tuple[int, int], period: int = 6) -> np.ndarray:
     return np.where(stripe[..., None], _HATCH[0], _HATCH[1])
 
 
-def shaded_depth(depth: Any, mask: Any = None, pixel_pitch_mm: float = 1.0, *, limits: tuple[float, float] | None = None,
-                 ambient: float = 0.35, exaggeration: float = 1.0) -> tuple[np.ndarray, tuple[float, float]]:
+def shaded_depth(depth: Any, mask: Any = None, pixel_pitch_mm: float = 1.0, *,
+                 limits: tuple[float, float] | None = None, ambient: float = 0.35,
+                 exaggeration: float = 1.0) -> tuple[np.ndarray, tuple[float, float]]:
     """Depth as a hill-shaded relief in viridis: colour says the height, shading says the shape.
 
     Each pixel's colour (:func:`apply_colormap` between ``limits``) is multiplied by
@@ -596,7 +600,9 @@ def triangulate_grid(mask: Any) -> tuple[np.ndarray, np.ndarray]:
         (np.stack([a, c, d], -1), ia & ic & id_ & ~ib),  # b missing
         (np.stack([a, d, b], -1), ia & ib & id_ & ~ic),  # c missing
     ]
-    faces = np.concatenate([tri[where] for tri, where in candidates], axis=0) if height > 1 and width > 1 else np.zeros((0, 3), np.int64)
+    if height < 2 or width < 2:
+        return vertex_index, np.zeros((0, 3), np.int64)
+    faces = np.concatenate([tri[where] for tri, where in candidates], axis=0)
     return vertex_index, faces.astype(np.int64)
 
 

@@ -1,4 +1,4 @@
-"""Make the README's gallery: small PNGs produced by psmini itself, from fixed seeds.
+"""Make the documentation's gallery (docs/gallery.md): small PNGs produced by psmini itself, from fixed seeds.
 
     python scripts/make_gallery.py                     # writes docs/gallery/*.png
     python scripts/make_gallery.py --size 96 --out /tmp/gallery --data-root ../shared/data

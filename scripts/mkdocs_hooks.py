@@ -1,4 +1,4 @@
-"""mkdocs hooks: the home page is the README; the benchmarks page shows the latest run of every benchmark in ``benchmarks/results.md``.
+"""mkdocs hooks: the home page is the README; the benchmarks page shows the latest run of every benchmark.
 
 ``benchmarks/results.md`` is the ledger: each benchmark script appends a dated section (``## title``) at its end,
 so one benchmark may have several sections. At build time the marker ``<!-- latest-benchmarks -->`` in
@@ -39,7 +39,8 @@ def on_files(files, config):  # noqa: ARG001 (mkdocs hook signature)
 def on_page_markdown(markdown: str, page, config, files) -> str:  # noqa: ARG001 (mkdocs hook signature)
     if README_MARKER in markdown:
         # the front page is the README, its links into docs/ made relative to the site
-        return markdown.replace(README_MARKER, (ROOT / "README.md").read_text(encoding="utf-8").replace("](docs/", "]("))
+        readme = (ROOT / "README.md").read_text(encoding="utf-8")
+        return markdown.replace(README_MARKER, readme.replace("](docs/", "]("))
     if MARKER not in markdown:
         return markdown
     sections = latest_sections(LEDGER.read_text(encoding="utf-8"))

@@ -1,5 +1,5 @@
 """Every notebook in notebooks/ runs top to bottom (stored without outputs; executed here with nbclient), and the
-README gallery script runs; so neither can rot. Needs the ``dev`` extra (nbclient, nbformat, ipykernel,
+gallery script runs; so neither can rot. Needs the ``dev`` extra (nbclient, nbformat, ipykernel,
 matplotlib); skipped without it."""
 
 from __future__ import annotations

@@ -62,6 +62,19 @@ def _read(out: Path):
     return depth, albedo, pitch
 
 
+def _open(page: Path) -> None:
+    """Open ``page`` in the desktop's browser; on a machine without a display (a server, CI) only say where it is,
+    as Python's webbrowser would otherwise start a text browser in the terminal."""
+    import os
+    import sys
+    import webbrowser
+
+    if sys.platform in ("darwin", "win32") or os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+        webbrowser.open(page.resolve().as_uri())
+    else:
+        print("no display here: copy the page to a machine with a browser, or use --html FILE")
+
+
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
@@ -76,9 +89,7 @@ def run(args: argparse.Namespace) -> int:
     write_html(figure, target)
     print(f"wrote {target} ({target.stat().st_size / 1e6:.1f} MB, opens offline)")
     if args.html is None and not args.no_open:
-        import webbrowser
-
-        webbrowser.open(target.resolve().as_uri())
+        _open(target)
     if args.json:
         emit_json({"out": str(args.out), "html": str(target), "pixel_pitch_mm": pitch})
     return 0

@@ -1,7 +1,7 @@
 """Input and output around the core: images (16-bit safe), DiLiGenT folders, psmini capture folders, exports.
 
 Nothing in the core imports this package; it turns files into the tensors the core expects (``Sample``) and
-reconstructions back into files. Formats: ``docs/capture-format.md`` and the README's "File formats".
+reconstructions back into files. Formats: ``docs/capture-format.md`` and ``docs/file-formats.md``.
 """
 
 from __future__ import annotations

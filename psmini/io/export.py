@@ -330,7 +330,8 @@ def save_mesh_ply(path: str | Path, points: Any, colors: Any = None, mask: Any =
 
     Example:
         >>> from psmini.geometry import depth_to_points
-        >>> save_mesh_ply("mesh.ply", depth_to_points(torch.zeros(1, 1, 4, 4), 0.025), torch.ones(1, 4, 4))  # doctest: +SKIP
+        >>> points = depth_to_points(torch.zeros(1, 1, 4, 4), 0.025)
+        >>> save_mesh_ply("mesh.ply", points, torch.ones(1, 4, 4))  # doctest: +SKIP
         (16, 18)
     """
     from psmini.viz import triangulate_grid

@@ -81,3 +81,14 @@ def test_headless_chromium_draws_the_surface(out, tmp_path):
     assert bright.mean() > 0.05, f"the bright half of the surface is not drawn ({bright.mean():.1%})"
     dark_x, bright_x = np.nonzero(dark)[1].mean(), np.nonzero(bright)[1].mean()
     assert dark_x < bright_x, "the dark albedo (left half of the image) is not drawn left of the bright one"
+
+
+def test_default_page_goes_into_out_and_no_browser_without_a_display(out, capsys, monkeypatch):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr("sys.platform", "linux")
+    opened = []
+    monkeypatch.setattr("webbrowser.open", opened.append)
+    assert main(["view", str(out)]) == 0
+    assert (out / "view.html").is_file() and opened == []
+    assert "no display here" in capsys.readouterr().out
