@@ -94,3 +94,22 @@ def test_pages_hold_no_dated_figures(page):
     """Figures tied to a run (UTC times, commits) live in benchmarks/results.md, not in the guides."""
     text = page.read_text(encoding="utf-8")
     assert not re.search(r"\d\d:\d\d UTC|commit `[0-9a-f]{7}", text), page
+
+
+@pytest.mark.slow
+def test_readme_python_example_runs_and_prints_what_it_says(monkeypatch, capsys):
+    """The README's DiLiGenT example, run as written from the repository root (so ``../shared/data`` is the
+    reference data): it prints the figures its comments state."""
+    if not (REPO.parent / "shared" / "data" / "DiLiGenT" / "cat" / "filenames.txt").is_file():
+        pytest.skip("DiLiGenT/cat is not in ../shared/data beside the repository")
+    pytest.importorskip("plotly", reason="result.show() needs plotly (the viz extra)")
+    readme = (REPO / "README.md").read_text(encoding="utf-8")
+    code = re.search(r"## From Python.*?```python\n(.*?)```", readme, re.S).group(1)
+    assert len(code.strip().splitlines()) <= 15
+    monkeypatch.chdir(REPO)
+    namespace: dict = {}
+    exec(compile(code, "README.md", "exec"), namespace)  # noqa: S102 (the README's own example)
+    printed = capsys.readouterr().out
+    assert "lstsq: 8.41° mean angular error" in printed and "robust: 6.57° mean angular error" in printed
+    depth = namespace["depth"][namespace["mask"]]
+    assert bool((depth > 0).all()) and 0.9 < float(depth.log().mean().exp()) < 1.1
