@@ -544,7 +544,7 @@ def _write(out_dir: Path, result: Reconstruction, sample, outputs: tuple[str, ..
             names.append("normals.png")
         if "depth" in outputs:
             units = "mm" if pitch is not None else "pixels"
-            names += [p.name for p in save_depth(target / "depth.npy", depth, mask, units=units)]
+            names += [p.name for p in save_depth(target / "depth.npy", depth, mask, units=units, pixel_pitch_mm=pitch)]
         if "ply" in outputs:
             points = depth_to_points(depth.double(), 1.0 if pitch is None else float(pitch))
             save_ply(target / "points.ply", points, albedo, mask)
