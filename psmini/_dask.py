@@ -5,7 +5,7 @@ a cluster: importing psmini or :mod:`psmini.batch` never imports dask.
 
 A cluster user starts a scheduler (``dask scheduler``) and workers (``dask worker tcp://HEAD:8786``) on machines
 that see the data and the output folder at the same paths, then passes the scheduler's address; each task
-decodes, solves and writes its chunk on its worker's device (see README, "Batch processing").
+decodes, solves and writes its chunk on its worker's device (see docs/guides/batch.md).
 """
 
 from __future__ import annotations

@@ -456,13 +456,15 @@ def _check_arguments(root: str | Path, batch_size: int, workers: int, config: Re
     return root, device
 
 
-def _samples_under(root: Path) -> list[Path]:
-    from psmini.io import find_samples
+def _samples_under(root: Path) -> tuple[list[Path], dict[str, str]]:
+    """The sample folders under ``root`` (links followed) and the links that could not be followed, by the path
+    relative to ``root`` (each becomes a failed sample of the summary: the other samples go on)."""
+    from psmini.io import scan_samples
 
-    folders = find_samples(root)
-    if not folders:
+    scan = scan_samples(root)
+    if not scan.samples and not scan.problems:
         raise InputError(f"no sample folders (capture.json, or DiLiGenT filenames.txt + light_directions.txt) under {root}")
-    return folders
+    return scan.samples, {_relative(root, path): message for path, message in scan.problems.items()}
 
 
 def iter_reconstructions(
@@ -499,7 +501,7 @@ def iter_reconstructions(
     """
     config = ReconstructionConfig() if config is None else config
     root, _ = _check_arguments(root, batch_size, workers, config)
-    folders = _samples_under(root)
+    folders, _ = _samples_under(root)  # scan_samples has logged the links it could not follow
     settings = _Settings(config)
     for solved in _solved_stream(root, folders, settings, batch_size, workers):
         if solved.result is None:
@@ -534,7 +536,7 @@ def _write(out_dir: Path, result: Reconstruction, sample, outputs: tuple[str, ..
             names.append("normals.png")
         if "depth" in outputs:
             units = "mm" if pitch is not None else "pixels"
-            names += [p.name for p in save_depth(target / "depth.npy", depth, mask, units=units)]
+            names += [p.name for p in save_depth(target / "depth.npy", depth, mask, units=units, pixel_pitch_mm=pitch)]
         if "ply" in outputs:
             points = depth_to_points(depth.double(), 1.0 if pitch is None else float(pitch))
             save_ply(target / "points.ply", points, albedo, mask)
@@ -661,8 +663,12 @@ def reconstruct_dataset(
 
         parse_scheduler(scheduler)  # a malformed local:N fails before any work
     out = Path(out)
-    folders = _samples_under(root)
+    folders, problems = _samples_under(root)
     records: dict[str, BatchRecord] = {}
+    for rel, message in problems.items():  # dangling links and cycles: failed, the others go on
+        records[rel] = BatchRecord(rel, "failed", error=f"DataFormatError: {message}")
+        if progress is not None:
+            progress(records[rel])
     todo = []
     for folder in folders:
         rel = _relative(root, folder)
@@ -689,7 +695,8 @@ def reconstruct_dataset(
     settings_row = {"root": str(root), "out": str(out), "config": config.to_dict(), "batch_size": batch_size,
                     "workers": workers, "outputs": list(kinds), "score": score,
                     "scheduler": _scheduler_name(scheduler, client)}
-    return _write_summary(out, [records[_relative(root, f)] for f in folders], settings_row)
+    return _write_summary(out, [records[_relative(root, f)] for f in folders] + [records[rel] for rel in problems],
+                          settings_row)
 
 
 def _scheduler_name(scheduler: str | None, client: Any) -> str | None:

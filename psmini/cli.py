@@ -13,6 +13,7 @@ import argparse
 import importlib
 import importlib.metadata
 import logging
+import os
 import pkgutil
 import sys
 from collections.abc import Sequence
@@ -39,10 +40,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def quiet_opencv() -> None:
+    """Keep OpenCV's own log lines (``[ WARN:0@0.02] global grfmt_png.cpp ...``) off the terminal.
+
+    psmini's errors already say which file is bad and why; OpenCV's warnings would come first and add nothing.
+    Sets ``OPENCV_LOG_LEVEL=ERROR`` for this process and the worker processes it starts (unless the user set
+    it), and lowers the level of an OpenCV already imported.
+    """
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
+    cv2 = sys.modules.get("cv2")
+    if cv2 is not None and os.environ["OPENCV_LOG_LEVEL"] == "ERROR":
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``psmini`` command; return its exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    if not args.verbose:
+        quiet_opencv()
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s: %(message)s")
     if args.command is None:
         parser.print_help()

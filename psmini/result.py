@@ -30,6 +30,38 @@ class Reconstruction:
     depth: Tensor
     mask: Tensor
 
+    def show(self, pixel_pitch_mm: float | None = None, *, index: int = 0, exaggeration: float = 1.0,
+             max_size: int = 300):
+        """The surface of batch item ``index`` as an interactive 3D view (plotly, WebGL), coloured by albedo.
+
+        In Jupyter the returned figure draws itself as the cell's output; elsewhere call ``.show()`` on it or
+        write it with :func:`psmini.viz.write_html` (one offline file). Needs plotly (the ``viz`` extra).
+
+        Args:
+            pixel_pitch_mm: the sample's pixel pitch (``sample.pixel_pitch_mm``) when the depth is in mm; None when
+                the depth is in pixel units (no pitch known, e.g. DiLiGenT), so that proportions are true.
+            index: which item of the batch.
+            exaggeration: vertical exaggeration (1: true proportions; the title says which).
+            max_size: the most vertices along the longer side (the grid is subsampled by a whole stride).
+
+        Returns:
+            a ``plotly.graph_objects.Figure`` (see :func:`psmini.viz.surface_figure`).
+
+        Raises:
+            InputError: plotly missing, nothing solved, an index outside the batch.
+
+        Example:
+            >>> result.show(sample.pixel_pitch_mm)  # doctest: +SKIP
+        """
+        from psmini.errors import InputError
+        from psmini.viz import surface_figure
+
+        batch = self.depth.shape[0]
+        if not -batch <= index < batch:
+            raise InputError(f"index {index} is outside the batch of {batch}")
+        return surface_figure(self.depth[index], self.albedo[index], self.mask[index], pixel_pitch_mm,
+                              exaggeration=exaggeration, max_size=max_size)
+
     def to(self, device: torch.device | str) -> Reconstruction:
         """A copy with every field on ``device``."""
         return Reconstruction(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})

@@ -1,4 +1,4 @@
-"""Make the README's gallery: small PNGs produced by psmini itself, from fixed seeds.
+"""Make the documentation's gallery (docs/gallery.md): small PNGs produced by psmini itself, from fixed seeds.
 
     python scripts/make_gallery.py                     # writes docs/gallery/*.png
     python scripts/make_gallery.py --size 96 --out /tmp/gallery --data-root ../shared/data
@@ -6,15 +6,16 @@
 Figures:
 
 - ``fabrics.png``: synthetic jute, knit, net and lurex (crops at the rig's 0.025 mm per pixel) captured by the simulated rig (one LED image) and
-  reconstructed by near-light photometric stereo: albedo, normal map (RGB = (n + 1) / 2), depth shaded by a
-  raking light;
+  reconstructed by near-light photometric stereo: albedo, normal map (RGB = (n + 1) / 2), depth as a hill-shaded
+  relief in viridis with its colour bar (µm) and a scale bar (``psmini.viz``);
 - ``nearlight.png``: angular error of distant lights (raw, then flat-fielded by the card) and near light on jute,
   the whole 10 mm field;
 - ``focus.png``: every focus measure over a synthetic focus stack, each normalised to its maximum;
 - ``diligent_cat.png``: DiLiGenT cat, ground truth, least squares and robust error maps (only when the data root
   holds ``DiLiGenT/cat``; skipped with a message otherwise).
 
-Needs matplotlib (the ``dev`` extra).
+Every panel is drawn by ``psmini.viz`` (the same pictures as the CLI's previews and the notebooks). Needs
+matplotlib (the ``dev`` or ``viz`` extra).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import torch  # noqa: E402
 
 import psmini  # noqa: E402
 from data_synth import CARD_ALBEDO, make_fabric  # noqa: E402
+from psmini import viz  # noqa: E402
 from data_synth.rig import RigConfig, focus_stack, render_capture, render_card, rig_lights  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -38,19 +40,7 @@ PITCH_MM = 0.025  # the rig's pixel pitch: the fabrics are shown at the camera's
 FIELD_MM = 10.0  # the rig's field of view; the near-light figure shows all of it at --size pixels
 FABRICS = ("jute", "knit", "net", "lurex")
 # PNG metadata would carry matplotlib's version; without it the files depend on the data alone
-PNG = {"dpi": 72, "metadata": {"Software": None}, "bbox_inches": "tight"}
-
-
-def shade(depth: torch.Tensor, pixel_pitch_mm: float) -> torch.Tensor:
-    """Depth :math:`(1, 1, H, W)` mm shaded by a light from the upper left, 45° up: an image in [0, 1].
-
-    Example:
-        >>> shade(torch.zeros(1, 1, 4, 4), 0.1).shape
-        torch.Size([4, 4])
-    """
-    light = torch.tensor([-1.0, 1.0, 1.4142], dtype=depth.dtype)
-    normals = psmini.normals_from_height(depth, pixel_pitch_mm)[0]
-    return (torch.einsum("chw,c->hw", normals, light / light.norm())).clamp(0, 1)
+PNG = {"dpi": 110, "metadata": {"Software": None}, "bbox_inches": "tight"}
 
 
 def reconstruct(name: str, size: int, pitch: float) -> tuple:
@@ -65,23 +55,25 @@ def reconstruct(name: str, size: int, pitch: float) -> tuple:
 
 
 def fabrics_figure(size: int, out: Path) -> str:
-    fig, axes = plt.subplots(len(FABRICS), 4, figsize=(9, 2.3 * len(FABRICS)))
+    fig, axes = plt.subplots(len(FABRICS), 4, figsize=(11, 2.6 * len(FABRICS)), constrained_layout=True)
     lines = []
     for row, name in zip(axes, FABRICS):
         capture, _, result, pitch = reconstruct(name, size, PITCH_MM)
         error = float(psmini.mean_angular_error(result.normals, capture.normals[None], capture.mask[None])[0])
-        depth = torch.where(result.mask, result.depth, result.depth[result.mask].min())  # unsolved: lowest
-        panels = [(capture.images[0], dict(cmap="gray", vmin=0, vmax=1), f"{name}: LED 0"),
-                  (result.albedo[0, 0], dict(cmap="gray", vmin=0, vmax=float(result.albedo.quantile(0.995))), "albedo"),
-                  (((result.normals[0] + 1) / 2).permute(1, 2, 0).clamp(0, 1), {}, f"normals ({error:.1f}°)"),
-                  (shade(depth, pitch), dict(cmap="gray", vmin=0, vmax=1), "depth, shaded")]
-        for ax, (image, style, title) in zip(row, panels):
-            ax.imshow(image.detach(), interpolation="nearest", **style)
-            ax.set_title(title, fontsize=9)
+        row[0].imshow(capture.images[0], cmap="gray", vmin=0, vmax=1, interpolation="nearest")
+        row[0].set_title(f"{name}: LED 0", fontsize=9)
+        row[1].imshow(result.albedo[0, 0], cmap="gray", vmin=0, vmax=float(result.albedo.quantile(0.995)),
+                      interpolation="nearest")
+        row[1].set_title("albedo", fontsize=9)
+        for ax in row[:2]:
             ax.axis("off")
+        viz.plot_normals(row[2], result.normals, result.mask, title=f"normals ({error:.1f}° mean error)")
+        viz.plot_depth(row[3], result.depth, result.mask, pitch, title="depth, hill-shaded")
+        for ax in row[2:]:
+            ax.title.set_fontsize(9)
         lines.append(f"{name} {error:.2f} deg")
-    fig.suptitle(f"simulated rig, {size * PITCH_MM:.0f} mm crops at {PITCH_MM} mm/px, near-light reconstruction",
-                 fontsize=10)
+    fig.suptitle(f"simulated rig, {size * PITCH_MM:.0f} mm crops at {PITCH_MM} mm/px, near-light reconstruction "
+                 "(hatched: unsolved)", fontsize=10)
     fig.savefig(out / "fabrics.png", **PNG)
     plt.close(fig)
     return "fabrics.png: mean angular error " + ", ".join(lines)
@@ -95,16 +87,14 @@ def nearlight_figure(size: int, out: Path) -> str:
             "distant lights, card": distant(capture.images[None], reference=card.images[None], dark=capture.dark[None],
                                             reference_dark=card.dark[None], card_albedo=CARD_ALBEDO),
             "near light (LED model)": near}
-    fig, axes = plt.subplots(1, 3, figsize=(9, 3.2))
+    fig, axes = plt.subplots(1, 3, figsize=(11, 3.4), constrained_layout=True)
     lines = []
     for ax, (name, result) in zip(axes, runs.items()):
-        error = psmini.angular_error_deg(result.normals, capture.normals[None])[0, 0]
+        error = psmini.angular_error_deg(result.normals, capture.normals[None])
         mean = float(psmini.mean_angular_error(result.normals, capture.normals[None], capture.mask[None])[0])
-        shown = ax.imshow(error, cmap="magma", vmin=0, vmax=30, interpolation="nearest")
-        ax.set_title(f"{name}: {mean:.1f}°", fontsize=9)
-        ax.axis("off")
+        viz.plot_angular_error(ax, error, capture.mask, limits=(0.0, 30.0), title=f"{name}: {mean:.1f}°")
+        ax.title.set_fontsize(9)
         lines.append(f"{name} {mean:.2f} deg")
-    fig.colorbar(shown, ax=axes, fraction=0.02, label="angular error, °")
     fig.savefig(out / "nearlight.png", **PNG)
     plt.close(fig)
     return "nearlight.png: " + ", ".join(lines)
@@ -142,21 +132,18 @@ def diligent_figure(data_root: Path, out: Path) -> str:
     rows, cols = inside.any(1).nonzero()[:, 0], inside.any(0).nonzero()[:, 0]
     window = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
     truth = sample.normals_gt.nan_to_num()
-    fig, axes = plt.subplots(1, 3, figsize=(9, 3.6))
-    axes[0].imshow((((truth + 1) / 2) * inside).permute(1, 2, 0).clamp(0, 1)[window])
-    axes[0].set_title("cat: ground-truth normals", fontsize=9)
+    fig, axes = plt.subplots(1, 3, figsize=(11, 3.8), constrained_layout=True)
+    viz.plot_normals(axes[0], truth[:, window[0], window[1]], inside[window], title="cat: ground-truth normals")
     lines = []
     for ax, method in zip(axes[1:], ("lstsq", "robust")):
         result = psmini.reconstruct(sample, method=method)
         score = psmini.score_reconstruction(result, sample)["mean_angular_error_deg"]
         error = psmini.angular_error_deg(result.normals, truth[None])[0, 0]
-        shown = ax.imshow(torch.where(inside, error, torch.nan)[window], cmap="magma", vmin=0, vmax=30,
-                          interpolation="nearest")
-        ax.set_title(f"{method}: {score:.2f}° mean error", fontsize=9)
+        viz.plot_angular_error(ax, error[window], inside[window], limits=(0.0, 30.0),
+                               title=f"{method}: {score:.2f}° mean error")
         lines.append(f"{method} {score:.3f} deg")
     for ax in axes:
-        ax.axis("off")
-    fig.colorbar(shown, ax=axes, fraction=0.02, label="angular error, °")
+        ax.title.set_fontsize(9)
     fig.savefig(out / "diligent_cat.png", **PNG)
     plt.close(fig)
     return "diligent_cat.png: DiLiGenT cat " + ", ".join(lines)

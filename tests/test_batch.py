@@ -61,7 +61,8 @@ class TestReconstructDataset:
             np.testing.assert_allclose(depth[inside], expected.depth[0, 0].numpy()[inside], atol=1e-5)
             assert np.isnan(depth[~inside]).all()
             files = json.loads((tmp_path / "out" / name / "outputs.json").read_text())["files"]
-            assert set(files) == {"albedo.png", "normals.png", "depth.npy", "depth.png", "depth.json", "points.ply"}
+            assert set(files) == {"albedo.png", "normals.png", "depth.npy", "depth.png", "depth.json", "points.ply",
+                                  "mesh.ply"}
 
     def test_workers_give_the_same_outputs(self, tree, tmp_path):
         reconstruct_dataset(tree, tmp_path / "serial", DISTANT, batch_size=3, workers=0)

@@ -1,5 +1,5 @@
 """Every notebook in notebooks/ runs top to bottom (stored without outputs; executed here with nbclient), and the
-README gallery script runs; so neither can rot. Needs the ``dev`` extra (nbclient, nbformat, ipykernel,
+gallery script runs; so neither can rot. Needs the ``dev`` extra (nbclient, nbformat, ipykernel,
 matplotlib); skipped without it."""
 
 from __future__ import annotations
@@ -25,22 +25,55 @@ def test_notebooks_are_stored_without_outputs():
         assert not stored, f"{path.name}: cells {stored} were committed with outputs; clear them"
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
-def test_notebook_runs(path: Path):
+def _execute(path: Path, cwd: Path):
+    """Run the notebook with ``cwd`` as its folder (as Jupyter does); a cell that raises fails the test."""
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")
     pytest.importorskip("ipykernel")
     pytest.importorskip("matplotlib")
     notebook = nbformat.read(path, as_version=4)
-    # cwd = notebooks/, as when Jupyter opens the notebook; a cell that raises fails the test with its traceback
     client = nbclient.NotebookClient(notebook, timeout=300, kernel_name="python3",
-                                     resources={"metadata": {"path": str(path.parent)}})
+                                     resources={"metadata": {"path": str(cwd)}})
     start = time.perf_counter()
     try:
         client.execute()
     except nbclient.exceptions.CellExecutionError as error:
         pytest.fail(f"{path.name}: a cell raised:\n{error}", pytrace=False)
     print(f"{path.name}: {time.perf_counter() - start:.1f} s")
+    return notebook
+
+
+def _text(notebook) -> str:
+    return "\n".join(output.get("text", "") for cell in notebook.cells for output in cell.get("outputs", []))
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+def test_notebook_runs(path: Path, tmp_path: Path, monkeypatch):
+    # what the notebook writes goes to $PSMINI_OUTPUTS (here a temporary folder, not the working tree)
+    monkeypatch.setenv("PSMINI_OUTPUTS", str(tmp_path / "outputs"))
+    _execute(path, path.parent)
+
+
+@pytest.mark.slow
+def test_quick_start_writes_where_the_reader_can_open_it(tmp_path: Path, monkeypatch):
+    """Run from a copy outside the repository (no pyproject.toml above it), with the outputs in a folder that
+    outlives the run: the files it lists are there afterwards."""
+    copy = tmp_path / "elsewhere" / "01_quick_start.ipynb"
+    copy.parent.mkdir()
+    copy.write_bytes((ROOT / "notebooks" / "01_quick_start.ipynb").read_bytes())
+    monkeypatch.delenv("PSMINI_OUTPUTS", raising=False)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    notebook = _execute(copy, copy.parent)
+    out = copy.parent / "outputs"
+    assert {p.name for p in (out / "quick_start_jute").iterdir()} >= {"depth.png", "mesh.ply", "points.ply"}
+    assert str(out / "quick_start_jute") in _text(notebook)
+
+
+@pytest.mark.slow
+def test_diligent_notebook_without_data_says_where_to_point_it(tmp_path: Path, monkeypatch):
+    monkeypatch.setenv("PSMINI_DATA", str(tmp_path / "no-data"))
+    notebook = _execute(ROOT / "notebooks" / "02_diligent.ipynb", ROOT / "notebooks")
+    assert "set PSMINI_DATA" in _text(notebook)
 
 
 def test_gallery_script_runs(tmp_path: Path):

@@ -1,7 +1,7 @@
 """Input and output around the core: images (16-bit safe), DiLiGenT folders, psmini capture folders, exports.
 
 Nothing in the core imports this package; it turns files into the tensors the core expects (``Sample``) and
-reconstructions back into files. Formats: ``docs/capture-format.md`` and the README's "File formats".
+reconstructions back into files. Formats: ``docs/capture-format.md`` and ``docs/file-formats.md``.
 """
 
 from __future__ import annotations
@@ -15,7 +15,15 @@ from psmini.io.capture import (
     write_capture,
 )
 from psmini.io.diligent import is_diligent_folder, read_diligent
-from psmini.io.export import robust_max, save_albedo_png, save_depth, save_normal_png, save_ply, write_outputs
+from psmini.io.export import (
+    robust_max,
+    save_albedo_png,
+    save_depth,
+    save_mesh_ply,
+    save_normal_png,
+    save_ply,
+    write_outputs,
+)
 from psmini.io.images import (
     DILIGENT_GRAY_WEIGHTS,
     read_gray,
@@ -27,7 +35,7 @@ from psmini.io.images import (
     write_image,
 )
 from psmini.io.lightsfile import LightsFile, read_lights_file, with_lights_file, write_lights_file
-from psmini.io.load import find_samples, load_sample
+from psmini.io.load import SampleScan, find_samples, load_sample, scan_samples
 from psmini.io.matfile import read_mat
 from psmini.io.rigfiles import load_rig_calibration_mat, write_flatfield_capture
 from psmini.io.sample import Sample
@@ -47,6 +55,8 @@ __all__ = [
     "Sample",
     "load_sample",
     "find_samples",
+    "scan_samples",
+    "SampleScan",
     "read_diligent",
     "is_diligent_folder",
     # capture folders
@@ -67,6 +77,7 @@ __all__ = [
     "robust_max",
     "save_albedo_png",
     "save_normal_png",
+    "save_mesh_ply",
     "save_depth",
     "save_ply",
     "write_outputs",

@@ -1,4 +1,4 @@
-"""Export of reconstructions: albedo and normal-map PNGs, depth (``.npy`` + 16-bit PNG preview), PLY points.
+"""Export of reconstructions: albedo and normal-map PNGs, depth (``.npy`` + a shaded-relief preview), PLY files.
 
 Inputs are tensors (or arrays) with a batch of one or none: albedo and depth :math:`(1, 1, H, W)`,
 :math:`(1, H, W)` or :math:`(H, W)`; normals :math:`(1, 3, H, W)` or :math:`(3, H, W)`. OpenCV writes
@@ -31,6 +31,7 @@ __all__ = [
     "save_normal_png",
     "save_depth",
     "save_ply",
+    "save_mesh_ply",
     "write_outputs",
 ]
 
@@ -170,18 +171,22 @@ def save_normal_png(path: str | Path, normals: Any, mask: Any = None, *, bit_dep
     write_image(path, np.rint(rgb * top).astype(np.uint8 if bit_depth == 8 else np.uint16))
 
 
-def save_depth(path: str | Path, depth: Any, mask: Any = None, *, units: str = "mm") -> list[Path]:
-    """Write depth as ``.npy`` (``float32`` mm, NaN outside the mask), a 16-bit PNG preview and a JSON sidecar.
+def save_depth(path: str | Path, depth: Any, mask: Any = None, *, units: str = "mm",
+               pixel_pitch_mm: float | None = None) -> list[Path]:
+    """Write depth as ``.npy`` (``float32``, NaN outside the mask), a picture to look at, and a JSON sidecar.
 
-    The preview maps ``min..max`` over the mask to codes 1..65535 (0 marks pixels outside the mask):
-    ``z = min + (code - 1) / 65534 * (max - min)``; the sidecar ``<stem>.json`` records ``min``, ``max``,
-    ``units`` and this formula. The ``.npy`` file is the exact data; the PNG is for looking at.
+    The ``.npy`` file is the exact data. The ``.png`` is the preview of :func:`psmini.viz.depth_preview`: an 8-bit
+    RGB hill-shaded relief in viridis between the 1st and 99th percentiles of the height over the mask, a colour
+    bar with those limits and the unit, a scale bar (mm with ``pixel_pitch_mm``, else pixels), and unsolved pixels
+    hatched in light gray and white. The sidecar ``<stem>.json`` records ``units``, the exact ``min`` and ``max``,
+    the preview's ``preview_limits`` and how the preview is drawn.
 
     Args:
         path: the ``.npy`` file; the preview and sidecar take the same stem (``depth.png``, ``depth.json``).
-        depth: height toward the camera, mm, shape :math:`(1, 1, H, W)`, :math:`(1, H, W)` or :math:`(H, W)`.
+        depth: height toward the camera, shape :math:`(1, 1, H, W)`, :math:`(1, H, W)` or :math:`(H, W)`.
         mask: optional, same shapes, non-zero inside.
         units: the unit of ``depth``, recorded in the sidecar (``"pixels"`` when no pixel pitch is known).
+        pixel_pitch_mm: size of a pixel, mm, for the preview's shading and scale bar; None when unknown.
 
     Returns:
         the three paths written (``.npy``, ``.png``, ``.json``).
@@ -193,6 +198,8 @@ def save_depth(path: str | Path, depth: Any, mask: Any = None, *, units: str = "
     Example:
         >>> save_depth("depth.npy", torch.zeros(1, 1, 8, 8))  # doctest: +SKIP
     """
+    from psmini.viz import depth_preview, robust_limits
+
     path = Path(path)
     values = _planes(depth, "depth", 1)[0]
     inside = _mask(mask, *values.shape)
@@ -201,16 +208,17 @@ def save_depth(path: str | Path, depth: Any, mask: Any = None, *, units: str = "
     _finite_inside(values, inside, "depth")
     exact = np.where(inside, values, np.nan).astype(np.float32)
     low, high = float(np.min(exact[inside])), float(np.max(exact[inside]))
-    span = high - low
-    codes = 1.0 + (np.nan_to_num(exact, nan=low) - low) / span * 65534.0 if span > 0 else np.ones_like(exact)
-    preview = np.where(inside, np.rint(codes), 0).astype(np.uint16)
+    limits = robust_limits(exact, inside)
+    preview = depth_preview(exact, inside, pixel_pitch_mm, limits=limits, units=units)
     sidecar = {
         "npy": path.name,
         "png": path.with_suffix(".png").name,
         "units": units,
         "min": low,
         "max": high,
-        "png_encoding": "0 = outside the mask; else z = min + (code - 1) / 65534 * (max - min)",
+        "preview_limits": list(limits),
+        "png_encoding": "a picture, not data: viridis between preview_limits (1st-99th percentile over the mask), "
+        "hill-shaded from the upper left, scale bar and colour bar drawn in; unsolved pixels hatched gray/white",
     }
     try:
         np.save(path.with_suffix(".npy"), exact)
@@ -298,6 +306,64 @@ def save_ply(path: str | Path, points: Any, colors: Any = None, mask: Any = None
     return int(vertices.shape[0])
 
 
+def save_mesh_ply(path: str | Path, points: Any, colors: Any = None, mask: Any = None) -> tuple[int, int]:
+    """Write the surface as a triangle mesh PLY: the pixel grid triangulated over the mask, coloured per vertex.
+
+    Vertices are the mask's pixels (row-major, as in :func:`save_ply`); each 2×2 cell of the grid whose four
+    corners are inside becomes two triangles, one with three corners inside becomes one
+    (:func:`psmini.viz.triangulate_grid`), every face counter-clockwise seen from the camera. MeshLab, Blender
+    and CloudCompare show it as a surface rather than a cloud of points.
+
+    Args:
+        path: the ``.ply`` file.
+        points: a point image :math:`(1, 3, H, W)` or :math:`(3, H, W)` (e.g. :func:`psmini.geometry.depth_to_points`).
+        colors: optional, as in :func:`save_ply`, one per pixel: albedo :math:`(1, H, W)` or RGB :math:`(3, H, W)`.
+        mask: optional :math:`(H, W)` (or with leading ones), non-zero = a vertex.
+
+    Returns:
+        the number of vertices and of faces written.
+
+    Raises:
+        ShapeError: points that are not a 3-channel image, colours or mask of another size.
+        InputError: NaN or infinite points (or float colours) inside the mask.
+        DataFormatError: the file cannot be written.
+
+    Example:
+        >>> from psmini.geometry import depth_to_points
+        >>> points = depth_to_points(torch.zeros(1, 1, 4, 4), 0.025)
+        >>> save_mesh_ply("mesh.ply", points, torch.ones(1, 4, 4))  # doctest: +SKIP
+        (16, 18)
+    """
+    from psmini.viz import triangulate_grid
+
+    image = _planes(points, "points", 3)
+    height, width = image.shape[1:]
+    inside = _mask(mask, height, width)
+    _finite_inside(image, inside, "points")
+    index, faces = triangulate_grid(inside)
+    xyz = image.reshape(3, -1)[:, index].T
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    rgb = None
+    if colors is not None:
+        rgb = _colors_uint8(colors, height * width, inside.reshape(-1))[index]
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    vertices = np.empty(index.size, dtype=fields)
+    for axis, key in enumerate("xyz"):
+        vertices[key] = xyz[:, axis]
+    if rgb is not None:
+        for channel, key in enumerate(("red", "green", "blue")):
+            vertices[key] = rgb[:, channel]
+    face_rows = np.empty(faces.shape[0], dtype=[("vertex_indices", "<i4", (3,))])
+    face_rows["vertex_indices"] = faces
+    elements = [PlyElement.describe(vertices, "vertex"),
+                PlyElement.describe(face_rows, "face", len_types={"vertex_indices": "u1"})]
+    try:
+        PlyData(elements, text=False, byte_order="<").write(str(path))
+    except OSError as error:
+        raise DataFormatError(f"cannot write {path}: {error}") from error
+    return int(index.size), int(faces.shape[0])
+
+
 def _field(reconstruction: Any, name: str) -> Any:
     value = reconstruction.get(name) if isinstance(reconstruction, Mapping) else getattr(reconstruction, name, None)
     if value is None and name != "mask":
@@ -318,7 +384,8 @@ def write_outputs(
 
     Files: ``albedo.png`` (:func:`save_albedo_png`), ``normals.png`` (:func:`save_normal_png`), ``depth.npy``,
     ``depth.png``, ``depth.json`` (:func:`save_depth`), ``points.ply`` (:func:`save_ply`: orthographic points
-    of :func:`psmini.geometry.depth_to_points` inside the mask, coloured by albedo) and ``outputs.json``
+    of :func:`psmini.geometry.depth_to_points` inside the mask, coloured by albedo), ``mesh.ply``
+    (:func:`save_mesh_ply`: the same points triangulated over the mask) and ``outputs.json``
     (the file list, the albedo scale, the depth range, the pixel pitch, ``metadata``). Written into a
     temporary sibling folder and renamed into place.
 
@@ -357,12 +424,15 @@ def write_outputs(
     inside = _mask(_field(reconstruction, "mask"), height, width)
     pitch = 1.0 if pixel_pitch_mm is None else float(pixel_pitch_mm)
     points = depth_to_points(torch.from_numpy(depth[None]), pitch)[0]
-    names = ["albedo.png", "normals.png", "depth.npy", "depth.png", "depth.json", "points.ply", "outputs.json"]
+    names = ["albedo.png", "normals.png", "depth.npy", "depth.png", "depth.json", "points.ply", "mesh.ply",
+             "outputs.json"]
     with atomic_folder(out_dir, overwrite) as target:
         scale = save_albedo_png(target / "albedo.png", albedo, inside)
         save_normal_png(target / "normals.png", normals, inside, bit_depth=normal_bit_depth)
-        save_depth(target / "depth.npy", depth, inside, units="mm" if pixel_pitch_mm is not None else "pixels")
+        save_depth(target / "depth.npy", depth, inside, units="mm" if pixel_pitch_mm is not None else "pixels",
+                   pixel_pitch_mm=pixel_pitch_mm)
         vertex_count = save_ply(target / "points.ply", points, albedo, inside[None])
+        _, face_count = save_mesh_ply(target / "mesh.ply", points, albedo, inside)
         summary = {
             "files": names[:-1],
             "size": [width, height],
@@ -372,6 +442,7 @@ def write_outputs(
             "pixel_pitch_mm": pixel_pitch_mm,
             "depth_units": "mm" if pixel_pitch_mm is not None else "pixels",
             "vertices": vertex_count,
+            "faces": face_count,
             "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "metadata": dict(metadata or {}),
         }

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from psmini.errors import DataFormatError
@@ -11,7 +12,7 @@ from psmini.io.capture import MANIFEST_NAME, read_capture, read_manifest
 from psmini.io.diligent import is_diligent_folder, read_diligent
 from psmini.io.sample import Sample
 
-__all__ = ["load_sample", "find_samples", "NOT_SAMPLE_KINDS"]
+__all__ = ["load_sample", "find_samples", "scan_samples", "SampleScan", "NOT_SAMPLE_KINDS"]
 
 logger = logging.getLogger(__name__)
 
@@ -103,13 +104,108 @@ def _capture_sample(path: Path, with_flatfield: bool) -> Sample:
     )
 
 
-def find_samples(root: str | Path) -> list[Path]:
-    """List the sample folders under ``root`` (``root`` included), sorted, for batch processing.
+@dataclass(frozen=True)
+class SampleScan:
+    """What :func:`scan_samples` found under a root.
+
+    Attributes:
+        root: the folder walked.
+        samples: the sample folders, sorted, as seen from ``root`` (through symbolic links, not resolved).
+        problems: folders that could not be walked, as seen from ``root``, each with a message naming it: a
+            dangling symbolic link, a link that loops back to a folder above it, a folder that cannot be read.
+    """
+
+    root: Path
+    samples: list[Path]
+    problems: dict[Path, str] = field(default_factory=dict)
+
+
+def scan_samples(root: str | Path) -> SampleScan:
+    """Walk ``root`` for sample folders, following symbolic links, and report what cannot be walked.
 
     A folder counts when it is a DiLiGenT object folder or a capture folder whose kind is not a calibration
     or focus kind (``flatfield``, ``sphere``, ``focus``). A capture whose manifest cannot be parsed is listed
     (with a warning) so that the batch reports its error. The walk does not descend into sample folders
     (their ``gt/`` is part of them) nor into hidden folders (such as a capture being written).
+
+    Datasets are often assembled from several places with symbolic links: a link to a sample folder, or to a
+    folder of them, is followed, and its samples are listed under the link's path (so that outputs go under
+    their path relative to ``root`` as seen through the link). A link to a folder already on the current path
+    (a cycle) is not followed, and a link whose target does not exist is not either; both are reported in
+    ``problems`` by their path, and the walk goes on with the other folders.
+
+    Args:
+        root: the folder to walk (itself a link or not).
+
+    Returns:
+        a :class:`SampleScan`: the samples sorted, and the problems.
+
+    Raises:
+        DataFormatError: when ``root`` is not a folder (or a link to one).
+
+    Example:
+        >>> import tempfile
+        >>> top = Path(tempfile.mkdtemp())
+        >>> (top / "cycle").symlink_to(top)
+        >>> (top / "broken").symlink_to(top / "nowhere")
+        >>> scan = scan_samples(top)
+        >>> scan.samples, sorted(path.name for path in scan.problems)
+        ([], ['broken', 'cycle'])
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise DataFormatError(f"{root} does not exist or is not a folder")
+    found: list[Path] = []
+    problems: dict[Path, str] = {}
+    # depth-first, each folder with the real paths of the folders above it (and itself): a link into one of
+    # them would loop
+    stack: list[tuple[Path, frozenset[str]]] = [(root, frozenset({os.path.realpath(root)}))]
+    while stack:
+        folder, above = stack.pop()
+        if (folder / MANIFEST_NAME).is_file():
+            if _is_sample_capture(folder):
+                found.append(folder)
+            continue
+        if is_diligent_folder(folder):
+            found.append(folder)
+            continue
+        try:
+            entries = sorted(os.scandir(folder), key=lambda entry: entry.name, reverse=True)
+        except OSError as error:
+            problems[folder] = f"cannot read the folder {folder}: {error.strerror or error}"
+            continue
+        for entry in entries:
+            if entry.name.startswith("."):
+                continue
+            path = folder / entry.name
+            if entry.is_symlink():
+                target = os.readlink(path)
+                if not path.exists():
+                    problems[path] = f"dangling symbolic link {path} -> {target}: its target does not exist"
+                    continue
+                if not path.is_dir():
+                    continue
+                real = os.path.realpath(path)
+                if real in above:
+                    problems[path] = (f"symbolic link {path} -> {target} loops back to {real}, a folder above it;"
+                                      " not followed")
+                    continue
+            elif entry.is_dir(follow_symlinks=False):
+                real = os.path.realpath(path)
+            else:
+                continue
+            stack.append((path, above | {real}))
+    for path, message in problems.items():
+        logger.warning("%s", message)
+    return SampleScan(root, sorted(found), problems)
+
+
+def find_samples(root: str | Path) -> list[Path]:
+    """List the sample folders under ``root`` (``root`` included), sorted, for batch processing.
+
+    The walk of :func:`scan_samples`: symbolic links to sample folders and to folders of them are followed
+    (samples are listed under the link's path), a cycle is never followed, and a dangling link or a cycle is
+    logged as a warning naming it (:func:`scan_samples` returns them, for callers that report them).
 
     Args:
         root: the folder to walk.
@@ -124,21 +220,7 @@ def find_samples(root: str | Path) -> list[Path]:
         >>> find_samples("../shared/data/DiLiGenT")  # doctest: +SKIP
         [PosixPath('../shared/data/DiLiGenT/ball'), PosixPath('../shared/data/DiLiGenT/cat')]
     """
-    root = Path(root)
-    if not root.is_dir():
-        raise DataFormatError(f"{root} does not exist or is not a folder")
-    found: list[Path] = []
-    for current, subfolders, _ in os.walk(root):
-        folder = Path(current)
-        subfolders[:] = sorted(name for name in subfolders if not name.startswith("."))
-        if (folder / MANIFEST_NAME).is_file():
-            subfolders[:] = []
-            if _is_sample_capture(folder):
-                found.append(folder)
-        elif is_diligent_folder(folder):
-            subfolders[:] = []
-            found.append(folder)
-    return sorted(found)
+    return scan_samples(root).samples
 
 
 def _is_sample_capture(folder: Path) -> bool:

@@ -14,7 +14,15 @@ from plyfile import PlyData
 from psmini import DataFormatError, InputError, ShapeError
 from psmini.geometry import depth_to_points
 from psmini.io import export as export_module
-from psmini.io.export import robust_max, save_albedo_png, save_depth, save_normal_png, save_ply, write_outputs
+from psmini.io.export import (
+    robust_max,
+    save_albedo_png,
+    save_depth,
+    save_mesh_ply,
+    save_normal_png,
+    save_ply,
+    write_outputs,
+)
 from psmini.io.images import read_image, read_image_raw
 
 H, W = 6, 8
@@ -101,25 +109,47 @@ class TestNormals:
 
 
 class TestDepth:
-    def test_npy_png_and_sidecar(self, tmp_path):
+    def test_npy_preview_and_sidecar(self, tmp_path):
         depth = torch.linspace(-1.0, 3.0, H * W, dtype=torch.float64).reshape(1, 1, H, W)
         mask = torch.ones(1, 1, H, W, dtype=torch.bool)
         mask[..., 0, :] = False
-        paths = save_depth(tmp_path / "depth.npy", depth, mask)
+        paths = save_depth(tmp_path / "depth.npy", depth, mask, pixel_pitch_mm=0.025)
         assert [p.name for p in paths] == ["depth.npy", "depth.png", "depth.json"]
         exact = np.load(tmp_path / "depth.npy")
         assert exact.dtype == np.float32 and np.isnan(exact[0]).all()
         np.testing.assert_array_equal(exact[1:], depth[0, 0, 1:].numpy().astype(np.float32))
         sidecar = json.loads((tmp_path / "depth.json").read_text())
         assert sidecar["units"] == "mm" and sidecar["min"] == pytest.approx(float(depth[0, 0, 1, 0]))
-        code, bits = read_image_raw(tmp_path / "depth.png")
-        assert bits == 16 and (code[0] == 0).all() and code[1:].min() == 1 and code[1:].max() == 65535
-        decoded = sidecar["min"] + (code[1:].astype(np.float64) - 1) / 65534 * (sidecar["max"] - sidecar["min"])
-        np.testing.assert_allclose(decoded, exact[1:], atol=(sidecar["max"] - sidecar["min"]) / 65534)
+        inside = depth[0, 0, 1:].numpy()
+        assert sidecar["preview_limits"] == pytest.approx(np.percentile(inside, [1, 99]).tolist())
+        preview, bits = read_image_raw(tmp_path / "depth.png")
+        assert bits == 8 and preview.ndim == 3 and preview.shape[1] >= 320  # RGB, enlarged to be seen
+
+    def test_preview_colours_unsolved_pixels_and_outliers(self, tmp_path):
+        """Height reads as viridis (dark low, yellow high); unsolved pixels are hatched, not black; 1% of far
+        outliers does not set the colour scale."""
+        size = 100
+        rows = np.arange(size, dtype=np.float64)[:, None].repeat(size, 1)
+        depth = 0.5 * rows / (size - 1)  # a ramp from 0 (top) to 0.5 mm (bottom)
+        depth[0, :50] = -2.5  # 50 outliers, 0.5% of the pixels
+        mask = np.ones((size, size), bool)
+        mask[40:60, 40:60] = False  # an unsolved hole
+        save_depth(tmp_path / "d.npy", depth, mask, pixel_pitch_mm=0.025)
+        limits = json.loads((tmp_path / "d.json").read_text())["preview_limits"]
+        assert limits[0] > -0.01 and limits[1] == pytest.approx(0.5, abs=0.01)
+        picture = cv2.imread(str(tmp_path / "d.png"))[..., ::-1]
+        scale = picture.shape[1] // size
+        relief = picture[: size * scale].reshape(size, scale, size, scale, 3).mean(axis=(1, 3))
+        low_row, high_row = relief[5:15, 70:95].mean(axis=(0, 1)), relief[85:92, 70:95].mean(axis=(0, 1))
+        assert low_row[2] > low_row[1] and high_row[1] > high_row[2] and high_row[0] > 2 * low_row[0] - 60
+        hole = picture[45 * scale : 55 * scale, 45 * scale : 55 * scale].reshape(-1, 3)
+        gray = np.abs(hole.astype(int) - hole[:, :1]).max(axis=1) <= 2  # no hue: gray or white
+        assert gray.all() and hole.min() >= 190  # light, never black
 
     def test_flat_depth(self, tmp_path):
         save_depth(tmp_path / "d.npy", torch.full((H, W), 2.0))
-        assert (read_image_raw(tmp_path / "d.png")[0] == 1).all()
+        sidecar = json.loads((tmp_path / "d.json").read_text())
+        assert sidecar["min"] == sidecar["max"] == 2.0 and sidecar["preview_limits"][0] < 2.0 < sidecar["preview_limits"][1]
 
     def test_errors(self, tmp_path):
         with pytest.raises(InputError, match="mask is empty"):
@@ -192,7 +222,8 @@ class TestWriteOutputs:
     def test_writes_every_file(self, tmp_path, batched):
         result = reconstruction(batched)
         written = write_outputs(tmp_path / "out", result, pixel_pitch_mm=0.025, metadata={"sample": "denim"})
-        names = ["albedo.png", "normals.png", "depth.npy", "depth.png", "depth.json", "points.ply", "outputs.json"]
+        names = ["albedo.png", "normals.png", "depth.npy", "depth.png", "depth.json", "points.ply", "mesh.ply",
+                 "outputs.json"]
         assert [p.name for p in written] == names and all(p.is_file() for p in written)
         assert sorted(os.listdir(tmp_path)) == ["out"]
         summary = json.loads((tmp_path / "out" / "outputs.json").read_text())
@@ -240,3 +271,37 @@ class TestWriteOutputs:
         with pytest.raises(InputError, match="bit_depth"):
             write_outputs(tmp_path / "out", result, normal_bit_depth=4)
         assert os.listdir(tmp_path) == []
+
+
+class TestMesh:
+    def test_faces_cover_the_mask_and_face_the_camera(self, tmp_path):
+        """A tilted plane with a hole: every cell with four corners inside gives two triangles, three give one;
+        every face's normal is the plane's normal (computed here from its slopes), toward the camera."""
+        height, width, pitch = 7, 9, 0.025
+        rows, cols = np.mgrid[0:height, 0:width].astype(np.float64)
+        slope_x, slope_y = 0.3, -0.2  # dz/dx and dz/dy (y up = -row)
+        depth = torch.from_numpy(slope_x * cols * pitch + slope_y * (-rows) * pitch)[None, None]
+        mask = np.ones((height, width), bool)
+        mask[3, 4] = False
+        points = depth_to_points(depth, pitch)
+        albedo = torch.rand(1, 1, height, width, dtype=torch.float64)
+        vertices, faces = save_mesh_ply(tmp_path / "mesh.ply", points, albedo, mask)
+        # cells: (height-1)*(width-1) = 48; the 4 cells around the hole have 3 corners each -> 1 triangle
+        assert vertices == height * width - 1 and faces == 2 * (48 - 4) + 4
+        ply = PlyData.read(str(tmp_path / "mesh.ply"))
+        xyz = np.stack([ply["vertex"][k] for k in "xyz"], 1).astype(np.float64)
+        tri = np.stack(ply["face"]["vertex_indices"]).astype(int)
+        assert tri.shape == (faces, 3) and len({tuple(sorted(t)) for t in tri}) == faces
+        normal = np.cross(xyz[tri[:, 1]] - xyz[tri[:, 0]], xyz[tri[:, 2]] - xyz[tri[:, 0]])
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        expected = np.array([-slope_x, -slope_y, 1.0]) / np.sqrt(slope_x**2 + slope_y**2 + 1)
+        np.testing.assert_allclose(normal, np.broadcast_to(expected, normal.shape), atol=1e-5)
+        assert {"red", "green", "blue"} <= {p.name for p in ply["vertex"].properties}
+
+    def test_errors(self, tmp_path):
+        with pytest.raises(ShapeError, match="points"):
+            save_mesh_ply(tmp_path / "m.ply", torch.zeros(2, 4, 4))
+        with pytest.raises(InputError, match="NaN"):
+            save_mesh_ply(tmp_path / "m.ply", torch.full((3, 4, 4), float("nan")))
+        with pytest.raises(DataFormatError, match="cannot write"):
+            save_mesh_ply(tmp_path / "none" / "m.ply", torch.zeros(3, 4, 4))

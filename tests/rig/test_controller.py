@@ -96,29 +96,86 @@ def test_refused_commands_name_the_firmware_message(pty_device):
             leds.command("BLINK")
 
 
+class ScriptedPort:
+    """A port whose firmware (written here, independent of psmini's simulator) answers each command line with
+    ``OK VERB ...`` after the delay the script gives for that line (None: the reply is lost), so that a test
+    decides which reply comes late. It records what it received and which replies it delivered."""
+
+    def __init__(self, delays: dict[int, float | None]):
+        self.delays = delays  # command number (0-based, banner excluded) -> delay in s, or None to lose it
+        self.port = "scripted"
+        self.is_open = True
+        self.received: list[str] = []
+        self.delivered: list[str] = []
+        self._queue: list[tuple[float, bytes]] = [(time.monotonic(), b"READY psmini-leds 1.0.0 leds=8 wdt=2000\r\n")]
+        self._incoming = b""
+
+    def _answer(self, line: str) -> str:
+        verb, _, argument = line.partition(" ")
+        if verb == "STATE?":
+            return "OK STATE on=2 wdt=2000 trips=0"
+        return f"OK {verb} {argument}".rstrip()
+
+    def write(self, data: bytes) -> int:
+        self._incoming += data
+        while b"\n" in self._incoming:
+            raw, _, self._incoming = self._incoming.partition(b"\n")
+            line = raw.decode().strip()
+            delay = self.delays.get(len(self.received), 0.0)
+            self.received.append(line)
+            if delay is not None:
+                self._queue.append((time.monotonic() + delay, (self._answer(line) + "\r\n").encode()))
+        return len(data)
+
+    def _due(self) -> bytes:
+        now = time.monotonic()
+        ready = sorted(item for item in self._queue if item[0] <= now)
+        self._queue = [item for item in self._queue if item[0] > now]
+        self.delivered += [data.decode().strip() for _, data in ready]
+        return b"".join(data for _, data in ready)
+
+    @property
+    def in_waiting(self) -> int:
+        return 0
+
+    def read(self, size: int = 1) -> bytes:
+        data = self._due()
+        if not data:
+            time.sleep(0.002)
+        return data
+
+    def flush(self) -> None:
+        pass
+
+    def reset_input_buffer(self) -> None:
+        self._due()  # whatever has arrived is thrown away
+
+    def close(self) -> None:
+        self.is_open = False
+
+
 def test_one_retry_recovers_from_one_lost_reply():
-    device = SimulatedDevice(boot_s=0.0)
-    with LEDController(serve_url(device), **FAST) as leds:
-        sent = device._send
-
-        def lose_once(reply, lost=[True]):
-            if lost and reply == "OK ON 3":
-                lost.clear()
-                return
-            sent(reply)
-
-        device._send = lose_once
+    port = ScriptedPort({0: None})  # the reply to the first command (ON 3) is lost
+    with LEDController(port, handshake_timeout_s=0.5, command_timeout_s=0.2) as leds:
         leds.on(3)
-        assert device.history.count("ON 3") == 2 and device.lit == 3
+        assert leds.lit == 3
+    assert port.received[:2] == ["ON 3", "ON 3"]  # sent once more after the timeout
+    assert port.delivered.count("OK ON 3") == 1
 
 
 def test_stale_late_replies_are_skipped():
-    device = SimulatedDevice(boot_s=0.0, fault="timeout", fault_after=1, slow_s=0.05)
-    with LEDController(serve_url(device), handshake_timeout_s=0.5, command_timeout_s=0.5) as leds:
-        leds.ping()
-        leds.on(2)  # its reply comes late but within the timeout
-        time.sleep(0.1)
-        leds.state()  # a late reply to nothing pending is skipped, STATE's own is taken
+    """ON 2's first reply comes after its timeout: the retry is answered by that late reply, and the retry's own
+    reply arrives while STATE? waits. STATE? must skip it (a stale OK ON) and return its own reply."""
+    port = ScriptedPort({0: 0.3, 1: 0.3, 2: 0.0})  # ON 2 (late), ON 2 again (late), STATE? at once
+    with LEDController(port, handshake_timeout_s=0.5, command_timeout_s=0.25) as leds:
+        leds.on(2)
+        time.sleep(0.4)  # the second OK ON 2 is now waiting in the port
+        state = leds.state()
+        assert state.lit == 2 and state.watchdog_ms == 2000
+    assert port.received[:3] == ["ON 2", "ON 2", "STATE?"]
+    # both ON replies were delivered, the second one before STATE's: it was read and skipped, not taken
+    assert port.delivered[:4] == ["READY psmini-leds 1.0.0 leds=8 wdt=2000", "OK ON 2", "OK ON 2",
+                                  "OK STATE on=2 wdt=2000 trips=0"]
 
 
 @pytest.mark.parametrize("fault, cause", [

@@ -1,0 +1,51 @@
+"""The CLI prints psmini's error for a truncated PNG, not OpenCV's own log line before it."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from psmini.io import write_image
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _diligent_with_truncated_image(folder: Path) -> None:
+    folder.mkdir()
+    names = [f"{i:03d}.png" for i in range(1, 4)]
+    for name in names:
+        write_image(folder / name, (np.random.default_rng(0).random((16, 16, 3)) * 65535).astype(np.uint16))
+    (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    (folder / "light_directions.txt").write_text("0 0 1\n0.5 0 0.866\n0 0.5 0.866\n")
+    (folder / "light_intensities.txt").write_text("1 1 1\n1 1 1\n1 1 1\n")
+    write_image(folder / "mask.png", np.full((16, 16), 255, np.uint8))
+    data = (folder / "002.png").read_bytes()
+    (folder / "002.png").write_bytes(data[:200])  # a truncated PNG: OpenCV warns "input buffer is incomplete"
+
+
+def _psmini(*args: str, env_extra: dict | None = None) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k != "OPENCV_LOG_LEVEL"}
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
+    env.update(env_extra or {})
+    return subprocess.run([sys.executable, "-m", "psmini.cli", *args], capture_output=True, text=True, env=env,
+                          timeout=120)
+
+
+def test_truncated_png_gives_psmini_error_only(tmp_path):
+    _diligent_with_truncated_image(tmp_path / "obj")
+    run = _psmini("reconstruct", str(tmp_path / "obj"), "--out", str(tmp_path / "out"))
+    assert run.returncode == 1
+    assert "002.png" in run.stderr and "psmini reconstruct: error:" in run.stderr
+    assert "WARN" not in run.stderr and "grfmt_png" not in run.stderr, run.stderr
+
+
+def test_opencv_still_speaks_when_asked(tmp_path):
+    """The check above is not vacuous: with OpenCV's level left at its default, its warning does appear."""
+    _diligent_with_truncated_image(tmp_path / "obj")
+    run = _psmini("reconstruct", str(tmp_path / "obj"), "--out", str(tmp_path / "out"),
+                  env_extra={"OPENCV_LOG_LEVEL": "WARNING"})
+    assert run.returncode == 1 and "WARN" in run.stderr and "002.png" in run.stderr

@@ -1,0 +1,115 @@
+"""The documentation: every public name in the API reference, a short README, the benchmarks page's source."""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import pkgutil
+import re
+import sys
+from pathlib import Path
+
+import pytest
+
+import data_synth
+import psmini
+
+REPO = Path(__file__).resolve().parents[1]
+API = REPO / "docs" / "api"
+
+
+def _documented_modules() -> set[str]:
+    return {m for page in API.glob("*.md") for m in re.findall(r"^::: ([\w.]+)\s*$", page.read_text(), re.M)}
+
+
+def _public_modules():
+    for package in (psmini, data_synth):
+        yield package.__name__
+        for info in pkgutil.walk_packages(package.__path__, f"{package.__name__}."):
+            if not any(part.startswith("_") for part in info.name.split(".")) and ".commands" not in info.name:
+                yield info.name
+
+
+def test_every_public_name_is_in_the_api_reference():
+    """Each function and class in a module's ``__all__`` is rendered by a ``::: module`` directive of docs/api/,
+    on the module that defines it or the one that lists it."""
+    documented = _documented_modules()
+    missing = []
+    for name in _public_modules():
+        module = importlib.import_module(name)
+        for public in getattr(module, "__all__", []):
+            obj = getattr(module, public)
+            if not (inspect.isclass(obj) or inspect.isfunction(obj)):
+                continue  # constants are documented with the module that defines them
+            owner = obj.__module__
+            if owner not in documented and name not in documented and owner.split(".")[0] in ("psmini", "data_synth"):
+                missing.append(f"{name}.{public} (defined in {owner})")
+    assert not missing, "add a '::: MODULE' line to a page of docs/api/ (and to mkdocs.yml's nav) for: " + ", ".join(missing)
+
+
+def test_documented_modules_exist():
+    for name in _documented_modules():
+        importlib.import_module(name)
+
+
+def test_readme_is_a_front_page_with_the_ci_commands():
+    readme = (REPO / "README.md").read_text(encoding="utf-8")
+    assert len(readme.splitlines()) <= 200
+    ci = (REPO / ".ci" / "run").read_text(encoding="utf-8")
+    for command in ("pip install torch==2.13.0 && pip install -e . && psmini demo",
+                    'pip install torch==2.13.0 && pip install -e ".[dev]" && python -m pytest -q'):
+        assert command in readme
+        assert command.replace("pip install ", "pip install --quiet ") in ci
+    assert "mkdocs build --strict" in ci
+    # links into docs/ point at pages that exist (the site build checks the rest)
+    for target in re.findall(r"\]\((docs/[^)#]+)", readme):
+        assert (REPO / target).is_file(), target
+
+
+def test_benchmarks_page_takes_the_latest_section_of_each_benchmark():
+    sys.path.insert(0, str(REPO / "scripts"))
+    try:
+        hooks = importlib.import_module("mkdocs_hooks")
+    finally:
+        sys.path.remove(str(REPO / "scripts"))
+    ledger = "# Results\n\n## A (a.py)\n\nold A\n\n## B (b.py)\n\nonly B\n\n## A (a.py)\n\nnew A\n| x |\n"
+    assert hooks.latest_sections(ledger) == [("A (a.py)", "new A\n| x |"), ("B (b.py)", "only B")]
+    real = hooks.latest_sections((REPO / "benchmarks" / "results.md").read_text(encoding="utf-8"))
+    titles = [title for title, _ in real]
+    assert len(titles) == len(set(titles)) > 0
+
+
+def test_readme_is_the_home_page():
+    sys.path.insert(0, str(REPO / "scripts"))
+    try:
+        hooks = importlib.import_module("mkdocs_hooks")
+    finally:
+        sys.path.remove(str(REPO / "scripts"))
+    page = hooks.on_page_markdown((REPO / "docs" / "index.md").read_text(), None, None, None)
+    assert page.startswith("# psmini") and "](docs/" not in page and "](getting-started.md)" in page
+
+
+@pytest.mark.parametrize("page", sorted((REPO / "docs").rglob("*.md")), ids=lambda p: p.relative_to(REPO).as_posix())
+def test_pages_hold_no_dated_figures(page):
+    """Figures tied to a run (UTC times, commits) live in benchmarks/results.md, not in the guides."""
+    text = page.read_text(encoding="utf-8")
+    assert not re.search(r"\d\d:\d\d UTC|commit `[0-9a-f]{7}", text), page
+
+
+@pytest.mark.slow
+def test_readme_python_example_runs_and_prints_what_it_says(monkeypatch, capsys):
+    """The README's DiLiGenT example, run as written from the repository root (so ``../shared/data`` is the
+    reference data): it prints the figures its comments state."""
+    if not (REPO.parent / "shared" / "data" / "DiLiGenT" / "cat" / "filenames.txt").is_file():
+        pytest.skip("DiLiGenT/cat is not in ../shared/data beside the repository")
+    pytest.importorskip("plotly", reason="result.show() needs plotly (the viz extra)")
+    readme = (REPO / "README.md").read_text(encoding="utf-8")
+    code = re.search(r"## From Python.*?```python\n(.*?)```", readme, re.S).group(1)
+    assert len(code.strip().splitlines()) <= 15
+    monkeypatch.chdir(REPO)
+    namespace: dict = {}
+    exec(compile(code, "README.md", "exec"), namespace)  # noqa: S102 (the README's own example)
+    printed = capsys.readouterr().out
+    assert "lstsq: 8.41° mean angular error" in printed and "robust: 6.57° mean angular error" in printed
+    depth = namespace["depth"][namespace["mask"]]
+    assert bool((depth > 0).all()) and 0.9 < float(depth.log().mean().exp()) < 1.1
