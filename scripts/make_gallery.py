@@ -82,7 +82,7 @@ def fabrics_figure(size: int, out: Path) -> str:
 def nearlight_figure(size: int, out: Path) -> str:
     capture, card, near, pitch = reconstruct("jute", size, FIELD_MM / size)
     leds = rig_lights(RigConfig(size=size, pixel_pitch_mm=pitch))
-    distant = psmini.PhotometricStereo(leds, pixel_pitch_mm=pitch, solver="distant")
+    distant = psmini.PhotometricStereo(leds, pitch, psmini.ReconstructionConfig(solver="distant"))
     runs = {"distant lights, raw": distant(capture.images[None], dark=capture.dark[None]),
             "distant lights, card": distant(capture.images[None], reference=card.images[None], dark=capture.dark[None],
                                             reference_dark=card.dark[None], card_albedo=CARD_ALBEDO),
@@ -136,7 +136,7 @@ def diligent_figure(data_root: Path, out: Path) -> str:
     viz.plot_normals(axes[0], truth[:, window[0], window[1]], inside[window], title="cat: ground-truth normals")
     lines = []
     for ax, method in zip(axes[1:], ("lstsq", "robust")):
-        result = psmini.reconstruct(sample, method=method)
+        result = psmini.reconstruct(sample, psmini.ReconstructionConfig(estimator=method))
         score = psmini.score_reconstruction(result, sample)["mean_angular_error_deg"]
         error = psmini.angular_error_deg(result.normals, truth[None])[0, 0]
         viz.plot_angular_error(ax, error[window], inside[window], limits=(0.0, 30.0),

@@ -48,4 +48,6 @@ def on_page_markdown(markdown: str, page, config, files) -> str:  # noqa: ARG001
     rendered = "\n\n".join(f"## {title}\n\n{body}" for title, body in sections)
     # pictures beside the ledger are published under benchmarks/ (on_files)
     rendered = re.sub(r"\]\(([\w.-]+\.png)\)", r"](benchmarks/\1)", rendered)
+    # links from the ledger into docs/ (figures in docs/gallery/) are relative to benchmarks/: the page sits in docs/
+    rendered = rendered.replace("](../docs/", "](")
     return markdown.replace(MARKER, rendered)
