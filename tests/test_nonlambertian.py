@@ -11,6 +11,7 @@ from psmini.metrics import angular_error_deg, mean_angular_error
 from psmini.nonlambertian import (
     BlinnPhongFit,
     NonLambertianNormals,
+    NonLambertianOptions,
     blinn_phong_images,
     fit_blinn_phong,
     nonlambertian_normals,
@@ -133,13 +134,13 @@ class TestFit(BaseTester):
         single = nonlambertian_normals(images, lights, scored)
         self.assert_close(batched[1][:1], single[1])
         assert (batched[0][~mask] == 0).all() and (batched[1][:, 2:3][~mask] == 1).all()
-        module = NonLambertianNormals(lights, iterations=20)
+        module = NonLambertianNormals(lights, NonLambertianOptions(iterations=20))
         self.assert_close(module(images, scored)[1], single[1])
 
     def test_init_and_weights(self, device):
         normals, scored, albedo, lights, images = _glossy_sphere(device, torch.float64, size=24)
         start = albedo_normals(images, lights, scored)  # a worse start than the robust one still converges
-        fit = fit_blinn_phong(images, lights, scored, init=start, iterations=30)
+        fit = fit_blinn_phong(images, lights, scored, options=NonLambertianOptions(iterations=30), init=start)
         assert float(angular_error_deg(fit.normals, normals)[scored].max()) < 0.5
         # observations dropped through the weights play no part in the fit (from a given start)
         weights = torch.ones_like(images, dtype=torch.bool)
@@ -152,7 +153,7 @@ class TestFit(BaseTester):
     def test_differentiable(self):
         normals, scored, albedo, lights, images = _glossy_sphere("cpu", torch.float64, size=12)
         images = images.clone().requires_grad_()
-        albedo_fit, normals_fit = nonlambertian_normals(images, lights, scored, iterations=5)
+        albedo_fit, normals_fit = nonlambertian_normals(images, lights, scored, options=NonLambertianOptions(iterations=5))
         (normals_fit[:, 0] * scored).sum().backward()
         assert torch.isfinite(images.grad).all() and images.grad.abs().sum() > 0
 
@@ -163,7 +164,7 @@ class TestFit(BaseTester):
                                ({"saturation": 0.0}, "saturation"), ({"shininess": (0.5,)}, "shininess"),
                                ({"shininess": (3000.0,)}, "shininess")):
             with pytest.raises(InputError, match=match):
-                fit_blinn_phong(images, lights, **options)
+                NonLambertianOptions(**options)
         with pytest.raises(InputError, match="NaN"):
             fit_blinn_phong(images * float("nan"), lights)
         with pytest.raises(ShapeError):
@@ -176,8 +177,10 @@ class TestFit(BaseTester):
             fit_blinn_phong(images, lights, init=torch.ones(1, 3, 4, 4))
         with pytest.raises(ShapeError):
             fit_blinn_phong(images, torch.rand(1, 8, 3, 5, 5))
-        with pytest.raises(InputError, match="unknown options"):
-            NonLambertianNormals(lights, method="tukey")
+        with pytest.raises(InputError, match="NonLambertianOptions"):
+            NonLambertianNormals(lights, {"iterations": 3})
+        with pytest.raises(InputError, match="NonLambertianOptions"):
+            fit_blinn_phong(images, lights, options={"iterations": 3})
         with pytest.raises(ShapeError):
             NonLambertianNormals(torch.rand(8, 4))
 

@@ -11,6 +11,7 @@ from psmini.robust import (
     RECOMMENDED_ROBUST_METHOD,
     ROBUST_METHODS,
     RobustNormals,
+    RobustOptions,
     rank_trim_weights,
     robust_normals,
     threshold_weights,
@@ -119,7 +120,7 @@ class TestRobustNormals(BaseTester):
         glint = images.clone()
         glint[:, 3] += 2.0  # a strong highlight in one of 16 images
         _, plain = albedo_normals(glint, lights, inside)
-        _, robust = robust_normals(glint, lights, method, inside, iterations=30)
+        _, robust = robust_normals(glint, lights, method, inside, options=RobustOptions(iterations=30))
         # where every light sees the surface, the glint is the only outlier
         lit = inside & (torch.einsum("kc,bchw->bkhw", lights, normals) > 0.05).all(1, keepdim=True)
         assert int(lit.sum()) > 100
@@ -132,7 +133,7 @@ class TestRobustNormals(BaseTester):
         lights = ring_lights(10, 50.0, device=device, dtype=dtype)
         weights = torch.rand(2, 10, 5, 6, device=device, dtype=dtype)
         expected = albedo_normals(images, lights, weights=weights)
-        actual = robust_normals(images, lights, "threshold", weights=weights, shadow=0.0)
+        actual = robust_normals(images, lights, "threshold", weights=weights, options=RobustOptions(shadow=0.0))
         self.assert_close(actual[0], expected[0])
         self.assert_close(actual[1], expected[1])
 
@@ -177,7 +178,7 @@ class TestRobustNormals(BaseTester):
         # differences must not straddle a change of order; seeded noise keeps the point the same on every run
         noise = torch.rand(images.shape, generator=torch.Generator().manual_seed(0), dtype=images.dtype)
         images = (images + 0.05 * noise).requires_grad_()
-        self.gradcheck(lambda x: robust_normals(x, lights, method, iterations=3, shadow=0.0), (images,))
+        self.gradcheck(lambda x: robust_normals(x, lights, method, options=RobustOptions(iterations=3, shadow=0.0)), (images,))
 
     def test_gradcheck_trimmed(self):
         generator = torch.Generator().manual_seed(0)  # distinct readings, far from ties, on every run
@@ -191,14 +192,17 @@ class TestRobustNormals(BaseTester):
             robust_normals(images, lights, "ransac")
         with pytest.raises(InputError, match="method"):
             RobustNormals(lights, "ransac")
-        with pytest.raises(InputError, match="trim fractions"):
-            robust_normals(images, lights, "trimmed", low=0.8, high=0.3)
-        with pytest.raises(InputError, match="iterations"):
-            robust_normals(images, lights, "huber", iterations=-1)
-        with pytest.raises(InputError, match="tuning"):
-            robust_normals(images, lights, "huber", tuning=0.0)
-        with pytest.raises(InputError, match="shadow"):
-            robust_normals(images, lights, "tukey", shadow=1.0)
+        for fields, match in (({"low": 0.8, "high": 0.3}, "trim fractions"), ({"iterations": -1}, "iterations"),
+                              ({"iterations": 2.5}, "iterations"), ({"tuning": 0.0}, "tuning"),
+                              ({"shadow": 1.0}, "shadow"), ({"saturation": 0.0}, "saturation"),
+                              ({"l1_epsilon": 0.0}, "l1_epsilon"), ({"rpca_iterations": -1}, "rpca_iterations"),
+                              ({"rpca_lambda": 0.0}, "rpca_lambda")):
+            with pytest.raises(InputError, match=f"RobustOptions.*{match}"):
+                RobustOptions(**fields)
+        with pytest.raises(InputError, match="RobustOptions"):
+            robust_normals(images, lights, "huber", options={"iterations": 3})
+        with pytest.raises(InputError, match="RobustOptions"):
+            RobustNormals(lights, "huber", {"iterations": 3})
         with pytest.raises(InputError):
             robust_normals(images * float("nan"), lights)
         with pytest.raises(ShapeError, match="distant lights"):
@@ -246,14 +250,8 @@ class TestRpca(BaseTester):
         generator = torch.Generator().manual_seed(0)
         images = torch.rand(1, 6, 2, 3, generator=generator, dtype=torch.float64) + 0.2
         lights = ring_lights(6, 40.0, dtype=torch.float64)
-        self.gradcheck(lambda x: robust_normals(x, lights, "rpca", rpca_iterations=5)[1], (images.requires_grad_(),))
-
-    def test_errors(self):
-        images = torch.rand(1, 8, 2, 2)
-        with pytest.raises(InputError, match="rpca_iterations"):
-            robust_normals(images, ring_lights(8, 55.0), "rpca", rpca_iterations=-1)
-        with pytest.raises(InputError, match="rpca_lambda"):
-            robust_normals(images, ring_lights(8, 55.0), "rpca", rpca_lambda=0.0)
+        options = RobustOptions(rpca_iterations=5)
+        self.gradcheck(lambda x: robust_normals(x, lights, "rpca", options=options)[1], (images.requires_grad_(),))
 
     def test_diligent_ball(self):
         """Measured 1.98° (published RPCA: 2.06°), 30 iterations, default lambda."""
