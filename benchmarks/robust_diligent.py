@@ -111,16 +111,22 @@ def loop_pixel(values: np.ndarray, lights: np.ndarray, method: str) -> np.ndarra
     ordered = np.sort(values[kept])
     band = kept & (values >= ordered[int(np.floor(n * DEFAULTS["low"]))]) \
         & (values <= ordered[max(n - 1 - int(np.floor(n * DEFAULTS["high"])), 0)])
-    m = np.linalg.lstsq(lights[band if band.sum() >= 3 else kept], values[band if band.sum() >= 3 else kept],
-                        rcond=None)[0]
+    m = np.linalg.lstsq(lights[kept], values[kept], rcond=None)[0]
+    if band.sum() >= 3:  # the more consistent of the two starts
+        m = _more_consistent(values, lights, m, np.linalg.lstsq(lights[band], values[band], rcond=None)[0])
     shadow = min(DEFAULTS["shadow_iterations"], DEFAULTS["iterations"])
     m = _loop_irls(values, lights, kept, m, method, DEFAULTS["iterations"] - shadow, attached=False)
     if shadow == 0:
         return m
     m_attached = _loop_irls(values, lights, kept, m, method, shadow, attached=True)
-    # the lower median absolute residual of the clamped model over all readings picks one
-    spread = [np.sort(np.abs(values - np.maximum(lights @ x, 0)))[(k - 1) // 2] for x in (m, m_attached)]
-    return m_attached if spread[1] < spread[0] else m
+    return _more_consistent(values, lights, m, m_attached)
+
+
+def _more_consistent(values, lights, first, second):
+    """The estimate whose clamped model has the lower (lower-)median absolute residual over all readings."""
+    k = values.shape[0]
+    spread = [np.sort(np.abs(values - np.maximum(lights @ x, 0)))[(k - 1) // 2] for x in (first, second)]
+    return second if spread[1] < spread[0] else first
 
 
 def loop_rpca(values: np.ndarray, lights: np.ndarray) -> np.ndarray:

@@ -34,8 +34,9 @@ self-occluding surface (grooves, folds, a bowl) cast shadows are a large share o
 least-squares start and to inflate the residual scale so that the M-estimator keeps them. So the IRLS estimators
 (the scheme of an MM-estimator, Yohai 1987: a start that resists many outliers, then an efficient M-step):
 
-1. start from least squares on the rank-trimmed readings (the darkest ``low`` and brightest ``high`` fractions of
-   the thresholded readings dropped), which dark cast shadows cannot pull;
+1. start from the more consistent (step 4's criterion) of least squares on the thresholded readings and least
+   squares on their rank-trimmed band (the darkest ``low`` and brightest ``high`` fractions dropped), which dark
+   cast shadows cannot pull;
 2. run ``iterations - shadow_iterations`` IRLS iterations on the thresholded readings;
 3. run ``shadow_iterations`` more that also leave out the readings the current estimate puts in attached shadow
    (:math:`l_k \cdot m \le 0`): the clamped model :math:`\max(l_k \cdot m, 0)` the images follow has no slope
@@ -471,18 +472,20 @@ def _solve_one(
 ) -> tuple[Tensor, Tensor]:
     """Robust m (3, N) and solvability (N,) for the pixel rows (N, K) of one batch element.
 
-    The IRLS estimators run the scheme of the module docstring: least squares on the rank-trimmed thresholded
-    readings, ``iterations - shadow_iterations`` IRLS iterations on the thresholded readings, ``shadow_iterations``
+    The IRLS estimators run the scheme of the module docstring: the more consistent of least squares on the
+    thresholded readings and on their rank-trimmed band, ``iterations - shadow_iterations`` IRLS iterations on the thresholded readings, ``shadow_iterations``
     more that also leave out the readings the current estimate puts in attached shadow, and per pixel the more
     consistent of the last two estimates (:func:`_more_consistent`).
     """
     kept = _rejection(rows, base, method, options)
     if method in ("trimmed", "threshold"):
         return _solve_rows(rows, design, kept)
-    m, solved = _solve_rows(rows, design, kept * _trim_band(rows, options.low, options.high, kept > 0))
-    if not bool(solved.all()):  # too few trimmed readings: start those pixels from all the thresholded ones
-        m_kept, solved_kept = _solve_rows(rows, design, kept)
-        m, solved = torch.where(solved, m, m_kept), solved | solved_kept
+    # start: the more consistent of least squares on the thresholded readings and on their rank-trimmed band
+    # (a pixel with too few trimmed readings starts from the thresholded ones)
+    m_kept, solved = _solve_rows(rows, design, kept)
+    m, trimmed = _solve_rows(rows, design, kept * _trim_band(rows, options.low, options.high, kept > 0))
+    m = torch.where(trimmed, _more_consistent(rows, design[1], m_kept, m, None), m_kept)
+    solved = solved | trimmed
     floor = _irls_floor(rows, method, options.l1_epsilon)
     padding = None if method == "l1" else _median_padding(kept > 0, rows.dtype)  # l1 takes no residual scale
     plain = options.iterations - min(options.shadow_iterations, options.iterations)
