@@ -25,7 +25,9 @@ few iterations against a start sized on the data (albedos by linear least square
 half vector of the brightest reading; see :func:`_starts`), and runs a fixed number of
 Levenberg–Marquardt iterations (Levenberg 1944, Marquardt 1963) on the iteratively reweighted normal equations
 (Cauchy weights :math:`1 / (1 + (r/\sigma)^2)`, Holland & Welsch 1977), with a damping factor and an accept/reject
-decision per pixel. The five unknowns are two tangent-plane steps of the normal, :math:`\rho`, :math:`s` and
+decision per pixel. A pixel then keeps its start (the robust Lambertian estimate, no lobe) when the
+fitted model's Cauchy cost per degree of freedom (:math:`K - 5` against :math:`K - 3` usable readings) is not lower:
+the lobe must earn its two extra parameters, so the fit never ends worse than its start by its own measure. The five unknowns are two tangent-plane steps of the normal, :math:`\rho`, :math:`s` and
 :math:`\log \alpha`. All pixels are solved at once as the rows of :math:`N \times K` matrices (blocks of
 :data:`_CHUNK` that stay in the CPU caches, each pixel's readings contiguous); the normal equations of all pixels are
 one batched product and the 5×5 systems one batched solve. The fixed iteration count keeps the result
