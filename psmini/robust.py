@@ -58,6 +58,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -504,11 +505,11 @@ def _trim_band(rows: Tensor, low: float, high: float, usable: Tensor) -> Tensor:
     usable ones, bool (N, K): :func:`_trim_keep` but for ties at the two bounds, which are all kept.
 
     One plain sort of the values (NumPy's SIMD sort on CPU without autograd) replaces the stable argsort and the
-    scatter of ranks, measured ~3x cheaper; the start of the IRLS estimators needs no tie-breaking.
+    scatter of ranks, measured 2.5x cheaper for 4096 × 96; the start of the IRLS estimators needs no tie-breaking.
     """
     values = rows.detach().masked_fill(~usable, float("inf"))
     if values.device.type == "cpu":
-        ordered = torch.from_numpy(__import__("numpy").sort(values.numpy(), axis=1))
+        ordered = torch.from_numpy(np.sort(values.numpy(), axis=1))
     else:
         ordered = values.sort(dim=1).values
     count = usable.sum(dim=1, keepdim=True)

@@ -86,6 +86,16 @@ class TestWeights(BaseTester):
         # the autograd path (torch's median) selects the same values
         self.assert_close(_median(values.requires_grad_(), padding)[has_any].detach(), expected[has_any])
 
+    def test_trim_band_matches_rank_trimming_without_ties(self, device, dtype):
+        from psmini.robust import _trim_band, _trim_keep
+
+        rows = torch.rand(500, 24, device=device, dtype=dtype)  # no ties
+        usable = rows > 0.2
+        self.assert_close(_trim_band(rows, 0.25, 0.10, usable).float(), _trim_keep(rows, 0.25, 0.10, usable, 1).float())
+        tied = torch.tensor([[0.1, 0.1, 0.5, 0.5, 0.5, 0.9, 0.9, 0.9]], device=device, dtype=dtype)
+        # ranks 2 .. 7 kept by rank; the band keeps every reading equal to a bound as well
+        assert _trim_band(tied, 0.25, 0.0, torch.ones_like(tied, dtype=torch.bool)).tolist() == [[False, False] + [True] * 6]
+
     def test_errors(self):
         images = torch.rand(1, 8, 2, 2)
         for low, high in ((-0.1, 0.1), (0.5, 0.5), (1.0, 0.0)):
