@@ -211,7 +211,7 @@ def test_never_worse_than_the_start_on_lambertian_readings():
     """8 lights, Lambertian sphere with 1% noise: a lobe could only fit noise; pixels whose fit does not beat the
     start's Lambertian model per degree of freedom keep the start (specular 0, normal of the start).
 
-    Measured: 1.59° against the start's 1.49° (+6.5%): with 8 readings and 5 unknowns the fit still follows noise on
+    Measured: 1.58° against the start's 1.49° (+6%): with 8 readings and 5 unknowns the fit still follows noise on
     the pixels it keeps (as on the satin fabric); the bound below holds that damage to 10%."""
     from psmini.robust import robust_normals
 
