@@ -42,8 +42,8 @@ from psmini.io import load_sample  # noqa: E402
 from psmini.metrics import mean_angular_error, median_angular_error  # noqa: E402
 from psmini.normals import albedo_normals  # noqa: E402
 from psmini.pipeline import distant_light_matrix  # noqa: E402
-from psmini.nonlambertian import nonlambertian_normals  # noqa: E402
-from psmini.robust import RECOMMENDED_ROBUST_METHOD, ROBUST_METHODS, robust_normals  # noqa: E402
+from psmini.nonlambertian import NonLambertianOptions, nonlambertian_normals  # noqa: E402
+from psmini.robust import RECOMMENDED_ROBUST_METHOD, ROBUST_METHODS, RobustOptions, robust_normals  # noqa: E402
 
 # Mean angular error (degrees) on ball / cat, DiLiGenT benchmark (Shi et al., TPAMI 2019, Table 2).
 PUBLISHED = {
@@ -53,10 +53,43 @@ PUBLISHED = {
     "bi-polynomial BRDF (Shi et al. 2014)": {"ball": 1.74, "cat": 6.12},
 }
 TUNING = {"huber": 1.345, "cauchy": 2.385, "tukey": 4.685}
-DEFAULTS = {"low": 0.25, "high": 0.10, "shadow": 0.05, "iterations": 10, "l1_epsilon": 1e-3, "rpca_iterations": 30}
+DEFAULTS = {k: v for k, v in RobustOptions().to_dict().items() if v is not None}
 # psmini.nonlambertian's defaults and constants, for the per-pixel loop
-NL = {"iterations": 20, "race": 6, "shadow": 0.05, "scale": 0.1, "shininess": (4.0, 16.0, 64.0, 256.0),
-      "max_shininess": 2000.0, "faint": (0.01, 30.0), "peak_ratio": 4.0}
+NL = {**{k: v for k, v in NonLambertianOptions().to_dict().items() if v is not None},
+      "race": 6, "faint": (0.01, 30.0), "peak_ratio": 4.0}
+
+
+def _loop_irls(values, lights, kept, m, method, iterations, attached):
+    """IRLS iterations of psmini.robust on one pixel's thresholded readings (``kept``, bool (K,))."""
+    sub_lights, sub_values = lights[kept], values[kept]
+    floor = 1e-6 * np.abs(values).max() + 1e-38
+    for _ in range(iterations):
+        prediction = sub_lights @ m
+        residuals = sub_values - prediction
+        use = np.ones_like(residuals)
+        if attached:  # leave out the readings the estimate puts in attached shadow; clamped-model residuals
+            lit = prediction > 0
+            use = lit.astype(float)
+            residuals = np.where(lit, residuals, sub_values)
+        size = np.abs(residuals)
+        if method == "l1":
+            weights = 1.0 / np.maximum(size, DEFAULTS["l1_epsilon"] * np.abs(values).mean())
+        else:
+            # the lower median over every thresholded reading, as psmini.robust selects it
+            scale = 1.4826 * np.sort(size)[(len(size) - 1) // 2] + floor
+            u = size / (TUNING[method] * scale)
+            if method == "huber":
+                weights = 1.0 / np.maximum(u, 1.0)
+            elif method == "cauchy":
+                weights = 1.0 / (1.0 + u * u)
+            else:
+                weights = np.clip(1.0 - u * u, 0.0, None) ** 2
+        weights = weights * use
+        if np.count_nonzero(weights) < 3:
+            break
+        root = np.sqrt(weights)
+        m = np.linalg.lstsq(sub_lights * root[:, None], sub_values * root, rcond=None)[0]
+    return m
 
 
 def loop_pixel(values: np.ndarray, lights: np.ndarray, method: str) -> np.ndarray:
@@ -68,31 +101,32 @@ def loop_pixel(values: np.ndarray, lights: np.ndarray, method: str) -> np.ndarra
         order = np.argsort(values, kind="stable")
         keep = order[int(np.floor(k * DEFAULTS["low"])): k - int(np.floor(k * DEFAULTS["high"]))]
         return np.linalg.lstsq(lights[keep], values[keep], rcond=None)[0]
-    keep = values > DEFAULTS["shadow"] * values.max()
-    if keep.sum() < 3:
+    kept = values > DEFAULTS["shadow"] * values.max()
+    n = int(kept.sum())
+    if n < 3:
         return np.zeros(3)
-    sub_lights, sub_values = lights[keep], values[keep]
-    m = np.linalg.lstsq(sub_lights, sub_values, rcond=None)[0]
     if method == "threshold":
+        return np.linalg.lstsq(lights[kept], values[kept], rcond=None)[0]
+    # start: least squares on the readings between the trimmed ranks of the thresholded ones
+    ordered = np.sort(values[kept])
+    band = kept & (values >= ordered[int(np.floor(n * DEFAULTS["low"]))]) \
+        & (values <= ordered[max(n - 1 - int(np.floor(n * DEFAULTS["high"])), 0)])
+    m = np.linalg.lstsq(lights[kept], values[kept], rcond=None)[0]
+    if band.sum() >= 3:  # the more consistent of the two starts
+        m = _more_consistent(values, lights, m, np.linalg.lstsq(lights[band], values[band], rcond=None)[0])
+    shadow = min(DEFAULTS["shadow_iterations"], DEFAULTS["iterations"])
+    m = _loop_irls(values, lights, kept, m, method, DEFAULTS["iterations"] - shadow, attached=False)
+    if shadow == 0:
         return m
-    for _ in range(DEFAULTS["iterations"]):
-        size = np.abs(sub_values - sub_lights @ m)
-        if method == "l1":
-            weights = 1.0 / np.maximum(size, DEFAULTS["l1_epsilon"] * np.abs(values).mean())
-        else:
-            scale = 1.4826 * np.median(size) + 1e-6 * np.abs(values).max() + 1e-30
-            u = size / (TUNING[method] * scale)
-            if method == "huber":
-                weights = 1.0 / np.maximum(u, 1.0)
-            elif method == "cauchy":
-                weights = 1.0 / (1.0 + u * u)
-            else:
-                weights = np.clip(1.0 - u * u, 0.0, None) ** 2
-        if np.count_nonzero(weights) < 3:
-            break
-        root = np.sqrt(weights)
-        m = np.linalg.lstsq(sub_lights * root[:, None], sub_values * root, rcond=None)[0]
-    return m
+    m_attached = _loop_irls(values, lights, kept, m, method, shadow, attached=True)
+    return _more_consistent(values, lights, m, m_attached)
+
+
+def _more_consistent(values, lights, first, second):
+    """The estimate whose clamped model has the lower (lower-)median absolute residual over all readings."""
+    k = values.shape[0]
+    spread = [np.sort(np.abs(values - np.maximum(lights @ x, 0)))[(k - 1) // 2] for x in (first, second)]
+    return second if spread[1] < spread[0] else first
 
 
 def loop_rpca(values: np.ndarray, lights: np.ndarray) -> np.ndarray:
@@ -189,7 +223,12 @@ def loop_nonlambertian(values: np.ndarray, lights: np.ndarray, rho0: float, n0: 
     state, _, damping = raced[0] if raced[0][1] <= raced[1][1] else raced[1]
     state, _, _ = _nl_iterate(values, usable, sigma, most, lights, energy, half, state, damping,
                               NL["iterations"] - NL["race"])
-    return state[0]
+    # the start's Lambertian model wins when its Cauchy cost per degree of freedom is lower
+    count = usable.sum()
+    fit = _nl_cost(values - _nl_shade(state[0], state[1], state[2], np.exp(state[3]), lights, energy, half)[3],
+                   usable, sigma) / max(count - 5, 0.5)
+    start = _nl_cost(values - _nl_shade(n0, rho0, 0.0, 1.0, lights, energy, half)[3], usable, sigma) / max(count - 3, 0.5)
+    return n0 if start < fit else state[0]
 
 
 def torch_normals(images, lights, mask, method):

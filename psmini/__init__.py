@@ -39,9 +39,9 @@ from psmini.metrics import angular_error_deg, depth_error, mean_angular_error, m
 from psmini.nearlight import (NearLightOptions, NearLightResult, RefineOptions, estimate_height_offset, near_light_vectors,
                               refine_depth, robust_near_light_normals, solve_near_light)
 from psmini.normals import LeastSquaresNormals, albedo_normals, normals_to_gradients
-from psmini.nonlambertian import (BlinnPhongFit, NonLambertianNormals, blinn_phong_images, fit_blinn_phong,
-                                  nonlambertian_normals)
-from psmini.robust import (RECOMMENDED_ROBUST_METHOD, ROBUST_METHODS, RobustNormals, rank_trim_weights,
+from psmini.nonlambertian import (BlinnPhongFit, NonLambertianNormals, NonLambertianOptions, blinn_phong_images,
+                                  fit_blinn_phong, nonlambertian_normals)
+from psmini.robust import (RECOMMENDED_ROBUST_METHOD, ROBUST_METHODS, RobustNormals, RobustOptions, rank_trim_weights,
                            robust_normals, threshold_weights)
 from psmini.config import ReconstructionConfig
 from psmini.pipeline import NORMAL_ESTIMATORS, PhotometricStereo, Reconstruction, distant_light_matrix, reconstruct
@@ -80,8 +80,10 @@ __all__ = [
     # robust normals
     "robust_normals",
     "RobustNormals",
+    "RobustOptions",
     "nonlambertian_normals",
     "NonLambertianNormals",
+    "NonLambertianOptions",
     "fit_blinn_phong",
     "blinn_phong_images",
     "BlinnPhongFit",

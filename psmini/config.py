@@ -26,7 +26,8 @@ from psmini.errors import InputError
 from psmini.integrate import METHODS as INTEGRATION_METHODS
 from psmini.lights import LightModel
 from psmini.nearlight import NearLightOptions
-from psmini.robust import ROBUST_METHODS
+from psmini.nonlambertian import NonLambertianOptions
+from psmini.robust import ROBUST_METHODS, RobustOptions
 
 __all__ = ["SOLVERS", "ESTIMATORS", "ReconstructionConfig"]
 
@@ -40,6 +41,9 @@ SOLVERS = ("auto", "distant", "near")
 ESTIMATORS = ("auto", "lstsq", "robust") + ROBUST_METHODS + ("nonlambertian",)
 
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
+# the options type of each estimator that has options
+_ESTIMATOR_OPTIONS = {**{name: RobustOptions for name in ("robust",) + ROBUST_METHODS},
+                      "nonlambertian": NonLambertianOptions}
 # options of an integrator that the pipeline itself supplies
 _INTEGRATOR_SUPPLIED = {"p", "q", "pixel_pitch_mm", "mask"}
 
@@ -58,8 +62,9 @@ class ReconstructionConfig:
             classical distant-light pipeline.
         estimator: normal estimator, one of :data:`ESTIMATORS` (default ``auto``: least squares for distant
             lights, the near solver's own robust least squares for near ones).
-        estimator_options: keyword options of the estimator (:func:`psmini.robust.robust_normals` for the robust
-            ones), checked against it.
+        estimator_options: the estimator's options: a :class:`~psmini.robust.RobustOptions` for the robust
+            estimators, a :class:`~psmini.nonlambertian.NonLambertianOptions` for ``nonlambertian`` (or their
+            ``to_dict()`` form); ``None``: the estimator's defaults.
         integrator: ``"auto"`` or a name of :data:`psmini.integrate.METHODS`. ``auto``: for distant lights masked
             least squares when the sample has a mask, Frankot–Chellappa over the full rectangle otherwise; for near
             light the near options' integrator (weighted masked least squares: the unsolved crevices of cloth are
@@ -87,7 +92,7 @@ class ReconstructionConfig:
 
     solver: str = "auto"
     estimator: str = "auto"
-    estimator_options: Mapping[str, Any] = field(default_factory=dict)
+    estimator_options: RobustOptions | NonLambertianOptions | None = None
     integrator: str = "auto"
     integrator_options: Mapping[str, Any] = field(default_factory=dict)
     near: NearLightOptions = field(default_factory=NearLightOptions)
@@ -113,13 +118,7 @@ class ReconstructionConfig:
         except (RuntimeError, TypeError) as error:
             raise InputError(f"device must name a torch device (cpu, cuda, cuda:1), got {self.device!r}") from error
         self._check_options("integrator_options", self.integrator_options, self._integrators(), _INTEGRATOR_SUPPLIED)
-        if self.estimator_options:
-            if self.estimator in ("auto", "lstsq", "nonlambertian"):
-                raise InputError(f"estimator {self.estimator!r} takes no options, got {sorted(self.estimator_options)}")
-            from psmini.robust import robust_normals
-
-            self._check_options("estimator_options", self.estimator_options, [robust_normals],
-                                {"intensities", "lights", "method", "mask", "weights"})
+        self._check_estimator_options()
         if isinstance(self.near, Mapping):  # the JSON form (from_dict, --near-option)
             try:
                 object.__setattr__(self, "near", NearLightOptions(**self.near))
@@ -130,6 +129,22 @@ class ReconstructionConfig:
         if self.solver == "distant" and self.near != NearLightOptions():
             changed = sorted(k for k, v in self.near.to_dict().items() if v != NearLightOptions().to_dict()[k])
             raise InputError(f"near-light options {changed} were given but the solver is 'distant'")
+
+    def _check_estimator_options(self) -> None:
+        options, kind = self.estimator_options, _ESTIMATOR_OPTIONS.get(self.estimator)
+        if options is None or (isinstance(options, Mapping) and not options):
+            object.__setattr__(self, "estimator_options", None)
+            return
+        if kind is None:
+            raise InputError(f"estimator {self.estimator!r} takes no options, got {options!r}")
+        if isinstance(options, Mapping):  # the JSON form (from_dict)
+            try:
+                options = kind(**options)
+            except TypeError as error:
+                raise InputError(f"estimator_options: {error} (the fields of {kind.__name__})") from error
+            object.__setattr__(self, "estimator_options", options)
+        if not isinstance(options, kind):
+            raise InputError(f"estimator {self.estimator!r} takes a {kind.__name__}, got {type(options).__name__}")
 
     @staticmethod
     def _check_name(what: str, value: Any, allowed: tuple[str, ...]) -> None:
@@ -208,8 +223,8 @@ class ReconstructionConfig:
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict of every field (what ``outputs.json`` and batch summaries record)."""
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        values.update(estimator_options=dict(self.estimator_options), integrator_options=dict(self.integrator_options),
-                      near=self.near.to_dict())
+        values.update(estimator_options=None if self.estimator_options is None else self.estimator_options.to_dict(),
+                      integrator_options=dict(self.integrator_options), near=self.near.to_dict())
         return values
 
     @classmethod

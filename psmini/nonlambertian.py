@@ -25,7 +25,9 @@ few iterations against a start sized on the data (albedos by linear least square
 half vector of the brightest reading; see :func:`_starts`), and runs a fixed number of
 Levenberg–Marquardt iterations (Levenberg 1944, Marquardt 1963) on the iteratively reweighted normal equations
 (Cauchy weights :math:`1 / (1 + (r/\sigma)^2)`, Holland & Welsch 1977), with a damping factor and an accept/reject
-decision per pixel. The five unknowns are two tangent-plane steps of the normal, :math:`\rho`, :math:`s` and
+decision per pixel. A pixel then keeps its start (the robust Lambertian estimate, no lobe) when the
+fitted model's Cauchy cost per degree of freedom (:math:`K - 5` against :math:`K - 3` usable readings) is not lower:
+the lobe must earn its two extra parameters, so the fit never ends worse than its start by its own measure. The five unknowns are two tangent-plane steps of the normal, :math:`\rho`, :math:`s` and
 :math:`\log \alpha`. All pixels are solved at once as the rows of :math:`N \times K` matrices (blocks of
 :data:`_CHUNK` that stay in the CPU caches, each pixel's readings contiguous); the normal equations of all pixels are
 one batched product and the 5×5 systems one batched solve. The fixed iteration count keeps the result
@@ -35,18 +37,19 @@ differentiable.
 from __future__ import annotations
 
 import math
+from dataclasses import asdict, dataclass, replace
 from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
 
-from psmini._checks import check_finite, check_mask, check_positive, check_shape, check_tensor
+from psmini._checks import check_finite, check_mask, check_shape, check_tensor
 from psmini.errors import InputError, ShapeError
 from psmini.lights import as_batched_lights
 from psmini.normals import _check_lights, _check_weights, albedo_normals
-from psmini.robust import _median, _median_padding, _scatter, robust_normals, threshold_weights
+from psmini.robust import RobustOptions, _median, _median_padding, _scatter, robust_normals, threshold_weights
 
-__all__ = ["BlinnPhongFit", "NonLambertianNormals", "blinn_phong_images", "fit_blinn_phong", "nonlambertian_normals"]
+__all__ = ["BlinnPhongFit", "NonLambertianNormals", "NonLambertianOptions", "blinn_phong_images", "fit_blinn_phong", "nonlambertian_normals"]
 
 # Pixels solved together: the (chunk, K) arrays of one iteration stay in cache (the normal equations ran ~5x faster
 # in blocks of 4096 pixels than over DiLiGenT cat's 45,200 at once, one CPU thread).
@@ -57,6 +60,58 @@ _FAINT_LOBE, _FAINT_SHININESS = 0.01, 30.0
 _RACE = 6
 # largest lobe peak s E, in units of the pixel's brightest usable reading
 _PEAK_RATIO = 4.0
+
+
+@dataclass(frozen=True)
+class NonLambertianOptions:
+    r"""Options of :func:`fit_blinn_phong`; the defaults are the ones ``benchmarks/robust_stress.py`` measures.
+
+    Attributes:
+        iterations: Levenberg–Marquardt iterations (fixed, so the result is differentiable).
+        shadow: readings below this fraction of the pixel's brightest usable one are dropped as shadow, in [0, 1).
+        scale: Cauchy scale :math:`\sigma` as a fraction of the pixel's median usable reading (> 0).
+        saturation: readings at or above this level are dropped; ``None`` keeps all.
+        shininess: starting exponents :math:`\alpha` tried per pixel (each in [1, ``max_shininess``]): for each,
+            the albedos by linear least squares; the pixel starts from the one of least Cauchy cost, or from the
+            Lambertian start (no lobe) when that is lower.
+        max_shininess: largest exponent allowed.
+
+    Raises:
+        InputError: naming the field, what it must be and what came.
+
+    Example:
+        >>> NonLambertianOptions(iterations=5).to_dict()["iterations"]
+        5
+    """
+
+    iterations: int = 20
+    shadow: float = 0.05
+    scale: float = 0.1
+    saturation: float | None = None
+    shininess: tuple[float, ...] = (4.0, 16.0, 64.0, 256.0)
+    max_shininess: float = 2000.0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.iterations, bool) or int(self.iterations) != self.iterations or self.iterations < 0:
+            raise InputError(f"NonLambertianOptions.iterations must be a non-negative integer, got {self.iterations!r}")
+        if not 0.0 <= self.shadow < 1.0:
+            raise InputError("NonLambertianOptions.shadow must lie in [0, 1) (a fraction of the brightest reading), "
+                             f"got {self.shadow}")
+        if not self.scale > 0:
+            raise InputError(f"NonLambertianOptions.scale must be positive, got {self.scale}")
+        if self.saturation is not None and not self.saturation > 0:
+            raise InputError(f"NonLambertianOptions.saturation must be positive or None, got {self.saturation}")
+        if not self.max_shininess >= 1.0:
+            raise InputError(f"NonLambertianOptions.max_shininess must be at least 1, got {self.max_shininess}")
+        exponents = tuple(float(e) for e in self.shininess)
+        if not exponents or not all(1.0 <= e <= self.max_shininess for e in exponents):
+            raise InputError("NonLambertianOptions.shininess (starting exponents) must be non-empty, each in "
+                             f"[1, max_shininess={self.max_shininess}], got {self.shininess}")
+        object.__setattr__(self, "shininess", exponents)
+
+    def to_dict(self) -> dict:
+        """The options as a plain dict (JSON-ready)."""
+        return asdict(self)
 
 
 class BlinnPhongFit(NamedTuple):
@@ -187,13 +242,13 @@ def _brightest_half(values: Tensor, usable: Tensor, half: Tensor) -> Tensor:
 
 
 def _starts(values: Tensor, usable: Tensor, albedo: Tensor, normals: Tensor, lights: Tensor, energy: Tensor,
-            half: Tensor, sigma: Tensor, options: dict) -> tuple[list[Tensor], list[Tensor]]:
+            half: Tensor, sigma: Tensor, options: NonLambertianOptions) -> tuple[list[Tensor], list[Tensor]]:
     """Two starting states [normals (N, 3), albedo, specular albedo, log shininess (each (N, 1))].
 
     The first is the given start with a faint lobe (specular 1% of the albedo, exponent 30): the robust loss then
     sees a highlight as an outlier at first and grows the lobe only as far as the data support it. The second is the
     candidate of least Cauchy cost among, for each starting normal (the given one, the half vector of the brightest
-    reading, and their bisector) and each exponent of ``options["shininess"]``, albedo and specular albedo by linear
+    reading, and their bisector) and each exponent of ``options.shininess``, albedo and specular albedo by linear
     least squares on the usable readings (a 2×2 system per pixel, the specular albedo clamped at 0): a lobe of the
     size and at the place of a strong highlight, which the first start can miss when the robust start is far off.
     """
@@ -205,7 +260,7 @@ def _starts(values: Tensor, usable: Tensor, albedo: Tensor, normals: Tensor, lig
     bisector = normals + peak
     bisector = bisector / bisector.norm(dim=1, keepdim=True).clamp_min(tiny)
     for start_normals in (normals, peak, bisector):
-        for exponent in options["shininess"]:
+        for exponent in options.shininess:
             log_alpha = torch.full_like(albedo, math.log(exponent))
             cosine, lobe, _, _ = _shade(start_normals, albedo, albedo, log_alpha.exp(), lights, energy, half)
             diffuse = cosine.clamp_min(0)
@@ -278,7 +333,7 @@ def _iterate(values: Tensor, usable: Tensor, sigma: Tensor, lights: Tensor, ener
 
 
 def _fit_rows(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor, normals: Tensor,
-              options: dict) -> list[Tensor]:
+              options: NonLambertianOptions) -> list[Tensor]:
     """Robust LM fit on pixel rows; returns albedo (N, 1), normals (N, 3), specular albedo and shininess (N, 1).
 
     values and usable (N, K), lights (K, 3) or (N, K, 3), starting albedo (N, 1) and normals (N, 3). Both starts of
@@ -288,11 +343,12 @@ def _fit_rows(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor, no
     energy, half = _split_lights(lights)
     tiny = torch.finfo(values.dtype).tiny
     # the Cauchy scale: a fraction of the pixel's median usable reading
-    median = _median(values, _median_padding(usable > 0, values.dtype))[:, None]
-    sigma = (options["scale"] * median).clamp_min(1e-6 * (usable * values).abs().amax(dim=1, keepdim=True) + tiny)
-    top = math.log(options["max_shininess"])
+    padding = _median_padding(usable > 0, values.dtype)
+    median = _median(values, padding)[:, None]
+    sigma = (options.scale * median).clamp_min(1e-6 * (usable * values).abs().amax(dim=1, keepdim=True) + tiny)
+    top = math.log(options.max_shininess)
     faint, strong = _starts(values, usable, albedo, normals, lights, energy, half, sigma, options)
-    race = min(_RACE, options["iterations"])
+    race = min(_RACE, options.iterations)
     both = [torch.cat(pair) for pair in ((values, values), (usable, usable), (sigma, sigma))]
     per_row = [x if lights.ndim == 2 else torch.cat([x, x]) for x in (lights, energy, half)]
     state = [torch.cat(pair) for pair in zip(faint, strong)]
@@ -303,13 +359,20 @@ def _fit_rows(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor, no
     state = [torch.where(first, x[:count], x[count:]) for x in state]
     damping = torch.where(first, damping[:count], damping[count:])
     state, _, _ = _iterate(values, usable, sigma, lights, energy, half, state, damping,
-                           options["iterations"] - race, top)
-    normals, albedo, specular, log_alpha = state
+                           options.iterations - race, top)
+    # never worse than the start: each pixel keeps the start's Lambertian model (no lobe, 3 parameters) when its
+    # Cauchy cost per degree of freedom is lower than the fit's (5 parameters): with 8 lights a lobe can fit noise
+    start = [normals, albedo, torch.zeros_like(albedo), torch.zeros_like(albedo)]
+    count = usable.sum(dim=1, keepdim=True)
+    spreads = [_cauchy_cost(values - _shade(x[0], x[1], x[2], x[3].exp(), lights, energy, half)[3], usable, sigma)
+               / (count - dof).clamp_min(0.5) for x, dof in ((state, _PARAMETERS), (start, 3))]
+    keep_start = spreads[1] < spreads[0]
+    normals, albedo, specular, log_alpha = [torch.where(keep_start, old, new) for new, old in zip(state, start)]
     return [albedo, normals, specular, log_alpha.exp()]
 
 
 def _fit_chunked(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor, normals: Tensor,
-                 options: dict) -> list[Tensor]:
+                 options: NonLambertianOptions) -> list[Tensor]:
     """:func:`_fit_rows` on blocks of :data:`_CHUNK` pixels, each turned into contiguous pixel rows.
 
     values and usable (K, N), lights (K, 3) or (K, 3, N), albedo (1, N), normals (3, N); returns albedo, normals,
@@ -324,33 +387,13 @@ def _fit_chunked(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor,
     return [torch.cat(maps).T for maps in zip(*parts)] if parts else [albedo, normals, albedo, albedo]
 
 
-def _check_options(options: dict) -> None:
-    if int(options["iterations"]) != options["iterations"] or options["iterations"] < 0:
-        raise InputError(f"iterations must be a non-negative integer, got {options['iterations']}")
-    if not 0.0 <= options["shadow"] < 1.0:
-        raise InputError(f"shadow must lie in [0, 1) (a fraction of the brightest reading), got {options['shadow']}")
-    check_positive(options["scale"], "scale")
-    exponents = options["shininess"]
-    if not all(1.0 <= e <= options["max_shininess"] for e in exponents):
-        raise InputError(f"starting shininess values must lie in [1, max_shininess={options['max_shininess']}], "
-                         f"got {exponents}")
-    if options["saturation"] is not None and not options["saturation"] > 0:
-        raise InputError(f"saturation must be positive, got {options['saturation']}")
-
-
 def fit_blinn_phong(
     intensities: Tensor,
     lights: Tensor,
     mask: Tensor | None = None,
     weights: Tensor | None = None,
-    *,
+    options: NonLambertianOptions | None = None,
     init: tuple[Tensor, Tensor] | None = None,
-    iterations: int = 20,
-    shadow: float = 0.05,
-    scale: float = 0.1,
-    saturation: float | None = None,
-    shininess: tuple[float, ...] = (4.0, 16.0, 64.0, 256.0),
-    max_shininess: float = 2000.0,
 ) -> BlinnPhongFit:
     r"""Fit the Lambertian + Blinn–Phong model per pixel by robust Levenberg–Marquardt (see the module docstring).
 
@@ -360,30 +403,24 @@ def fit_blinn_phong(
             :math:`(B, K, 3, H, W)` (near lights).
         mask: optional pixels to solve, bool :math:`(B, 1, H, W)`; only those are computed.
         weights: optional usable observations :math:`(B, K, H, W)` (e.g. the flat-field's ``valid``).
+        options: a :class:`NonLambertianOptions` (``None``: the defaults).
         init: starting albedo :math:`(B, 1, H, W)` and normals :math:`(B, 3, H, W)`; ``None``: the recommended robust
             estimator of :func:`psmini.robust.robust_normals` for distant lights, least squares on the readings above
             the ``shadow`` threshold for per-pixel lights.
-        iterations: Levenberg–Marquardt iterations (fixed, so the result is differentiable).
-        shadow: readings below this fraction of the pixel's brightest usable one are dropped as shadow, in [0, 1).
-        scale: Cauchy scale :math:`\sigma` as a fraction of the pixel's median usable reading (> 0).
-        saturation: readings at or above this level are dropped; ``None`` keeps all.
-        shininess: starting exponents :math:`\alpha` tried per pixel (each in [1, ``max_shininess``]): for each,
-            the albedos by linear least squares; the pixel starts from the one of least Cauchy cost, or from the
-            Lambertian start (no lobe) when that is lower.
-        max_shininess: largest exponent allowed.
 
     Returns:
         a :class:`BlinnPhongFit`; pixels outside the mask, or that the start leaves unsolved (fewer than three usable
         lights), get albedo 0, normal (0, 0, 1), specular 0 and shininess 1.
 
     Raises:
-        InputError: for NaN input or options out of range.
+        InputError: for NaN input or options that are not a :class:`NonLambertianOptions`.
         ShapeError: when shapes do not fit.
         CalibrationError: when distant lights do not span 3D.
 
     Example:
         >>> from psmini.lights import ring_lights
-        >>> fit = fit_blinn_phong(torch.rand(1, 8, 4, 4) + 0.1, ring_lights(8, 55.0), iterations=3)
+        >>> images = torch.rand(1, 8, 4, 4) + 0.1
+        >>> fit = fit_blinn_phong(images, ring_lights(8, 55.0), options=NonLambertianOptions(iterations=3))
         >>> fit.shininess.shape
         torch.Size([1, 1, 4, 4])
     """
@@ -393,16 +430,14 @@ def fit_blinn_phong(
     lights = _check_lights(lights, sizes)
     mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
     base = _check_weights(weights, intensities.shape)
-    options = {"iterations": iterations, "shadow": shadow, "scale": scale, "saturation": saturation,
-               "shininess": tuple(float(e) for e in shininess), "max_shininess": max_shininess}
-    _check_options(options)
-    options["iterations"] = int(iterations)
-    usable = threshold_weights(intensities, shadow, saturation, base)
+    options = _check_options(options)
+    usable = threshold_weights(intensities, options.shadow, options.saturation, base)
     if init is None:
         if lights.ndim == 5:
             init = albedo_normals(intensities, lights, mask, usable)
         else:
-            init = robust_normals(intensities, lights, "robust", mask, base, shadow=shadow, saturation=saturation)
+            start = replace(RobustOptions(), shadow=options.shadow, saturation=options.saturation)
+            init = robust_normals(intensities, lights, "robust", mask, base, start)
     start_albedo, start_normals = _check_init(init, sizes)
     if lights.ndim == 5:
         lights = lights.to(intensities)
@@ -430,6 +465,13 @@ def fit_blinn_phong(
     return BlinnPhongFit(albedo, normals, specular_map, shininess_map)
 
 
+def _check_options(options: NonLambertianOptions | None) -> NonLambertianOptions:
+    options = NonLambertianOptions() if options is None else options
+    if not isinstance(options, NonLambertianOptions):
+        raise InputError(f"options must be a NonLambertianOptions, got {type(options).__name__}")
+    return options
+
+
 def _check_init(init: tuple[Tensor, Tensor], sizes: dict[str, int]) -> tuple[Tensor, Tensor]:
     if not isinstance(init, (tuple, list)) or len(init) != 2:
         raise InputError("init must be a pair (albedo (B, 1, H, W), normals (B, 3, H, W))")
@@ -450,7 +492,8 @@ def nonlambertian_normals(
     lights: Tensor,
     mask: Tensor | None = None,
     weights: Tensor | None = None,
-    **options,
+    options: NonLambertianOptions | None = None,
+    init: tuple[Tensor, Tensor] | None = None,
 ) -> tuple[Tensor, Tensor]:
     r"""Albedo and normals of the Lambertian + Blinn–Phong fit (:func:`fit_blinn_phong`); the CLI's ``nonlambertian``.
 
@@ -459,7 +502,8 @@ def nonlambertian_normals(
         lights: scaled light directions, :math:`(K, 3)` / :math:`(B, K, 3)` or per pixel :math:`(B, K, 3, H, W)`.
         mask: optional pixels to solve, bool :math:`(B, 1, H, W)`.
         weights: optional usable observations :math:`(B, K, H, W)`.
-        **options: keyword options of :func:`fit_blinn_phong` (``iterations``, ``shadow``, ``scale``, ...).
+        options: a :class:`NonLambertianOptions` (``None``: the defaults).
+        init: starting albedo and normals, as :func:`fit_blinn_phong` takes them.
 
     Returns:
         diffuse albedo :math:`(B, 1, H, W)` and unit normals :math:`(B, 3, H, W)`.
@@ -473,7 +517,7 @@ def nonlambertian_normals(
         >>> normals.shape
         torch.Size([1, 3, 4, 4])
     """
-    fit = fit_blinn_phong(intensities, lights, mask, weights, **options)
+    fit = fit_blinn_phong(intensities, lights, mask, weights, options, init)
     return fit.albedo, fit.normals
 
 
@@ -482,26 +526,23 @@ class NonLambertianNormals(nn.Module):
 
     Args:
         lights: scaled light directions, shape :math:`(K, 3)`.
-        **options: keyword options of :func:`fit_blinn_phong`.
+        options: a :class:`NonLambertianOptions` (``None``: the defaults).
 
     Raises:
-        InputError: for an unknown option.
+        InputError: for options that are not a :class:`NonLambertianOptions`.
+        ShapeError: for lights that are not (K, 3).
 
     Example:
         >>> from psmini.lights import ring_lights
-        >>> solver = NonLambertianNormals(ring_lights(8, 55.0), iterations=5)
+        >>> solver = NonLambertianNormals(ring_lights(8, 55.0), NonLambertianOptions(iterations=5))
         >>> albedo, normals = solver(torch.rand(1, 8, 4, 4) + 0.1)
         >>> normals.shape
         torch.Size([1, 3, 4, 4])
     """
 
-    _OPTIONS = ("init", "iterations", "shadow", "scale", "saturation", "shininess", "max_shininess")
-
-    def __init__(self, lights: Tensor, **options) -> None:
+    def __init__(self, lights: Tensor, options: NonLambertianOptions | None = None) -> None:
         super().__init__()
-        unknown = sorted(set(options) - set(self._OPTIONS))
-        if unknown:
-            raise InputError(f"unknown options {unknown}; expected some of {list(self._OPTIONS)}")
+        options = _check_options(options)
         check_tensor(lights, "lights")
         if lights.ndim != 2 or lights.shape[-1] != 3:
             raise ShapeError(f"lights must have shape (K, 3), got {tuple(lights.shape)}")
@@ -512,4 +553,4 @@ class NonLambertianNormals(nn.Module):
         self, intensities: Tensor, mask: Tensor | None = None, weights: Tensor | None = None
     ) -> tuple[Tensor, Tensor]:
         """Albedo :math:`(B, 1, H, W)` and normals :math:`(B, 3, H, W)` of ``intensities`` :math:`(B, K, H, W)`."""
-        return nonlambertian_normals(intensities, self.lights, mask, weights, **self.options)
+        return nonlambertian_normals(intensities, self.lights, mask, weights, self.options)

@@ -30,7 +30,7 @@ __all__ = ["NORMAL_ESTIMATORS", "Reconstruction", "PhotometricStereo", "distant_
 
 def _robust(method: str):
     return lambda images, matrix, mask, weights, options: robust_normals(images, matrix, method, mask, weights,
-                                                                         **options)
+                                                                         options)
 
 
 #: The registry of distant-light normal estimators: name → ``f(images, light_matrix, mask, weights, options)``
@@ -41,7 +41,7 @@ NORMAL_ESTIMATORS = {
     "lstsq": lambda images, matrix, mask, weights, options: albedo_normals(images, matrix, mask, weights),
     **{name: _robust(name) for name in ("robust",) + ROBUST_METHODS},
     "nonlambertian": lambda images, matrix, mask, weights, options: nonlambertian_normals(images, matrix, mask,
-                                                                                          weights),
+                                                                                          weights, options),
 }
 
 
