@@ -107,6 +107,30 @@ def _weighted_solve(intensities: Tensor, lights: Tensor, weights: Tensor | None)
     return solve_normal_equations(gram, rhs, dim=1)
 
 
+def _partially_weighted_solve(intensities: Tensor, lights: Tensor, weights: Tensor) -> tuple[Tensor, Tensor | None]:
+    """:func:`_weighted_solve` for lights ``(B, K, 3)``, with the pseudo-inverse where every weight is 1.
+
+    Usually only a few pixels lose an observation (a dark card corner, a saturated highlight): the normal
+    equations of every pixel (about 40 element-wise passes) are then formed for those pixels alone, and the
+    others take the pseudo-inverse's solution (one product), which is theirs with unit weights.
+    """
+    # all(dim=1) over the K observations of a bool tensor measured 10x slower than a uint8 amin over the same dim
+    ones = weights if weights.dtype == torch.bool else weights == 1
+    full = ones.view(torch.uint8).amin(dim=1, keepdim=True).bool()
+    if not bool(full.any()):
+        return _weighted_solve(intensities, lights, weights)
+    batch, _, height, width = intensities.shape
+    m = torch.matmul(torch.linalg.pinv(lights), intensities.flatten(2)).view(batch, 3, height, width)
+    if bool(full.all()):
+        return m, None
+    index = (~full[:, 0]).nonzero(as_tuple=True)  # (b, y, x) of the pixels with a weight other than 1
+    pick = (index[0], slice(None), index[1], index[2])
+    part, well_posed = _weighted_solve(intensities[pick][..., None, None], lights[index[0]], weights[pick][..., None, None])
+    m = m.permute(0, 2, 3, 1).index_put(index, part[..., 0, 0]).permute(0, 3, 1, 2)
+    solved = full.index_put((index[0], torch.zeros_like(index[0]), index[1], index[2]), well_posed.view(-1))
+    return m, solved
+
+
 def _check_lights(lights: Tensor, sizes: dict[str, int]) -> Tensor:
     """Lights (K, 3), (B, K, 3) or per-pixel (B, K, 3, H, W), matching the intensities; returned batched."""
     if isinstance(lights, Tensor) and lights.ndim == 5:
@@ -172,7 +196,7 @@ def albedo_normals(
         m = torch.matmul(pinv, intensities.flatten(2)).view(sizes["B"], 3, sizes["H"], sizes["W"])
         solved = None
     else:
-        m, solved = _weighted_solve(intensities, as_batched_lights(lights, sizes["B"], intensities), weights)
+        m, solved = _partially_weighted_solve(intensities, as_batched_lights(lights, sizes["B"], intensities), weights)
     if mask is not None:
         solved = mask.bool() if solved is None else solved & mask.bool()
     return _unit_and_length(m, solved)

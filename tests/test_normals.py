@@ -160,3 +160,34 @@ class TestSolveNormalEquations(BaseTester):
                 w = weights[0, :, r, c].sqrt()
                 m = torch.linalg.lstsq(lights * w[:, None], (images[0, :, r, c] * w)[:, None]).solution[:, 0]
                 self.assert_close(normals[0, :, r, c] * albedo[0, 0, r, c], m)
+
+
+class TestPartiallyWeightedSolve(BaseTester):
+    """Pixels whose weights are all 1 take the pseudo-inverse, the others the normal equations: the same numbers."""
+
+    @pytest.mark.parametrize("kind", ["bool", "float"])
+    def test_equals_full_weighted_solve(self, device, kind):
+        from psmini.lights import as_batched_lights
+        from psmini.normals import _unit_and_length, _weighted_solve
+
+        torch.manual_seed(0)
+        lights = ring_lights(8, 55.0, dtype=torch.float64).to(device)
+        intensities = torch.rand(3, 8, 12, 14, dtype=torch.float64, device=device)
+        weights = torch.rand(3, 8, 12, 14, device=device) > 0.1
+        weights[0, 1:7, 2, 3] = False  # two lights left: unsolved
+        weights[2] = True  # a batch item with every weight 1
+        if kind == "float":
+            weights = weights.double() * torch.where(torch.rand_like(intensities) > 0.5, 1.0, 0.7)
+        albedo, normals = albedo_normals(intensities, lights, None, weights)
+        m, solved = _weighted_solve(intensities, as_batched_lights(lights, 3, intensities), weights)
+        expected_albedo, expected_normals = _unit_and_length(m, solved)
+        self.assert_close(albedo, expected_albedo)
+        self.assert_close(normals, expected_normals)
+        assert float(albedo[0, 0, 2, 3]) == 0.0
+
+    def test_gradcheck(self):
+        lights = ring_lights(6, 50.0, dtype=torch.float64)
+        intensities = (torch.rand(1, 6, 3, 4, dtype=torch.float64) + 0.2).requires_grad_()
+        weights = torch.ones(1, 6, 3, 4, dtype=torch.bool)
+        weights[0, 0, 1, 1] = False
+        self.gradcheck(lambda i: albedo_normals(i, lights, None, weights)[1], (intensities,))

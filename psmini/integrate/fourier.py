@@ -1,4 +1,4 @@
-"""Integrators on the full rectangle by fast transforms: Frankot–Chellappa (FFT) and a DCT Poisson solver."""
+"""Integrators on the full rectangle by fast transforms: Frankot–Chellappa (FFT/DCT) and a DCT Poisson solver."""
 
 from __future__ import annotations
 
@@ -154,6 +154,13 @@ def frankot_chellappa(
     :math:`(\bar p, \bar q)` is subtracted before the transform and the plane :math:`\bar p x + \bar q y` added
     back, so planes come back exactly. ``boundary="mirror"`` integrates the mirrored :math:`(2H, 2W)` extension
     (even depth, no periodic wrap-around), ``"periodic"`` the rectangle as a torus.
+
+    The mirrored problem is solved on the :math:`(H, W)` grid itself, with no :math:`2H \times 2W` transform: the
+    even extension's spectrum is its DCT-II and the odd extensions of the gradients give sine transforms
+    (Simchony, Chellappa and Shao, "Direct analytical methods for solving Poisson equations in computer vision
+    problems", TPAMI 1990), computed with Makhoul's N-point DCT from real FFTs (IEEE Trans. ASSP 1980; see
+    :mod:`psmini.integrate._dct`). The result is the doubled-grid FFT solution's, Nyquist row included, to
+    float rounding (1e-14 relative in float64).
 
     Args:
         p: :math:`\partial z/\partial x`, shape :math:`(B, 1, H, W)`, camera frame (x right).
