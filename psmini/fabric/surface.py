@@ -454,7 +454,7 @@ def spatial_parameters(surface: Tensor, valid: Tensor, pixel_pitch_mm: float, th
     - ``Std`` (degrees in [0, 180), counter-clockwise from x, y up): the texture direction, the direction of the
       lay. The angular power spectrum :math:`f_{APS}(\theta) = \int_0^{R} |F(r\cos\theta, r\sin\theta)|^2 r\,dr`
       peaks across the lay (at the direction of the dominant spatial frequency, refined by a parabola through
-      the three best directions); ``Std`` is that angle plus 90°, the direction along which the texture runs.
+      the three best directions; the spectrum of the Hann-windowed surface, zero-padded twice); ``Std`` is that angle plus 90°, the direction along which the texture runs.
 
     Args:
         surface: :math:`(B, 1, H, W)`, mm, zero-mean over ``valid``.
@@ -490,8 +490,11 @@ def spatial_parameters(surface: Tensor, valid: Tensor, pixel_pitch_mm: float, th
 def _texture_direction(surface: Tensor, valid: Tensor, directions: int) -> Tensor:
     """Angle (degrees, [0, 180)) of the lay: the angular power spectrum's maximum plus 90°."""
     b, _, h, w = surface.shape
-    n = max(h, w)
-    spec = torch.fft.fftshift(torch.fft.fft2(surface * valid.to(surface.dtype), s=(n, n)), dim=(-2, -1))
+    n = 2 * max(h, w)
+    # a Hann window keeps the leakage of the field's edges (a cross along the axes) out of the angular spectrum
+    window = (torch.hann_window(h, periodic=False, dtype=surface.dtype, device=surface.device).view(h, 1)
+              * torch.hann_window(w, periodic=False, dtype=surface.dtype, device=surface.device).view(1, w))
+    spec = torch.fft.fftshift(torch.fft.fft2(surface * valid.to(surface.dtype) * window, s=(n, n)), dim=(-2, -1))
     power = spec.abs().square()  # (B, 1, n, n), DC at (n // 2, n // 2); row index grows toward -y
     angles = torch.arange(directions, dtype=surface.dtype, device=surface.device) * (math.pi / directions)
     radii = torch.arange(1.0, n / 2 - 1, 0.5, dtype=surface.dtype, device=surface.device)
