@@ -377,7 +377,15 @@ class TestDescribe:
         assert structure_row(rec, None)["structure_found"] is False
         entry = describe(z, PITCH)[0]
         vector = descriptor_vector(entry)
-        assert vector.shape == (18,) and np.isfinite(vector).all()
+        assert vector.shape == (19,) and np.isfinite(vector).all()
+        alpha = math.sqrt(math.log(2) / math.pi)  # waviness: S-filter 0.5 mm, L-filter 2.5 mm (ISO 16610-61)
+
+        def passed(wavelength):
+            return math.exp(-math.pi * (alpha * 0.5 / wavelength) ** 2) * (
+                1 - math.exp(-math.pi * (alpha * 2.5 / wavelength) ** 2))
+
+        expected = 1000 * math.sqrt((0.05 * passed(0.25)) ** 2 / 2 + (0.03 * passed(0.5)) ** 2 / 2)
+        assert entry["waviness_um"] == pytest.approx(expected, rel=0.02)
         assert vector[13] == pytest.approx(90.0, abs=0.1)  # the systems cross at right angles
 
     def test_classifier_round_trip_and_version(self):

@@ -22,7 +22,7 @@ from psmini.errors import DataFormatError, InputError
 from psmini.fabric.structure import FabricStructure, StructureOptions, fabric_structure
 from psmini.fabric.surface import ISO_PARAMETERS, SurfaceOptions, iso25178
 
-__all__ = ["DESCRIBE_SURFACE_OPTIONS", "DESCRIPTOR_NAMES", "MODEL_FORMAT", "MODEL_VERSION", "FabricClassifier",
+__all__ = ["WAVINESS_OPTIONS", "DESCRIBE_SURFACE_OPTIONS", "DESCRIPTOR_NAMES", "MODEL_FORMAT", "MODEL_VERSION", "FabricClassifier",
            "describe", "descriptor_vector", "structure_row", "reconstruct_for_description"]
 
 #: The scale-limited surface on which :func:`describe` reports the ISO parameters: plane removed, an L-filter of
@@ -33,8 +33,12 @@ DESCRIBE_SURFACE_OPTIONS = SurfaceOptions(form_degree=1, l_cutoff_mm=2.5)
 DESCRIPTOR_NAMES = (
     "Sq_um", "Ssk", "Sku", "Sz_um", "Sa_um", "Sdq", "Sdr_pct", "Sal_mm", "Str",
     "structure_found", "log_density_1", "log_density_2", "density_ratio", "crossing_angle_deg",
-    "weave_repeat", "crimp_um", "openness", "log_sq_over_sal",
+    "weave_repeat", "crimp_um", "openness", "log_sq_over_sal", "log_waviness_um",
 )
+
+#: The band of :func:`describe`'s ``waviness_um``: relief between the yarn scale and the L-filter (prints, felting,
+#: pilling), the Sq of the surface S-filtered at 0.5 mm and L-filtered at 2.5 mm.
+WAVINESS_OPTIONS = SurfaceOptions(form_degree=1, s_cutoff_mm=0.5, l_cutoff_mm=2.5)
 
 MODEL_FORMAT = "psmini-fabric-classifier"
 MODEL_VERSION = 1
@@ -79,7 +83,8 @@ def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, 
     Returns:
         one dict per sample: ``threads_per_cm``, ``thread_angles_deg``, ``weave_repeat``, ``float_length``,
         ``wales_per_cm``, ``courses_per_cm``, ``crimp_um``, ``openness``, ``structure_found``,
-        ``structure_reason``, ``iso25178`` (name to value, units in ``iso25178_units``), ``albedo_mean``,
+        ``structure_reason``, ``iso25178`` (name to value, units in ``iso25178_units``), ``waviness_um`` (Sq of
+        the band between 0.5 and 2.5 mm: relief between the yarns' scale and the L-filter), ``albedo_mean``,
         ``albedo_std``, ``pixel_pitch_mm``, ``peaks`` (the refined spectral peaks).
 
     Raises:
@@ -92,9 +97,11 @@ def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, 
         >>> sorted(out["iso25178"])[:3], out["structure_found"]
         (['Sa', 'Sal', 'Sdq'], True)
     """
-    from psmini.fabric.surface import ISO_UNITS, valid_pixels
+    from psmini.fabric.surface import ISO_UNITS, height_parameters, scale_limited_surface, valid_pixels
 
     iso = iso25178(height, pixel_pitch_mm, mask, surface)
+    band, band_valid = scale_limited_surface(height, pixel_pitch_mm, mask, WAVINESS_OPTIONS)
+    waviness = height_parameters(band, band_valid)["Sq"] * 1000
     found = fabric_structure(height, pixel_pitch_mm, mask, structure)
     valid = valid_pixels(height, mask)
     out = []
@@ -105,6 +112,7 @@ def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, 
         entry["iso25178"] = {k: _number(v[i]) for k, v in iso.items()}
         entry["iso25178_units"] = dict(ISO_UNITS)
         entry["pixel_pitch_mm"] = float(pixel_pitch_mm)
+        entry["waviness_um"] = _number(waviness[i])
         if albedo is not None:
             values = albedo[i][valid[i]]
             entry["albedo_mean"] = _number(values.mean()) if values.numel() else None
@@ -176,7 +184,7 @@ def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
     Example:
         >>> entry = {"iso25178": dict.fromkeys(ISO_PARAMETERS, 1.0), "structure_found": False}
         >>> descriptor_vector(entry).shape
-        (18,)
+        (19,)
     """
     iso = entry["iso25178"]
 
@@ -194,7 +202,8 @@ def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
               num(iso.get("Sdq")), num(iso.get("Sdr")), sal, num(iso.get("Str")), float(found),
               math.log(d1) if d1 > 0 else 0.0, math.log(d2) if d2 > 0 else 0.0, d2 / d1 if d1 > 0 else 0.0, crossing,
               num(entry.get("weave_repeat")), num(entry.get("crimp_um")), num(entry.get("openness")),
-              math.log(num(iso.get("Sq")) / 1000 / sal) if sal > 0 and num(iso.get("Sq")) > 0 else 0.0]
+              math.log(num(iso.get("Sq")) / 1000 / sal) if sal > 0 and num(iso.get("Sq")) > 0 else 0.0,
+              math.log(num(entry.get("waviness_um"))) if num(entry.get("waviness_um")) > 0 else 0.0]
     return np.asarray(values, dtype=np.float64)
 
 
