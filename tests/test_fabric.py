@@ -340,7 +340,7 @@ class TestStructure:
         assert not found.found and "two periods" in found.reason
 
     @pytest.mark.slow
-    @pytest.mark.parametrize("name", ["jute", "cotton", "twill", "knit", "net"])
+    @pytest.mark.parametrize("name", STRUCTURED)
     def test_reconstructed_captures(self, name):
         """From the simulator's noisy 8-bit captures, reconstructed by the default pipeline: within 2% and 1°,
         at 0, 0.5 and 1 mm above the card and five orientations."""

@@ -15,7 +15,7 @@ strongest peak is not always the thread count. This module:
    quarter-bin steps around it and fitting a parabola to the log power (twice, re-centred), which turns the
    bins (20 per 2 mm⁻¹ on a 10 mm field) into frequencies within a fraction of a per cent;
 4. takes the strongest peak as the first yarn system and the strongest one roughly perpendicular to it
-   (within 5°, else 20°, else any one 30° off) as the second, expresses every peak in that basis and finds the smallest
+   (within 2°, else 10°, else any one 30° off) as the second, expresses every peak in that basis and finds the smallest
    repeat R in which all of them sit on the lattice ``(i/R, j/R)``.
 
 The directions are those in which the yarns run: degrees in [0, 180), counter-clockwise from x (x right,
@@ -362,13 +362,14 @@ def _openness(height: Tensor, valid: Tensor, options: StructureOptions) -> float
 
 def _fundamental(peak: SpectralPeak, peaks: list[SpectralPeak], options: StructureOptions) -> SpectralPeak:
     """The peak's fundamental: the peak at the lowest 1/d (d = 2..6) of its frequency vector that holds at least
-    30% of its amplitude (thin yarns far apart, as in a net, have harmonics as strong as the fundamental)."""
+    80% of its amplitude (thin yarns far apart, as in a net, have harmonics nearly as strong as the
+    fundamental; the aliases of fine yarns' harmonics are weaker than the thread peak)."""
     for divisor in (6, 5, 4, 3, 2):
         target = np.array([peak.fx_per_mm, peak.fy_per_mm]) / divisor
         for p in peaks:
             v = np.array([p.fx_per_mm, p.fy_per_mm])
             close = min(np.linalg.norm(v - target), np.linalg.norm(v + target))
-            if close <= 0.03 * np.linalg.norm(target) and p.amplitude_um >= 0.3 * peak.amplitude_um \
+            if close <= 0.03 * np.linalg.norm(target) and p.amplitude_um >= 0.8 * peak.amplitude_um \
                     and p.snr_db >= options.strong_db:
                 return p
     return peak
@@ -390,15 +391,15 @@ def _lattice(peaks: list[SpectralPeak], openness: float, options: StructureOptio
     strong = [_fundamental(p, peaks, options) for p in strong]
     vec = [np.array([p.fx_per_mm, p.fy_per_mm]) for p in strong]
     first = 0
-    # The second system: roughly perpendicular (within 5°, else 20°, else any 30° off), the largest height
-    # amplitude (aliases of fine detail beyond Nyquist carry slope but little height), not below 0.3 x the first
-    # system's frequency (what an L-filter leaves of a wrinkle).
+    # The second system: the largest slope amplitude among the peaks perpendicular to the first within 2° (else
+    # 10°, else any 30° off; the fine detail of a satin aliases to peaks a few degrees off), not below 0.3 x the
+    # first system's frequency (what an L-filter leaves of a wrinkle).
     second = None
-    for least in (85.0, 70.0, 30.0):
+    for least in (88.0, 80.0, 30.0):
         pool = [k for k in range(1, len(strong)) if _angle_between(vec[0], vec[k]) >= least
                 and strong[k].frequency >= 0.3 * strong[0].frequency]
         if pool:
-            second = max(pool, key=lambda k: strong[k].amplitude_um)
+            second = pool[0]  # strong is sorted by slope amplitude
             break
     systems = [strong[first]] + ([strong[second]] if second is not None else [])
     systems.sort(key=lambda p: -p.frequency)  # the denser first
