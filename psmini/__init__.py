@@ -26,6 +26,7 @@ from psmini.integrate import (
     masked_least_squares,
 )
 from psmini.evaluation import evaluate_sample, score_reconstruction
+from psmini import fabric  # the subpackage: ISO 25178-2 parameters, yarn structure, descriptors
 from psmini.flatfield import FlatField, FlatFieldResult, flatfield
 from psmini.autofocus import AutofocusController, AutofocusResult, autofocus_sweep, best_of_scores, refine_peak
 from psmini.focus import (FOCUS_MEASURES, FOCUS_OPERATORS, FocusMeasure, FocusVolume, brenner, focus_measure,
@@ -144,6 +145,8 @@ __all__ = [
     "DCTPoisson",
     "masked_least_squares",
     "MaskedLeastSquares",
+    # fabric structure (the subpackage)
+    "fabric",
     # focus and autofocus
     "focus_measure",
     "FOCUS_MEASURES",

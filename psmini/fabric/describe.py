@@ -1,0 +1,292 @@
+"""Structure descriptors of a reconstruction and a code-free fabric classifier on them.
+
+:func:`describe` gathers the ISO 25178-2 parameters (:func:`~psmini.fabric.iso25178`) and the yarn structure
+(:func:`~psmini.fabric.fabric_structure`) of each sample into one JSON-ready dict; :func:`structure_row` flattens
+it into the scalar columns of a feature table (``psmini batch --describe``); :func:`descriptor_vector` turns it
+into the fixed-length, orientation-free vector a classifier uses. :class:`FabricClassifier` is a multinomial
+logistic regression (standardised features, softmax of a linear map) stored as plain numbers with a format
+version: loading it runs no code (no pickle).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from psmini.errors import DataFormatError, InputError
+from psmini.fabric.structure import FabricStructure, StructureOptions, fabric_structure
+from psmini.fabric.surface import ISO_PARAMETERS, SurfaceOptions, iso25178
+
+__all__ = ["WAVINESS_OPTIONS", "DESCRIBE_SURFACE_OPTIONS", "DESCRIPTOR_NAMES", "MODEL_FORMAT", "MODEL_VERSION", "FabricClassifier",
+           "describe", "descriptor_vector", "structure_row", "reconstruct_for_description"]
+
+#: The scale-limited surface on which :func:`describe` reports the ISO parameters: plane removed, an L-filter of
+#: 2.5 mm (an ISO 25178-3 nesting index; it removes wrinkles and drape, keeps yarn repeats up to ~1.5 mm).
+DESCRIBE_SURFACE_OPTIONS = SurfaceOptions(form_degree=1, l_cutoff_mm=2.5)
+
+#: The entries of :func:`descriptor_vector`, in order (none depends on the cloth's orientation).
+DESCRIPTOR_NAMES = (
+    "Sq_um", "Ssk", "Sku", "Sz_um", "Sa_um", "Sdq", "Sdr_pct", "Sal_mm", "Str",
+    "structure_found", "log_density_1", "log_density_2", "density_ratio", "crossing_angle_deg",
+    "weave_repeat", "crimp_um", "openness", "log_sq_over_sal", "log_waviness_um",
+)
+
+#: The band of :func:`describe`'s ``waviness_um``: relief between the yarn scale and the L-filter (prints, felting,
+#: pilling), the Sq of the surface S-filtered at 0.5 mm and L-filtered at 2.5 mm.
+WAVINESS_OPTIONS = SurfaceOptions(form_degree=1, s_cutoff_mm=0.5, l_cutoff_mm=2.5)
+
+MODEL_FORMAT = "psmini-fabric-classifier"
+MODEL_VERSION = 1
+
+
+def reconstruct_for_description(sample: Any, config: Any = None) -> Any:
+    """The one place where :func:`describe` callers reconstruct a loaded sample: psmini's default pipeline.
+
+    Args:
+        sample: a :class:`psmini.io.Sample`.
+        config: the :class:`~psmini.config.ReconstructionConfig` (default: the default one: near light for the
+            rig's LED captures, least squares for directional lights).
+
+    Returns:
+        a :class:`psmini.pipeline.Reconstruction` (batch of one).
+
+    Example:
+        >>> from psmini.io import Sample
+        >>> from psmini.lights import DirectionalLights, ring_lights
+        >>> sample = Sample(name="s", images=torch.rand(8, 16, 16) + 0.1, lights=DirectionalLights(ring_lights(8, 55.0)))
+        >>> reconstruct_for_description(sample).depth.shape
+        torch.Size([1, 1, 16, 16])
+    """
+    from psmini.pipeline import reconstruct
+
+    return reconstruct(sample, config)
+
+
+def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, albedo: Tensor | None = None,
+             surface: SurfaceOptions = DESCRIBE_SURFACE_OPTIONS,
+             structure: StructureOptions = StructureOptions()) -> list[dict[str, Any]]:
+    """ISO 25178-2 parameters and the yarn structure of each sample, as JSON-ready dicts.
+
+    Args:
+        height: :math:`(B, 1, H, W)`, mm.
+        pixel_pitch_mm: pixel size, mm.
+        mask: optional valid pixels :math:`(B, 1, H, W)` (unsolved pixels False).
+        albedo: optional :math:`(B, 1, H, W)`; its mean and spread over the valid pixels are reported (not used
+            by :func:`descriptor_vector`: dye and print are not structure).
+        surface: the scale-limited surface of the ISO parameters.
+        structure: options of :func:`~psmini.fabric.fabric_structure`.
+
+    Returns:
+        one dict per sample: ``threads_per_cm``, ``thread_angles_deg``, ``weave_repeat``, ``float_length``,
+        ``wales_per_cm``, ``courses_per_cm``, ``crimp_um``, ``openness``, ``structure_found``,
+        ``structure_reason``, ``iso25178`` (name to value, units in ``iso25178_units``), ``waviness_um`` (Sq of
+        the band between 0.5 and 2.5 mm: relief between the yarns' scale and the L-filter), ``albedo_mean``,
+        ``albedo_std``, ``pixel_pitch_mm``, ``peaks`` (the refined spectral peaks).
+
+    Raises:
+        InputError, ShapeError: as :func:`~psmini.fabric.iso25178`.
+
+    Example:
+        >>> y, x = torch.meshgrid(torch.arange(120.0), torch.arange(120.0), indexing="ij")
+        >>> z = 0.03 * torch.cos(2 * math.pi * x * 0.025 / 0.2) * torch.cos(2 * math.pi * y * 0.025 / 0.2)
+        >>> out = describe(z[None, None], 0.025)[0]
+        >>> sorted(out["iso25178"])[:3], out["structure_found"]
+        (['Sa', 'Sal', 'Sdq'], True)
+    """
+    from psmini.fabric.surface import ISO_UNITS, height_parameters, scale_limited_surface, valid_pixels
+
+    iso = iso25178(height, pixel_pitch_mm, mask, surface)
+    band, band_valid = scale_limited_surface(height, pixel_pitch_mm, mask, WAVINESS_OPTIONS)
+    waviness = height_parameters(band, band_valid)["Sq"] * 1000
+    found = fabric_structure(height, pixel_pitch_mm, mask, structure)
+    valid = valid_pixels(height, mask)
+    out = []
+    for i, result in enumerate(found):
+        entry = result.to_dict()
+        entry["structure_found"] = entry.pop("found")
+        entry["structure_reason"] = entry.pop("reason")
+        entry["iso25178"] = {k: _number(v[i]) for k, v in iso.items()}
+        entry["iso25178_units"] = dict(ISO_UNITS)
+        entry["pixel_pitch_mm"] = float(pixel_pitch_mm)
+        entry["waviness_um"] = _number(waviness[i])
+        if albedo is not None:
+            values = albedo[i][valid[i]]
+            entry["albedo_mean"] = _number(values.mean()) if values.numel() else None
+            entry["albedo_std"] = _number(values.std()) if values.numel() > 1 else None
+        out.append(entry)
+    return out
+
+
+def _number(x: Tensor | float) -> float | None:
+    """A finite float, or None (JSON has no NaN or infinity)."""
+    value = float(x)
+    return value if math.isfinite(value) else None
+
+
+def structure_row(reconstruction: Any, pixel_pitch_mm: float | None) -> dict[str, Any]:
+    """The scalar columns a feature table (``summary.csv`` of ``psmini batch --describe``) gets for one sample.
+
+    Args:
+        reconstruction: a :class:`psmini.pipeline.Reconstruction` with a batch of one (``depth``, ``mask``,
+            ``albedo``).
+        pixel_pitch_mm: the sample's pixel size, mm; ``None`` (unknown, DiLiGenT) gives empty structure columns.
+
+    Returns:
+        ``{"threads_per_cm_1", "threads_per_cm_2", "thread_angle_1_deg", "thread_angle_2_deg", "weave_repeat",
+        "crimp_um", "openness", "structure_found", "structure_reason", "Sq_um", ..., "Std_deg"}``; numbers or
+        ``None`` (empty cells) where not defined.
+
+    Example:
+        >>> from psmini.result import Reconstruction
+        >>> z = torch.zeros(1, 1, 32, 32)
+        >>> rec = Reconstruction(torch.ones_like(z), torch.zeros(1, 3, 32, 32), z, z, z, z > -1)
+        >>> row = structure_row(rec, 0.025)
+        >>> row["structure_found"], row["Sq_um"]
+        (False, 0.0)
+    """
+    columns = ["threads_per_cm_1", "threads_per_cm_2", "thread_angle_1_deg", "thread_angle_2_deg", "weave_repeat",
+               "crimp_um", "openness", "structure_found", "structure_reason"]
+    iso_columns = [f"{k}_{_unit_suffix(k)}" if _unit_suffix(k) else k for k in ISO_PARAMETERS]
+    if pixel_pitch_mm is None:
+        row = dict.fromkeys(columns + iso_columns)
+        row["structure_found"] = False
+        row["structure_reason"] = "the pixel pitch is unknown: no lengths in mm"
+        return row
+    depth = reconstruction.depth[:1]
+    entry = describe(depth, pixel_pitch_mm, reconstruction.mask[:1], reconstruction.albedo[:1])[0]
+    density = (entry["threads_per_cm"] or []) + [None, None]
+    angles = (entry["thread_angles_deg"] or []) + [None, None]
+    row = {"threads_per_cm_1": density[0], "threads_per_cm_2": density[1], "thread_angle_1_deg": angles[0],
+           "thread_angle_2_deg": angles[1], "weave_repeat": entry["weave_repeat"], "crimp_um": entry["crimp_um"],
+           "openness": entry["openness"], "structure_found": entry["structure_found"],
+           "structure_reason": entry["structure_reason"]}
+    for key, column in zip(ISO_PARAMETERS, iso_columns):
+        row[column] = entry["iso25178"][key]
+    return row
+
+
+def _unit_suffix(name: str) -> str:
+    from psmini.fabric.surface import ISO_UNITS
+
+    return {"um": "um", "%": "pct", "mm": "mm", "deg": "deg"}.get(ISO_UNITS[name], "")
+
+
+def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
+    """The orientation-free feature vector (:data:`DESCRIPTOR_NAMES`) of one :func:`describe` entry.
+
+    Densities enter as logarithms (a scale change is a shift), the two systems' crossing angle instead of their
+    directions, and a missing structure as zeros with ``structure_found`` 0.
+
+    Example:
+        >>> entry = {"iso25178": dict.fromkeys(ISO_PARAMETERS, 1.0), "structure_found": False}
+        >>> descriptor_vector(entry).shape
+        (19,)
+    """
+    iso = entry["iso25178"]
+
+    def num(x: Any) -> float:
+        return float(x) if x is not None and math.isfinite(float(x)) else 0.0
+
+    density = list(entry.get("threads_per_cm") or [])
+    angles = list(entry.get("thread_angles_deg") or [])
+    found = bool(entry.get("structure_found"))
+    d1 = density[0] if found and density else 0.0
+    d2 = density[1] if found and len(density) > 1 else 0.0
+    crossing = abs((angles[0] - angles[1] + 90.0) % 180.0 - 90.0) if found and len(angles) > 1 else 0.0
+    sal = num(iso.get("Sal"))
+    values = [num(iso.get("Sq")), num(iso.get("Ssk")), num(iso.get("Sku")), num(iso.get("Sz")), num(iso.get("Sa")),
+              num(iso.get("Sdq")), num(iso.get("Sdr")), sal, num(iso.get("Str")), float(found),
+              math.log(d1) if d1 > 0 else 0.0, math.log(d2) if d2 > 0 else 0.0, d2 / d1 if d1 > 0 else 0.0, crossing,
+              num(entry.get("weave_repeat")), num(entry.get("crimp_um")), num(entry.get("openness")),
+              math.log(num(iso.get("Sq")) / 1000 / sal) if sal > 0 and num(iso.get("Sq")) > 0 else 0.0,
+              math.log(num(entry.get("waviness_um"))) if num(entry.get("waviness_um")) > 0 else 0.0]
+    return np.asarray(values, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class FabricClassifier:
+    """Multinomial logistic regression on standardised descriptors: ``softmax(((x - mean) / scale) W^T + b)``.
+
+    Attributes:
+        classes: class names, length C.
+        feature_names: the descriptor names, length D (:data:`DESCRIPTOR_NAMES` for :func:`descriptor_vector`).
+        mean, scale: standardisation, length D each.
+        coef: weights, C x D.
+        intercept: length C.
+    """
+
+    classes: tuple[str, ...]
+    feature_names: tuple[str, ...]
+    mean: tuple[float, ...]
+    scale: tuple[float, ...]
+    coef: tuple[tuple[float, ...], ...]
+    intercept: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        c, d = len(self.classes), len(self.feature_names)
+        if c < 2 or d < 1:
+            raise InputError(f"a classifier needs at least 2 classes and 1 feature, got {c} and {d}")
+        if len(self.mean) != d or len(self.scale) != d or len(self.intercept) != c or len(self.coef) != c \
+                or any(len(row) != d for row in self.coef):
+            raise InputError(f"classifier arrays do not match {c} classes x {d} features")
+        numbers = [*self.mean, *self.scale, *self.intercept, *(v for row in self.coef for v in row)]
+        if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in numbers):
+            raise InputError("classifier parameters must be finite numbers")
+        if any(s <= 0 for s in self.scale):
+            raise InputError("classifier scales must be positive")
+
+    def predict_proba(self, features: np.ndarray) -> np.ndarray:
+        """Class probabilities, shape (N, C), for features (N, D) or (D,).
+
+        Example:
+            >>> model = FabricClassifier(("a", "b"), ("x",), (0.0,), (1.0,), ((-1.0,), (1.0,)), (0.0, 0.0))
+            >>> model.predict_proba(np.array([2.0])).round(3).tolist()
+            [[0.018, 0.982]]
+        """
+        x = np.atleast_2d(np.asarray(features, dtype=np.float64))
+        if x.shape[1] != len(self.feature_names):
+            raise InputError(f"expected {len(self.feature_names)} features, got {x.shape[1]}")
+        z = (x - np.asarray(self.mean)) / np.asarray(self.scale)
+        logits = z @ np.asarray(self.coef).T + np.asarray(self.intercept)
+        logits -= logits.max(axis=1, keepdims=True)
+        p = np.exp(logits)
+        return p / p.sum(axis=1, keepdims=True)
+
+    def predict(self, features: np.ndarray) -> list[str]:
+        """The most probable class of each row."""
+        return [self.classes[k] for k in self.predict_proba(features).argmax(axis=1)]
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form, with :data:`MODEL_FORMAT` and :data:`MODEL_VERSION`."""
+        return {"format": MODEL_FORMAT, "version": MODEL_VERSION, "classes": list(self.classes),
+                "feature_names": list(self.feature_names), "mean": list(self.mean), "scale": list(self.scale),
+                "coef": [list(r) for r in self.coef], "intercept": list(self.intercept)}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> FabricClassifier:
+        """Read the JSON form; a :class:`DataFormatError` for another format or version, or missing fields.
+
+        Example:
+            >>> FabricClassifier.from_dict({"format": MODEL_FORMAT, "version": 99})
+            Traceback (most recent call last):
+            ...
+            psmini.errors.DataFormatError: fabric model version 99 is not supported; this psmini reads version 1
+        """
+        if not isinstance(data, dict) or data.get("format") != MODEL_FORMAT:
+            raise DataFormatError(f"not a fabric model: expected format {MODEL_FORMAT!r}, got "
+                                  f"{data.get('format') if isinstance(data, dict) else type(data).__name__!r}")
+        if data.get("version") != MODEL_VERSION:
+            raise DataFormatError(f"fabric model version {data.get('version')} is not supported; this psmini reads "
+                                  f"version {MODEL_VERSION}")
+        try:
+            return cls(tuple(str(c) for c in data["classes"]), tuple(str(f) for f in data["feature_names"]),
+                       tuple(float(v) for v in data["mean"]), tuple(float(v) for v in data["scale"]),
+                       tuple(tuple(float(v) for v in row) for row in data["coef"]),
+                       tuple(float(v) for v in data["intercept"]))
+        except (KeyError, TypeError, ValueError, InputError) as error:
+            raise DataFormatError(f"fabric model is incomplete or malformed: {error}") from error

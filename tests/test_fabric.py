@@ -1,0 +1,410 @@
+"""psmini.fabric: ISO 25178-2 parameters against closed forms and dense numerical references, yarn structure
+against data_synth's generator parameters, the no-structure result and the error paths."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from psmini.errors import DataFormatError, InputError, ShapeError
+from psmini.fabric import (FabricClassifier, StructureOptions, SurfaceOptions, autocorrelation, describe,
+                           descriptor_vector, fabric_structure, gaussian_filter, iso25178, remove_form,
+                           scale_limited_surface, structure_row)
+from tests.conftest import BaseTester
+
+PITCH = 0.025
+S = 0.2  # the standard's ACF threshold
+FLAT = SurfaceOptions(form_degree=0)  # analytic surfaces with whole periods: no form to remove
+
+
+def grid(n: int, dtype=torch.float64, device="cpu"):
+    """x right, y up, in mm, on an n x n grid of PITCH."""
+    idx = torch.arange(n, dtype=dtype, device=device) * PITCH
+    y, x = torch.meshgrid(-idx, idx, indexing="ij")
+    return x, y
+
+
+def rel(a, b):
+    return abs(float(a) / float(b) - 1)
+
+
+def first_crossing_reference(acf, directions=3600, reach=5.0):
+    """Dense numerical reference for Sal and Str: the first lag (mm) at which an analytic ACF falls to s, along
+    3600 directions, by a 1e-4 mm march refined by bisection (independent of the library's bilinear rays)."""
+    lengths = []
+    for theta in np.arange(directions) * np.pi / directions:
+        d = np.array([math.cos(theta), math.sin(theta)])
+        r = np.arange(0, reach, 1e-3)
+        values = acf(r[:, None] * d)
+        below = np.nonzero(values <= S)[0]
+        if not below.size:
+            lengths.append(math.inf)
+            continue
+        lo, hi = r[below[0] - 1], r[below[0]]
+        for _ in range(40):
+            mid = (lo + hi) / 2
+            lo, hi = (mid, hi) if acf(np.array([mid * d]))[0] > S else (lo, mid)
+        lengths.append((lo + hi) / 2)
+    lengths = np.array(lengths)
+    return lengths.min(), (lengths.min() / lengths.max() if np.isfinite(lengths.max()) else 0.0)
+
+
+class TestIsoAnalytic(BaseTester):
+    def test_sinusoid(self, device, dtype):
+        amplitude, wavelength = 0.04, 0.5  # mm; 400 px = 10 mm = 20 periods
+        x, _ = grid(400, dtype, device)
+        z = (amplitude * torch.sin(2 * math.pi * x / wavelength))[None, None]
+        p = iso25178(z, PITCH, options=FLAT)
+        a_um, k = amplitude * 1000, 2 * math.pi / wavelength
+        expected = {"Sq": a_um / math.sqrt(2), "Sa": 2 * a_um / math.pi, "Sku": 1.5, "Sp": a_um, "Sv": a_um,
+                    "Sz": 2 * a_um, "Sdq": k * amplitude / math.sqrt(2),
+                    "Sal": wavelength * math.acos(S) / (2 * math.pi)}
+        phase = np.linspace(0, 2 * np.pi, 2_000_001)[:-1]
+        expected["Sdr"] = 100 * np.mean(np.sqrt(1 + (k * amplitude * np.cos(phase)) ** 2) - 1)  # dense quadrature
+        for name, value in expected.items():
+            assert rel(p[name][0], value) < 0.01, (name, float(p[name][0]), value)
+        assert abs(float(p["Ssk"][0])) < 0.01
+        assert float(p["Str"][0]) == 0.0  # along the lay the ACF never decays
+        assert abs(float(p["Std"][0]) - 90.0) < 0.5  # the lay runs along y
+
+    def test_crossed_sinusoids(self, device):
+        a, b, la, lb = 0.03, 0.02, 0.4, 0.3  # whole pixels to the crests: Sp is sampled
+        x, y = grid(400, torch.float64, device)
+        z = (a * torch.sin(2 * math.pi * x / la) + b * torch.sin(2 * math.pi * y / lb))[None, None]
+        p = iso25178(z, PITCH, options=FLAT)
+        ka, kb = 2 * math.pi / la, 2 * math.pi / lb
+        sq = math.sqrt(a * a / 2 + b * b / 2)
+        m4 = 3 * a**4 / 8 + 6 * (a * a / 2) * (b * b / 2) + 3 * b**4 / 8
+        assert rel(p["Sq"][0], sq * 1000) < 0.01
+        assert rel(p["Sku"][0], m4 / sq**4) < 0.01
+        assert rel(p["Sp"][0], (a + b) * 1000) < 0.01 and rel(p["Sz"][0], 2 * (a + b) * 1000) < 0.01
+        assert rel(p["Sdq"][0], math.sqrt((ka * a) ** 2 / 2 + (kb * b) ** 2 / 2)) < 0.01
+        u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 2001)[:-1], np.linspace(0, 2 * np.pi, 2001)[:-1])
+        gx, gy = ka * a * np.cos(u), kb * b * np.cos(v)
+        assert rel(p["Sdr"][0], 100 * np.mean(np.sqrt(1 + gx**2 + gy**2) - 1)) < 0.01
+        # Sa by dense quadrature over both phases
+        assert rel(p["Sa"][0], 1000 * np.mean(np.abs(a * np.sin(u) + b * np.sin(v)))) < 0.01
+
+        def acf(t):
+            return (a * a * np.cos(ka * t[:, 0]) + b * b * np.cos(kb * t[:, 1])) / (a * a + b * b)
+
+        sal, str_ = first_crossing_reference(acf)
+        assert rel(p["Sal"][0], sal) < 0.01
+        assert str_ == 0.0 and float(p["Str"][0]) == 0.0  # along y the ACF stays above (a² - b²)/(a² + b²) > s
+        # equal amplitudes: the ACF decays in every direction, Str is a ratio of two finite lengths
+        z = (b * torch.sin(2 * math.pi * x / la) + b * torch.sin(2 * math.pi * y / lb))[None, None]
+        p = iso25178(z, PITCH, options=FLAT)
+
+        def acf_equal(t):
+            return (np.cos(ka * t[:, 0]) + np.cos(kb * t[:, 1])) / 2
+
+        sal, str_ = first_crossing_reference(acf_equal)
+        assert 0 < str_ < 1
+        assert rel(p["Sal"][0], sal) < 0.01
+        assert rel(p["Str"][0], str_) < 0.01
+
+    def test_gaussian_random_surface(self):
+        # white noise filtered by a Gaussian of sigma px (periodic, by FFT): ACF exp(-tau^2 / (4 sigma^2))
+        n, sigma = 512, 3.0
+        gen = torch.Generator().manual_seed(7)
+        noise = torch.randn(n, n, generator=gen, dtype=torch.float64)
+        f = torch.fft.fftfreq(n, dtype=torch.float64)
+        transfer = torch.exp(-2 * math.pi**2 * sigma**2 * (f.view(-1, 1) ** 2 + f.view(1, -1) ** 2))
+        z = torch.fft.ifft2(torch.fft.fft2(noise) * transfer).real
+        z = (0.01 * z / z.std())[None, None]
+        p = iso25178(z, PITCH, options=FLAT)
+        values = z.flatten().numpy() * 1000
+        values = values - values.mean()
+        sq = np.sqrt(np.mean(values**2))  # sample moments, by numpy
+        assert rel(p["Sq"][0], sq) < 1e-6
+        assert rel(p["Sa"][0], np.mean(np.abs(values))) < 1e-6
+        assert abs(float(p["Ssk"][0]) - np.mean(values**3) / sq**3) < 1e-6
+        assert rel(p["Sku"][0], np.mean(values**4) / sq**4) < 1e-6
+        assert rel(p["Sku"][0], 3.0) < 0.02 and rel(p["Sa"][0], sq * math.sqrt(2 / math.pi)) < 0.01  # Gaussian
+        sal = 2 * sigma * PITCH * math.sqrt(math.log(1 / S))
+        assert rel(p["Sal"][0], sal) < 0.03  # one realisation: a few per cent of sampling spread
+        assert float(p["Str"][0]) > 0.85  # isotropic
+
+    @pytest.mark.parametrize("angle", [0.0, 30.0, 75.0, 120.0, 160.0])
+    def test_rotated_anisotropic(self, angle):
+        # a lay running at `angle`: heights vary across it only
+        x, y = grid(400)
+        lay = math.radians(angle)
+        across = -x * math.sin(lay) + y * math.cos(lay)
+        z = (0.02 * torch.sin(2 * math.pi * across / 0.3) + 0.005 * torch.sin(2 * math.pi * (x * math.cos(lay)
+             + y * math.sin(lay)) / 2.0))[None, None]
+        p = iso25178(z, PITCH, options=SurfaceOptions(form_degree=1))
+        assert abs((float(p["Std"][0]) - angle + 90) % 180 - 90) < 0.5
+        a2, b2 = 0.02**2, 0.005**2
+        k1, k2 = 2 * math.pi / 0.3, 2 * math.pi / 2.0
+
+        def acf(t):
+            return (a2 * np.cos(k1 * t[:, 1]) + b2 * np.cos(k2 * t[:, 0])) / (a2 + b2)
+
+        sal, _ = first_crossing_reference(acf, directions=720)
+        assert rel(p["Sal"][0], sal) < 0.02  # the slow wave is cut by form removal and the finite field
+        assert float(p["Str"][0]) < 0.2
+
+    def test_gradcheck(self):
+        z = (torch.rand(1, 1, 12, 12, dtype=torch.float64) * 0.01).requires_grad_()
+
+        def heights(h):
+            p = iso25178(h, PITCH, options=SurfaceOptions(form_degree=1, s_cutoff_mm=0.06))
+            return torch.stack([p["Sq"], p["Sa"], p["Ssk"], p["Sku"], p["Sdq"], p["Sdr"]])
+
+        self.gradcheck(heights, (z,))
+
+    def test_batch_matches_single(self, dtype):
+        x, y = grid(64, dtype)
+        z = torch.stack([0.01 * torch.sin(2 * math.pi * x / 0.4), 0.02 * torch.cos(2 * math.pi * y / 0.2)])[:, None]
+        both = iso25178(z, PITCH)
+        for i in range(2):
+            one = iso25178(z[i:i + 1], PITCH)
+            for k in both:
+                torch.testing.assert_close(both[k][i:i + 1], one[k], rtol=1e-5, atol=1e-6)
+
+
+class TestPreparation(BaseTester):
+    def test_gaussian_transmission(self, device, dtype):
+        # ISO 16610-61: a sine of wavelength L passes with exp(-pi (alpha lc / L)^2); 50% at the cut-off
+        alpha = math.sqrt(math.log(2) / math.pi)
+        x, _ = grid(400, dtype, device)
+        for wavelength in (0.5, 1.0, 2.0):
+            z = torch.sin(2 * math.pi * x / wavelength)[None, None]
+            low = gaussian_filter(z, 1.0, PITCH)[0, 0, 200, 150:250]
+            expected = math.exp(-math.pi * (alpha * 1.0 / wavelength) ** 2)
+            amp = float(low.abs().max())
+            assert abs(amp - expected) < 0.01, (wavelength, amp, expected)
+
+    def test_remove_form_quadratic(self, device, dtype):
+        x, y = grid(40, dtype, device)
+        form = 0.3 + 0.1 * x - 0.2 * y + 0.05 * x * x - 0.02 * x * y + 0.03 * y * y
+        out = remove_form(form[None, None], degree=2)
+        assert float(out.abs().max()) < (1e-5 if dtype == torch.float32 else 1e-10)
+
+    def test_unsolved_pixels_are_not_spikes(self):
+        # the same surface with 5% of its pixels unsolved (huge or NaN depth, mask False): nothing changes
+        x, y = grid(400)
+        z = (0.03 * torch.sin(2 * math.pi * x / 0.4) * torch.cos(2 * math.pi * y / 0.3))[None, None]
+        gen = torch.Generator().manual_seed(0)
+        holes = torch.rand(z.shape, generator=gen, dtype=torch.float64) < 0.05
+        spiky = torch.where(holes, torch.full_like(z, 5.0), z)
+        nan = torch.where(holes, torch.full_like(z, math.nan), z)
+        clean = iso25178(z, PITCH, options=FLAT)
+        masked = iso25178(spiky, PITCH, ~holes, options=FLAT)
+        unmasked_nan = iso25178(nan, PITCH, options=FLAT)
+        for k in ("Sq", "Sa", "Sku", "Sdq", "Sdr", "Sal"):
+            assert rel(masked[k][0], clean[k][0]) < 0.01, k
+            assert rel(unmasked_nan[k][0], clean[k][0]) < 0.01, k
+        assert rel(masked["Sp"][0], clean["Sp"][0]) < 0.01  # the 5 mm spikes are not peaks
+        spiked = iso25178(spiky, PITCH, options=FLAT)
+        assert float(spiked["Sdq"][0]) > 10 * float(clean["Sdq"][0])  # what they do when not excluded
+
+    def test_autocorrelation_is_one_at_zero_lag(self, device):
+        acf, count = autocorrelation(torch.randn(2, 1, 9, 7, device=device), torch.ones(2, 1, 9, 7, dtype=torch.bool,
+                                                                                      device=device))
+        assert acf.shape == (2, 1, 17, 13)
+        torch.testing.assert_close(acf[:, 0, 8, 6], torch.ones(2, device=device))
+        assert float(count[0, 0, 8, 6]) == 63
+
+    def test_cuda_matches_cpu(self, cuda_device):
+        x, y = grid(128)
+        z = (0.02 * torch.sin(2 * math.pi * x / 0.3) + 0.01 * torch.cos(2 * math.pi * y / 0.2))[None, None]
+        cpu = iso25178(z, PITCH)
+        gpu = iso25178(z.to(cuda_device), PITCH)
+        for k in cpu:
+            torch.testing.assert_close(gpu[k].cpu(), cpu[k], rtol=1e-6, atol=1e-6)
+
+
+class TestErrors:
+    def test_empty_mask(self):
+        with pytest.raises(InputError, match="no valid pixel"):
+            iso25178(torch.zeros(1, 1, 16, 16), PITCH, torch.zeros(1, 1, 16, 16, dtype=torch.bool))
+
+    def test_all_nan(self):
+        with pytest.raises(InputError, match="no valid pixel"):
+            fabric_structure(torch.full((1, 1, 16, 16), math.nan), PITCH)
+
+    def test_shapes_and_pitch(self):
+        with pytest.raises(ShapeError):
+            iso25178(torch.zeros(16, 16), PITCH)
+        with pytest.raises(ShapeError, match="mask"):
+            iso25178(torch.zeros(1, 1, 16, 16), PITCH, torch.ones(1, 1, 8, 8, dtype=torch.bool))
+        with pytest.raises(InputError, match="pixel_pitch_mm"):
+            iso25178(torch.zeros(1, 1, 16, 16), 0.0)
+        with pytest.raises(InputError, match="cutoff"):
+            gaussian_filter(torch.zeros(1, 1, 16, 16), -1.0, PITCH)
+        with pytest.raises(InputError, match="degree"):
+            remove_form(torch.zeros(1, 1, 8, 8), degree=3)
+
+    def test_options(self):
+        with pytest.raises(InputError, match="shorter"):
+            SurfaceOptions(s_cutoff_mm=1.0, l_cutoff_mm=0.5)
+        with pytest.raises(InputError, match="acf_threshold"):
+            SurfaceOptions(acf_threshold=1.5)
+        with pytest.raises(InputError, match="strong_db"):
+            StructureOptions(strong_db=5.0, weak_db=10.0)
+        with pytest.raises(InputError, match="max_repeat"):
+            StructureOptions(max_repeat=0)
+
+    def test_scale_limited_needs_valid_pixels(self):
+        with pytest.raises(InputError):
+            scale_limited_surface(torch.full((1, 1, 8, 8), math.inf), PITCH)
+
+
+def truth_systems(fabric):
+    """(threads per cm, direction the yarns run) of the generator's two systems."""
+    p, o = fabric.params, fabric.params["orientation_deg"]
+    a = p.get("spacing_mm", p.get("wale_spacing_mm"))
+    b = p.get("weft_spacing_mm", p.get("course_spacing_mm", a))
+    return [(10 / a, (o + 90) % 180), (10 / b, o % 180)]  # warp/wales across u run along v; weft along u
+
+
+def structure_errors(result, truth):
+    """Worst relative density error and angle error (degrees), matching found systems to true ones."""
+    assert result.found, result.reason
+    assert len(result.threads_per_cm) == 2
+    assert result.threads_per_cm[0] >= result.threads_per_cm[1]  # the denser first
+    worst_d = worst_a = 0.0
+    for density, angle in zip(result.threads_per_cm, result.thread_angles_deg):
+        best = min(truth, key=lambda t: abs((angle - t[1] + 90) % 180 - 90) / 10 + abs(density / t[0] - 1))
+        worst_d = max(worst_d, abs(density / best[0] - 1))
+        worst_a = max(worst_a, abs((angle - best[1] + 90) % 180 - 90))
+    return worst_d, worst_a
+
+
+STRUCTURED = ["jute", "cotton", "silk", "twill", "satin", "knit", "net", "lurex", "taffeta", "print"]
+
+
+class TestStructure:
+    def test_crossed_cosines(self, device, dtype):
+        x, y = grid(200, dtype, device)
+        z = 0.05 * torch.cos(2 * math.pi * x / 0.25) + 0.03 * torch.cos(2 * math.pi * y / 0.5)
+        found = fabric_structure(z[None, None], PITCH)[0]
+        assert found.found
+        assert found.threads_per_cm == pytest.approx([40.0, 20.0], rel=1e-3)
+        assert found.thread_angles_deg == pytest.approx([90.0, 0.0], abs=0.05)
+        assert found.weave_repeat == 1
+
+    @pytest.mark.parametrize("name", STRUCTURED)
+    def test_ground_truth_heights(self, name):
+        # randomness 0.25: the realised mean spacing of a field of 10 mm stays within 0.2% of the nominal one
+        from data_synth import make_fabric
+
+        fabric = make_fabric(name, size=400, seed=5, orientation_deg=61.0, randomness=0.25)
+        result = fabric_structure(fabric.height_mm, PITCH)[0]
+        density, angle = structure_errors(result, truth_systems(fabric))
+        assert density < 0.01 and angle < 0.5, (density, angle)
+
+    @pytest.mark.slow
+    @pytest.mark.parametrize("name", STRUCTURED)
+    def test_ground_truth_five_orientations(self, name):
+        from data_synth import make_fabric
+
+        for orientation in (0.0, 17.0, 95.0, 140.0, 178.0):
+            fabric = make_fabric(name, size=400, seed=5, orientation_deg=orientation, randomness=0.25)
+            density, angle = structure_errors(fabric_structure(fabric.height_mm, PITCH)[0], truth_systems(fabric))
+            assert density < 0.01 and angle < 0.5, (orientation, density, angle)
+
+    @pytest.mark.parametrize(("name", "repeat"), [("cotton", 2), ("twill", 3), ("satin", 5), ("knit", 1)])
+    def test_weave_repeat(self, name, repeat):
+        from data_synth import make_fabric
+
+        fabric = make_fabric(name, size=400, seed=5, orientation_deg=0.0, randomness=0.25)
+        assert fabric_structure(fabric.height_mm, PITCH)[0].weave_repeat == repeat
+
+    def test_net_openness(self):
+        from data_synth import make_fabric
+
+        net = make_fabric("net", size=400, seed=1)
+        cotton = make_fabric("cotton", size=400, seed=1)
+        holes = float((~net.mask).float().mean())
+        found = fabric_structure(torch.cat([net.height_mm, cotton.height_mm]), PITCH)
+        assert abs(found[0].openness - holes) < 0.05
+        assert found[1].openness < 0.1
+
+    def test_structureless_surface(self):
+        gen = torch.Generator().manual_seed(3)
+        z = torch.randn(1, 1, 256, 256, generator=gen, dtype=torch.float64)
+        z = gaussian_filter(z, 0.1, PITCH) * 0.01
+        found = fabric_structure(z, PITCH)[0]
+        assert not found.found and "no" in found.reason and found.threads_per_cm is None
+
+    def test_crop_shorter_than_two_periods(self):
+        x, y = grid(64)  # 1.6 mm field, 1.2 mm yarn repeat
+        z = 0.05 * torch.cos(2 * math.pi * x / 1.2) + 0.05 * torch.cos(2 * math.pi * y / 1.2)
+        found = fabric_structure(z[None, None], PITCH, options=StructureOptions(l_cutoff_mm=None))[0]
+        assert not found.found and "two periods" in found.reason
+
+    @pytest.mark.slow
+    @pytest.mark.parametrize("name", STRUCTURED)
+    def test_reconstructed_captures(self, name):
+        """From the simulator's noisy 8-bit captures, reconstructed by the default pipeline: within 2% and 1°,
+        at 0, 0.5 and 1 mm above the card and five orientations."""
+        from data_synth import make_fabric
+        from data_synth.rig import RigConfig, render_capture, render_card
+        from psmini.fabric import reconstruct_for_description
+        from psmini.io.sample import Sample
+
+        config = RigConfig(bit_depth=8)
+        card = render_card(config, seed=99)
+        for lift in (0.0, 0.5, 1.0):
+            for orientation in (0.0, 37.0, 90.0, 121.0, 163.0):
+                fabric = make_fabric(name, size=400, seed=11, orientation_deg=orientation, randomness=0.25)
+                capture = render_capture(fabric, config, seed=11, height_offset_mm=lift)
+                sample = Sample(name=name, images=capture.images, lights=capture.lights, dark=capture.dark,
+                                reference=card.images, reference_dark=card.dark, card_albedo=0.8,
+                                pixel_pitch_mm=PITCH, saturation_level=1.0)
+                rec = reconstruct_for_description(sample)
+                density, angle = structure_errors(fabric_structure(rec.depth, PITCH, rec.mask)[0],
+                                                  truth_systems(fabric))
+                assert density < 0.02 and angle < 1.0, (lift, orientation, density, angle)
+
+
+class TestDescribe:
+    def test_structure_row_and_vector(self):
+        from psmini.result import Reconstruction
+
+        x, y = grid(200)
+        z = (0.05 * torch.cos(2 * math.pi * x / 0.25) + 0.03 * torch.cos(2 * math.pi * y / 0.5))[None, None].float()
+        rec = Reconstruction(torch.ones_like(z), torch.zeros(1, 3, 200, 200), z, z, z, z > -1)
+        row = structure_row(rec, PITCH)
+        assert row["structure_found"] and row["threads_per_cm_1"] == pytest.approx(40.0, rel=1e-3)
+        assert row["Sq_um"] == pytest.approx(1000 * math.sqrt(0.05**2 / 2 + 0.03**2 / 2), rel=0.01)
+        assert structure_row(rec, None)["structure_found"] is False
+        entry = describe(z, PITCH)[0]
+        vector = descriptor_vector(entry)
+        assert vector.shape == (19,) and np.isfinite(vector).all()
+        alpha = math.sqrt(math.log(2) / math.pi)  # waviness: S-filter 0.5 mm, L-filter 2.5 mm (ISO 16610-61)
+
+        def passed(wavelength):
+            return math.exp(-math.pi * (alpha * 0.5 / wavelength) ** 2) * (
+                1 - math.exp(-math.pi * (alpha * 2.5 / wavelength) ** 2))
+
+        expected = 1000 * math.sqrt((0.05 * passed(0.25)) ** 2 / 2 + (0.03 * passed(0.5)) ** 2 / 2)
+        assert entry["waviness_um"] == pytest.approx(expected, rel=0.02)
+        assert vector[13] == pytest.approx(90.0, abs=0.1)  # the systems cross at right angles
+
+    def test_classifier_round_trip_and_version(self):
+        model = FabricClassifier(("a", "b", "c"), ("x", "y"), (0.0, 1.0), (1.0, 2.0),
+                                 ((1.0, 0.0), (0.0, 1.0), (-1.0, -1.0)), (0.0, 0.5, 0.0))
+        again = FabricClassifier.from_dict(model.to_dict())
+        x = np.array([[1.0, 3.0], [-2.0, 0.0]])
+        np.testing.assert_allclose(again.predict_proba(x), model.predict_proba(x))
+        z = (x - [0.0, 1.0]) / [1.0, 2.0]
+        logits = z @ np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, -1.0]]).T + [0.0, 0.5, 0.0]
+        expected = np.exp(logits) / np.exp(logits).sum(1, keepdims=True)
+        np.testing.assert_allclose(model.predict_proba(x), expected)
+        assert model.predict(x) == ["b", "c"]
+        data = model.to_dict() | {"version": 2}
+        with pytest.raises(DataFormatError, match="version 2"):
+            FabricClassifier.from_dict(data)
+        with pytest.raises(DataFormatError, match="not a fabric model"):
+            FabricClassifier.from_dict({"format": "pickle"})
+        with pytest.raises(DataFormatError, match="malformed"):
+            FabricClassifier.from_dict(model.to_dict() | {"coef": [[1.0]]})
+        with pytest.raises(InputError, match="features"):
+            model.predict_proba(np.zeros(3))
