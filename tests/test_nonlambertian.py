@@ -199,6 +199,7 @@ class TestPipeline(BaseTester):
             main(["evaluate", "nowhere", "--method", "blinn"])
 
 
+@pytest.mark.slow
 def test_cli_evaluate_ball(capsys):
     """DiLiGenT ball: 1.81° measured (robust start 2.01°, least squares 4.1°); the issue asks for at most 1.9°."""
     folder = shared_data("DiLiGenT", "ball")

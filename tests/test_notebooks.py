@@ -47,6 +47,7 @@ def _text(notebook) -> str:
     return "\n".join(output.get("text", "") for cell in notebook.cells for output in cell.get("outputs", []))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
 def test_notebook_runs(path: Path, tmp_path: Path, monkeypatch):
     # what the notebook writes goes to $PSMINI_OUTPUTS (here a temporary folder, not the working tree)
@@ -76,6 +77,7 @@ def test_diligent_notebook_without_data_says_where_to_point_it(tmp_path: Path, m
     assert "set PSMINI_DATA" in _text(notebook)
 
 
+@pytest.mark.slow
 def test_gallery_script_runs(tmp_path: Path):
     pytest.importorskip("matplotlib")
     out = tmp_path / "gallery"

@@ -182,6 +182,7 @@ class TestRobustNormals(BaseTester):
         actual = RobustNormals(lights, "robust").to(device)(images)
         self.assert_close(actual[1], expected[1])
 
+    @pytest.mark.slow
     @pytest.mark.parametrize("method", IRLS)
     def test_gradcheck_irls(self, method):
         normals, _, albedo, lights, images = _sphere("cpu", torch.float64, k=8, zenith=40.0, size=6)
@@ -264,6 +265,7 @@ class TestRpca(BaseTester):
         options = RobustOptions(rpca_iterations=5)
         self.gradcheck(lambda x: robust_normals(x, lights, "rpca", options=options)[1], (images.requires_grad_(),))
 
+    @pytest.mark.slow
     def test_diligent_ball(self):
         """Measured 1.98° (published RPCA: 2.06°), 30 iterations, default lambda."""
         from psmini.io import load_sample
@@ -296,6 +298,7 @@ class TestPipelineMethod(BaseTester):
             main(["evaluate", "nowhere", "--method", "ransac"])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, target", [("ball", 2.3), ("cat", 7.2)])
 def test_cli_evaluate_robust_meets_issue_target(capsys, name, target):
     folder = shared_data("DiLiGenT", name)

@@ -49,6 +49,7 @@ class TestBilateral(BaseTester):
         depth = integrate_normals(normals, "bilateral", intrinsics=k)
         self.assert_close(depth, torch.ones_like(depth), rtol=1e-4, atol=1e-4)
 
+    @pytest.mark.slow
     def test_gradcheck(self):
         torch.manual_seed(0)
         z, p, q = bumps_surface(6, 6, 0.5, "cpu", torch.float64, batch=1)
