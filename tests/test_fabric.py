@@ -410,3 +410,14 @@ class TestDescribe:
             FabricClassifier.from_dict(model.to_dict() | {"coef": [[1.0]]})
         with pytest.raises(InputError, match="features"):
             model.predict_proba(np.zeros(3))
+
+
+def test_yarn_angle_of_a_vertical_peak_wraps_to_zero_not_180():
+    """A peak a hair off the y axis (sub-bin noise) gives yarns at 0°, never a value that prints as 180°."""
+    from psmini.fabric.structure import SpectralPeak
+
+    for fx in (1e-12, -1e-12, 0.0, 1e-6, -1e-6):  # 1e-6 cycles/mm: 3e-5° off the axis, float32 refinement noise
+        angle = SpectralPeak(fx, 2.0, 30.0, 10.0).yarn_angle_deg
+        assert 0.0 <= angle < 180.0 and round(angle, 2) in (0.0,), (fx, angle)
+    assert SpectralPeak(2.0, 0.0, 30.0, 10.0).yarn_angle_deg == 90.0
+    assert abs(SpectralPeak(1.0, 1.0, 30.0, 10.0).yarn_angle_deg - 135.0) < 1e-9

@@ -118,7 +118,9 @@ class SpectralPeak:
     @property
     def yarn_angle_deg(self) -> float:
         """Direction in which the yarns of this peak run, degrees in [0, 180) (the peak's direction + 90°)."""
-        return (math.degrees(math.atan2(self.fy_per_mm, self.fx_per_mm)) + 90.0) % 180.0
+        # rounded to 1e-4° before the wrap (float32 sub-bin refinement is good to ~1e-4° at best): a direction a hair
+        # below 180° on a vertical peak is 0°, not 179.99997° (which prints as 180)
+        return round(math.degrees(math.atan2(self.fy_per_mm, self.fx_per_mm)) + 90.0, 4) % 180.0
 
 
 @dataclass
