@@ -15,7 +15,6 @@ directional lights) raises :class:`~psmini.errors.InputError` when it is built o
 from __future__ import annotations
 
 import dataclasses
-import inspect
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -24,6 +23,7 @@ import torch
 
 from psmini.errors import InputError
 from psmini.integrate import METHODS as INTEGRATION_METHODS
+from psmini.integrate.api import method_options
 from psmini.lights import LightModel
 from psmini.nearlight import NearLightOptions
 from psmini.nonlambertian import NonLambertianOptions
@@ -44,12 +44,6 @@ _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 # the options type of each estimator that has options
 _ESTIMATOR_OPTIONS = {**{name: RobustOptions for name in ("robust",) + ROBUST_METHODS},
                       "nonlambertian": NonLambertianOptions}
-# options of an integrator that the pipeline itself supplies
-_INTEGRATOR_SUPPLIED = {"p", "q", "pixel_pitch_mm", "mask"}
-
-
-def _accepted(func: Any, supplied: set[str]) -> set[str]:
-    return set(inspect.signature(func).parameters) - supplied
 
 
 @dataclass(frozen=True)
@@ -117,7 +111,7 @@ class ReconstructionConfig:
             torch.device(self.device)
         except (RuntimeError, TypeError) as error:
             raise InputError(f"device must name a torch device (cpu, cuda, cuda:1), got {self.device!r}") from error
-        self._check_options("integrator_options", self.integrator_options, self._integrators(), _INTEGRATOR_SUPPLIED)
+        self._check_integrator_options()
         self._check_estimator_options()
         if isinstance(self.near, Mapping):  # the JSON form (from_dict, --near-option)
             try:
@@ -151,20 +145,18 @@ class ReconstructionConfig:
         if value not in allowed:
             raise InputError(f"{what} must be one of {', '.join(allowed)}, got {value!r}")
 
-    def _integrators(self) -> list[Any]:
-        if self.integrator in ("auto", "fill"):  # options must suit every integrator the distant solver may pick
-            return [INTEGRATION_METHODS["masked"], INTEGRATION_METHODS["fc"]]
-        return [INTEGRATION_METHODS[self.integrator]]
-
-    @staticmethod
-    def _check_options(what: str, options: Any, funcs: list[Any], supplied: set[str]) -> None:
+    def _check_integrator_options(self) -> None:
+        options = self.integrator_options
         if not isinstance(options, Mapping):
-            raise InputError(f"{what} must be a mapping of keyword options, got {type(options).__name__}")
-        for func in funcs:
-            unknown = sorted(set(options) - _accepted(func, supplied))
+            raise InputError(f"integrator_options must be a mapping of keyword options, got {type(options).__name__}")
+        # with auto (or the near solver's fill) the options must suit every integrator the distant solver may pick
+        names = ("masked", "fc") if self.integrator in ("auto", "fill") else (self.integrator,)
+        for name in names:
+            accepted = method_options(name)
+            unknown = sorted(set(options) - accepted)
             if unknown:
-                raise InputError(f"{what}: {func.__name__} takes {sorted(_accepted(func, supplied))}, got unknown "
-                                 f"{unknown}")
+                raise InputError(f"integrator_options: {INTEGRATION_METHODS[name].__name__} takes {sorted(accepted)}, "
+                                 f"got unknown {unknown}")
 
     @property
     def torch_dtype(self) -> torch.dtype:

@@ -13,7 +13,7 @@ from psmini.integrate.bilateral import bilateral_integration
 from psmini.integrate.fourier import dct_poisson, frankot_chellappa
 from psmini.integrate.least_squares import masked_least_squares
 
-__all__ = ["integrate", "METHODS"]
+__all__ = ["integrate", "METHODS", "method_options"]
 
 METHODS = {
     "fc": frankot_chellappa,
@@ -21,6 +21,18 @@ METHODS = {
     "masked": masked_least_squares,
     "bilateral": bilateral_integration,
 }
+
+
+def method_options(method: str) -> set[str]:
+    """The options integration ``method`` takes beyond the gradients, pitch and mask (what ``**options`` may hold).
+
+    Example:
+        >>> sorted(method_options("fc"))
+        ['boundary']
+    """
+    if method not in METHODS:
+        raise InputError(f"unknown integration method {method!r}; expected one of {', '.join(sorted(METHODS))}")
+    return set(inspect.signature(METHODS[method]).parameters) - {"p", "q", "pixel_pitch_mm", "mask"}
 
 
 def integrate(
@@ -50,10 +62,8 @@ def integrate(
         >>> z.shape
         torch.Size([1, 1, 8, 8])
     """
-    if method not in METHODS:
-        raise InputError(f"unknown integration method {method!r}; expected one of {', '.join(sorted(METHODS))}")
+    accepted = method_options(method)
     func = METHODS[method]
-    accepted = set(inspect.signature(func).parameters) - {"p", "q", "pixel_pitch_mm", "mask"}
     unknown = sorted(set(options) - accepted)
     if unknown:
         raise InputError(f"method {method!r} takes options {sorted(accepted)}, got unknown {unknown}")
