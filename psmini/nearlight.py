@@ -80,6 +80,9 @@ _SCAN_POINTS = 25
 _NEWTON_STEP_MM = 0.1
 # ... and the width (mm) at which a search stops refining.
 _OFFSET_TOLERANCE_MM = 1e-3
+# Most parabolic steps of one search (a cost without a minimum, e.g. images that do not depend on the height,
+# would otherwise walk downhill for ever).
+_MAX_OFFSET_STEPS = 12
 # Observations whose leave-one-out residual exceeds this many noise levels are highlights, when the noise makes
 # that larger than ``highlight_fraction``.
 _HIGHLIGHT_SIGMAS = 4.0
@@ -106,14 +109,18 @@ _FINE_SCAN_POINTS = 9
 # Updates of the observations' selection in one alternation at full resolution (after three highlight rounds);
 # later alternations keep it.
 _SELECTION_UPDATES = 2
+_FINE_HIGHLIGHT_ROUNDS = 1
 # The half-resolution alternations stop at this many times the tolerance (their depth only places the lights).
 _COARSE_TOLERANCE_FACTOR = 10.0
-# Relative residual at which the final integration stops (warm-started; a micrometre on the benchmark's depths).
-_FINE_CG_TOLERANCE = 1e-5
-# Relative residual at which the half-resolution integrations stop (their depth only places the light field).
-_COARSE_CG_TOLERANCE = 1e-4
-# Unsolved pixels inside the mask get this confidence and a zero slope: a membrane filled from their rims.
-_GAP_CONFIDENCE = 1e-3
+# Relative residual at which the final integration stops. It starts from the Neumann solve of the same filled
+# slopes, which is right at high frequencies: the weighted solve corrects the long waves, within a few micrometres
+# of its converged depth at 1% (about ten iterations; the slopes' noise makes tens of micrometres).
+_FINAL_CG_TOLERANCE = 1e-2
+# Least weight of a slope in the final integration: unconfident and unsolved pixels keep their filled slope (the
+# confidence-weighted mean around them) at this weight, so no region of the mask floats on its own and the
+# conjugate gradients meet a weight range of 100 rather than 1000 (knit and net: depth within 30 µm, not 100).
+_CONFIDENCE_FLOOR = 1e-2
+_FILL_BELOW = 0.1
 # Pixels fitted to exactly three observations get this share of their confidence (nothing checks their fit).
 _THREE_OBSERVATIONS_CONFIDENCE = 0.1
 # Side (pixels) of the window from which unconfident slopes are filled.
@@ -143,10 +150,10 @@ class NearLightOptions:
             observation (purely Lambertian cloth).
         outlier_fraction: residual, relative to the pixel's scale, above which an observation is an outlier (cast
             shadows missed by the shadow test).
-        integrator: the final integration: ``"masked"`` (the default: weighted least squares on the mask, slopes
-            weighted by their inverse variance, by conjugate gradients warm-started from the alternations' depth),
-            ``"fill"`` (unconfident slopes filled from their surroundings, a Neumann DCT solve: several times
-            faster, depth errors 2-3 times larger on the benchmark's jute and knit) or another
+        integrator: the final integration: ``"masked"`` (the default: unconfident slopes filled from their
+            surroundings, then weighted least squares on the mask, slopes weighted by their inverse variance, by
+            conjugate gradients warm-started from the fill's depth), ``"fill"`` (the filled slopes by a Neumann
+            DCT solve alone: faster, depth errors about twice as large on the benchmark's jute) or another
             method of :func:`psmini.integrate.integrate` (unweighted, on the solved pixels). The alternations always
             use ``"fill"``.
 
@@ -351,13 +358,18 @@ def near_light_vectors(
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def _fit(intensities: Tensor, lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) -> tuple[Tensor, Tensor]:
-    """Weighted per-pixel least squares m = ρ n; returns m (B, 3, H, W) and where it is well posed (B, 1, H, W)."""
-    wx, wy, wz = used * lx, used * ly, used * lz
-    gram = torch.stack([(wx * lx).sum(1), (wx * ly).sum(1), (wx * lz).sum(1),
-                        (wy * ly).sum(1), (wy * lz).sum(1), (wz * lz).sum(1)], dim=1)
-    rhs = torch.stack([(wx * intensities).sum(1), (wy * intensities).sum(1), (wz * intensities).sum(1)], dim=1)
-    return solve_normal_equations(gram, rhs, dim=1)
+def _fit(intensities: Tensor, lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) -> tuple[Tensor, Tensor, tuple]:
+    """Weighted per-pixel least squares m = ρ n, by the adjugate of each pixel's normal matrix (element-wise
+    products: batched LAPACK on millions of 3 × 3 systems costs far more). Returns m (B, 3, H, W) (0 where not
+    well posed), where it is well posed (B, 1, H, W), and the normal matrix's adjugate and determinant
+    (:func:`_adjugate`), which the leverage and the confidence reuse."""
+    matrix = _adjugate(lx, ly, lz, used)
+    (c00, c01, c02, c11, c12, c22), det = matrix
+    signal = used * intensities
+    r0, r1, r2 = ((signal * l).sum(1, keepdim=True) for l in (lx, ly, lz))
+    m = torch.cat([c00 * r0 + c01 * r1 + c02 * r2, c01 * r0 + c11 * r1 + c12 * r2,
+                   c02 * r0 + c12 * r1 + c22 * r2], dim=1) / det
+    return m, torch.isfinite(det), matrix
 
 
 def _split(m: Tensor, well_posed: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
@@ -388,9 +400,10 @@ def _adjugate(lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) -> tuple[tuple[T
     return (c00, c01, c02, c11, c12, c22), det
 
 
-def _leverage(lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) -> Tensor:
-    r"""Leverage :math:`L_k^T (\sum_{j} w_j L_j L_j^T)^{-1} L_k` of every light, (B, K, H, W) (adjugate form)."""
-    (c00, c01, c02, c11, c12, c22), det = _adjugate(lx, ly, lz, used)
+def _leverage(lx: Tensor, ly: Tensor, lz: Tensor, matrix: tuple) -> Tensor:
+    r"""Leverage :math:`L_k^T (\sum_{j} w_j L_j L_j^T)^{-1} L_k` of every light, (B, K, H, W), from the adjugate
+    and determinant of the fit's normal matrix (:func:`_fit`)."""
+    (c00, c01, c02, c11, c12, c22), det = matrix
     quadratic = (c00 * lx * lx + c11 * ly * ly + c22 * lz * lz
                  + 2 * (c01 * lx * ly + c02 * lx * lz + c12 * ly * lz))
     return quadratic / det
@@ -402,15 +415,14 @@ def _candidates(intensities: Tensor, valid: Tensor, level: Tensor | float) -> Te
     Where fewer than three pass, a grazing light may still be real (0.01 next to 0.8 is lit, not shadowed): such
     pixels take their three brightest valid observations, provided the third is not zero. A pixel with fewer than
     three non-zero observations cannot be solved and gets none (it is left unsolved rather than fitted to shadows).
-    The ranks come from K comparisons of whole images (a reduction over K is slow on the CPU for K in dim 1).
+    An observation is among the three brightest when it is at least the third largest (ties all count).
     """
     ranked = intensities.masked_fill(~valid, -torch.inf)
     bright = valid & (intensities > level * ranked.amax(dim=1, keepdim=True))
-    above = torch.zeros_like(intensities)
-    for k in range(intensities.shape[1]):
-        above += (ranked[:, k : k + 1] > ranked).to(intensities.dtype)
+    top = min(3, intensities.shape[1])
+    third = ranked.topk(top, dim=1).values[:, top - 1 : top]
     nonzero = (valid & (intensities > 0)).sum(dim=1, keepdim=True) >= 3
-    brightest_three = valid & (above < 3) & nonzero
+    brightest_three = valid & (ranked >= third) & nonzero
     return torch.where(bright.sum(dim=1, keepdim=True) >= 3, bright, brightest_three)
 
 
@@ -468,12 +480,14 @@ class _Rejection:
         self.noise: tuple[Tensor, Tensor] | None = None
         self.relative_noise: Tensor | None = None
 
-    def update(self, field: tuple[Tensor, Tensor, Tensor, Tensor], m: Tensor, albedo: Tensor, used: Tensor,
-               mask: Tensor | None, highlights_only: bool = False) -> Tensor:
-        """New weights from the fit ``m`` made with ``used``; (B, K, H, W) bool. With ``highlights_only`` only the
-        highlight test runs (its rounds come first: a glint bends the fit that the other tests judge by)."""
+    def update(self, field: tuple[Tensor, Tensor, Tensor, Tensor], fit: tuple[Tensor, Tensor, tuple],
+               albedo: Tensor, used: Tensor, mask: Tensor | None, highlights_only: bool = False) -> Tensor:
+        """New weights from the ``fit`` (:func:`_fit`) made with ``used``; (B, K, H, W) bool. With
+        ``highlights_only`` only the highlight test runs (its rounds come first: a glint bends the fit that the
+        other tests judge by)."""
         lx, ly, lz, length = field
         images, options = self.intensities, self.options
+        m, _, matrix = fit
         pred = _predict(m, lx, ly, lz)
         scale = albedo * length.mean(dim=1, keepdim=True)
         relative = images / length.clamp_min(torch.finfo(length.dtype).tiny)
@@ -483,7 +497,7 @@ class _Rejection:
             if self.relative_noise is None:
                 ranked = relative.masked_fill(~used, -torch.inf)
                 others = used & (ranked < ranked.amax(dim=1, keepdim=True))
-                m_others, posed = _fit(images, lx, ly, lz, others)
+                m_others, posed, _ = _fit(images, lx, ly, lz, others)
                 albedo_others, _ = _split(m_others, posed, mask)
                 n = others.sum(dim=1, keepdim=True)
                 squared = ((images - _predict(m_others, lx, ly, lz)).square() * others).sum(dim=1, keepdim=True)
@@ -500,7 +514,7 @@ class _Rejection:
                 self.candidates = _candidates(images, self.valid & (images > shadow), options.shadow_fraction)
             floor_sq, gain = self.noise
             sigma = (floor_sq + gain * pred.clamp_min(0)).sqrt()
-        leverage = _leverage(lx, ly, lz, used)
+        leverage = _leverage(lx, ly, lz, matrix)
         # residuals of each observation against the fit of the others: r / (1 - h) for the observations in the
         # fit (leave-one-out, from the hat matrix), r itself for the others; and their spread in noise levels
         kept = torch.where(used, (1 - leverage).clamp_min(1e-6), torch.ones_like(leverage))
@@ -540,9 +554,9 @@ class _Rejection:
         return torch.where(enough, proposal, fallback)
 
 
-def _select(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], used: Tensor, m: Tensor,
+def _select(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], used: Tensor, fit: tuple,
             albedo: Tensor, normals: Tensor, mask: Tensor | None, updates: int,
-            highlight_rounds: int | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+            highlight_rounds: int | None = None) -> tuple[Tensor, tuple, Tensor, Tensor]:
     """Highlight rounds (at most ``highlight_rounds``, K - 3 by default, each dropping at most one observation per
     pixel), then ``updates`` full updates of the selection, re-solving after each change; returns the selection
     and its fit."""
@@ -551,16 +565,16 @@ def _select(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], 
     for highlights_only in [True] * highlight_rounds + [False] * updates:
         if highlights_only and not searching:
             continue
-        new = rejection.update(vectors, m, albedo, used, mask, highlights_only)
+        new = rejection.update(vectors, fit, albedo, used, mask, highlights_only)
         if bool((new == used).all()):
             if highlights_only:  # no glint left: on to the full updates
                 searching = False
                 continue
             break
         used = new
-        m, posed = _fit(images, *vectors[:3], used)
-        albedo, normals = _split(m, posed, mask)
-    return used, m, albedo, normals
+        fit = _fit(images, *vectors[:3], used)
+        albedo, normals = _split(*fit[:2], mask)
+    return used, fit, albedo, normals
 
 
 def robust_near_light_normals(
@@ -618,10 +632,10 @@ def robust_near_light_normals(
     field = (lx, ly, lz, (lx.square() + ly.square() + lz.square()).sqrt())
     rejection = _Rejection(intensities, valid, options)
     used = rejection.candidates
-    m, posed = _fit(intensities, lx, ly, lz, used)
-    albedo, normals = _split(m, posed, mask)
+    fit = _fit(intensities, lx, ly, lz, used)
+    albedo, normals = _split(*fit[:2], mask)
     if rounds:
-        used, m, albedo, normals = _select(rejection, intensities, field, used, m, albedo, normals, mask, rounds)
+        used, fit, albedo, normals = _select(rejection, intensities, field, used, fit, albedo, normals, mask, rounds)
     return albedo, normals, used & (albedo > 0)
 
 
@@ -639,14 +653,15 @@ def _offset_cost(field: _LightField, images: Tensor, used: Tensor, depth: Tensor
     lx, ly, lz, _ = field(heights)
     images = images.repeat_interleave(count, dim=0)
     used = used.repeat_interleave(count, dim=0)
-    m, _ = _fit(images, lx, ly, lz, used)
+    m, _, _ = _fit(images, lx, ly, lz, used)
     error = (images - _predict(m, lx, ly, lz)).square() * used
     cost = error.flatten(1).sum(1) / (images.square() * used).flatten(1).sum(1).clamp_min(1e-30)
     return cost.view(batch, count)
 
 
 def _parabola_step(field, images, used, depth, centre: Tensor, step: float) -> Tensor:
-    """One Newton step on the cost, from three values at ``centre`` ± ``step`` (B,), kept within ± ``step``."""
+    """One Newton step on the cost, from three values at ``centre`` ± ``step`` (B,), kept within ± ``step``
+    (downhill by ``step`` where the three values are not convex)."""
     offsets = centre[:, None] + torch.tensor([-step, 0.0, step], device=centre.device, dtype=centre.dtype)
     f0, f1, f2 = _offset_cost(field, images, used, depth, offsets).unbind(1)
     curvature = f0 - 2 * f1 + f2
@@ -657,8 +672,12 @@ def _parabola_step(field, images, used, depth, centre: Tensor, step: float) -> T
 
 def _search_offset(field, images, used, depth, centre: Tensor, search: tuple[float, float] | None,
                    tolerance: float, points: int = _SCAN_POINTS) -> Tensor:
-    """Scan :data:`_SCAN_POINTS` offsets over ``search`` around ``centre``, then parabolic steps of shrinking width
-    (fourfold each) down to ``tolerance``; without ``search``, the steps alone from :data:`_NEWTON_STEP_MM`."""
+    """Scan :data:`_SCAN_POINTS` offsets over ``search`` around ``centre``, then parabolic steps down to
+    ``tolerance``; without ``search``, the steps alone from :data:`_NEWTON_STEP_MM`.
+
+    Each step's width is twice the last move (at least a fourfold shrink, at most ``tolerance`` below it): near the
+    minimum the cost is a parabola and a step from a close centre lands within micrometres, so refining an offset
+    that barely moved (later alternations) takes two steps rather than four."""
     if search is None:  # refine around the centre only
         best, step = centre, _NEWTON_STEP_MM
     else:
@@ -666,9 +685,12 @@ def _search_offset(field, images, used, depth, centre: Tensor, search: tuple[flo
         costs = _offset_cost(field, images, used, depth, centre[:, None] + grid)
         best = centre + grid[costs.argmin(dim=1)]
         step = (search[1] - search[0]) / (points - 1)
-    while step > tolerance:
-        best = _parabola_step(field, images, used, depth, best, step)
-        step /= 4
+    for _ in range(_MAX_OFFSET_STEPS):
+        if step <= tolerance:
+            break
+        moved = _parabola_step(field, images, used, depth, best, step)
+        largest = float((moved - best).abs().max())
+        best, step = moved, min(step / 4, 2 * largest) if largest < step else step
     return best
 
 
@@ -746,8 +768,7 @@ def estimate_height_offset(
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def _confidence(fit: tuple[Tensor, Tensor, Tensor], vectors: tuple[Tensor, ...], used: Tensor,
-                domain: Tensor) -> Tensor:
+def _confidence(fit: tuple[Tensor, Tensor, Tensor], matrix: tuple, used: Tensor, domain: Tensor) -> Tensor:
     r"""Per-pixel confidence of the slopes in the integration, (B, 1, H, W), in [0, 1].
 
     The inverse of the slope's variance, relative to its median over the solved pixels: a pixel's normal varies
@@ -758,7 +779,7 @@ def _confidence(fit: tuple[Tensor, Tensor, Tensor], vectors: tuple[Tensor, ...],
     three LEDs) :data:`_EDGE_CONFIDENCE`, since their normal sees the crevice's wall; unsolved pixels 0.
     """
     albedo, normals, solved = fit
-    (c00, _, _, c11, _, c22), det = _adjugate(*vectors[:3], used)
+    (c00, _, _, c11, _, c22), det = matrix
     variance = (c00 + c11 + c22) / det  # tr(G^-1)
     inverse = albedo.square() * normals[:, 2:3].pow(4) / variance.clamp_min(torch.finfo(albedo.dtype).tiny)
     inverse = torch.where(solved, inverse, torch.zeros_like(inverse)).nan_to_num(0.0, posinf=0.0)
@@ -781,25 +802,28 @@ def _fill(g: Tensor, confidence: Tensor) -> Tensor:
 
 
 def _integrate(p: Tensor, q: Tensor, confidence: Tensor, domain: Tensor, method: str, pitch: float,
-               previous: Tensor | None, mask_given: bool, tol: float | None = None) -> Tensor:
+               previous: Tensor | None, mask_given: bool) -> Tensor:
     """Height (zero mean over the domain) from the slopes, weighted by ``confidence`` (:func:`_confidence`).
 
     ``"fill"``: unconfident slopes replaced by their confident surroundings (:func:`_fill`), then a Neumann (DCT)
     solve on the rectangle (fast; the rest of the rectangle is a membrane when a mask is given). ``"masked"``:
-    weighted least squares on the domain (edges carry the confidence-weighted mean of their two pixels' slopes,
-    unsolved pixels a tiny confidence and zero slope), by multigrid-preconditioned conjugate gradients
-    warm-started from ``previous`` (mm): closer on knits, several times slower. Other integrators of
-    :func:`psmini.integrate.integrate` get the pixels with any confidence as their mask.
+    the same filled slopes, weighted by their confidence (at least :data:`_CONFIDENCE_FLOOR`), by least squares on
+    the domain (edges carry the weighted mean of their two pixels' slopes): multigrid-preconditioned conjugate
+    gradients warm-started from ``previous`` (mm), the fill's depth, to :data:`_FINAL_CG_TOLERANCE`. The weights
+    keep the steep, noisy walls of a knit's loops from tilting their surroundings; the floor and the filled slopes
+    keep every region tied to its neighbours. Other integrators of :func:`psmini.integrate.integrate` get the
+    pixels with any confidence as their mask.
     """
+    if method not in ("fill", "masked"):
+        return integrate(p, q, method=method, pixel_pitch_mm=pitch, mask=confidence > 0)
     if method == "fill":
         return dct_poisson(_fill(p, confidence), _fill(q, confidence), pitch, domain if mask_given else None)
-    if method != "masked":
-        return integrate(p, q, method=method, pixel_pitch_mm=pitch, mask=confidence > 0)
-    confidence = torch.where(confidence > 0, confidence, torch.full_like(confidence, _GAP_CONFIDENCE))
+    weak = confidence < _FILL_BELOW
+    p, q = torch.where(weak, _fill(p, confidence), p), torch.where(weak, _fill(q, confidence), q)
     half = torch.full_like(p, 0.5)
-    wu, wv, tu, tv = _edge_system(p, -q, confidence, half, half)
+    wu, wv, tu, tv = _edge_system(p, -q, confidence.clamp_min(_CONFIDENCE_FLOOR), half, half)
     start = None if previous is None else previous / pitch
-    return pitch * solve_weighted_poisson(wu, wv, tu, tv, domain.to(p.dtype), start, tol)
+    return pitch * solve_weighted_poisson(wu, wv, tu, tv, domain.to(p.dtype), start, _FINAL_CG_TOLERANCE)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -924,7 +948,7 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, light_model: nn.M
                 if small_mask is None else small_mask
             coarse = _State(depth=F.avg_pool2d(state.depth, 2), offset=start)
             _alternate(F.avg_pool2d(images, 2), small_valid, small_mask, small_domain, light_model, 2 * pitch,
-                       card_height, options, coarse, scan=options.search_mm, cg_tol=_COARSE_CG_TOLERANCE,
+                       card_height, options, coarse, scan=options.search_mm,
                        tolerance=_COARSE_TOLERANCE_FACTOR * options.tolerance_deg, final=False,
                        first_level=True, s=_OFFSET_STRIDE // 2)
             size = (height, width)
@@ -935,10 +959,10 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, light_model: nn.M
         else:
             scan, first = options.search_mm, True
         field = _alternate(images, valid, mask, domain, light_model, pitch, card_height, options, state, scan=scan,
-                           cg_tol=_FINE_CG_TOLERANCE, tolerance=options.tolerance_deg, final=True, first_level=first)
+                           tolerance=options.tolerance_deg, final=True, first_level=first)
     # the last solve, at the final depth, carries the gradients (intensities, light model's parameters)
     vectors = field(state.depth)
-    m, posed = _fit(images, *vectors[:3], state.used)
+    m, posed, _ = _fit(images, *vectors[:3], state.used)
     albedo, normals = _split(m, posed, mask)
     p, q = normals_to_gradients(normals)
     return NearLightResult(albedo, normals, p, q, state.depth, albedo > 0, weights=state.used & (albedo > 0),
@@ -964,7 +988,7 @@ class _State:
 
 def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tensor, light_model: nn.Module,
                pitch: float, card_height: float | None, options: NearLightOptions, state: _State,
-               scan: tuple[float, float], cg_tol: float | None, tolerance: float, final: bool,
+               scan: tuple[float, float], tolerance: float, final: bool,
                first_level: bool, s: int = _OFFSET_STRIDE) -> _LightField:
     """Alternations at one resolution, updating ``state`` in place; returns the level's light field.
 
@@ -987,15 +1011,16 @@ def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tenso
     for iteration in range(options.max_iterations):
         state.iterations += 1
         vectors = field(state.depth)
-        m, posed = _fit(images, *vectors[:3], used)
-        albedo, normals = _split(m, posed, mask)
+        fit = _fit(images, *vectors[:3], used)
+        albedo, normals = _split(*fit[:2], mask)
         # the observations' selection: its updates (one highlight and one cast shadow per pixel and update) run in
         # one alternation, at fixed lights, once the surface is near its height (the second alternation when the
         # height is still unknown: far from it, model errors look like highlights and shadows); then the selection
         # stays: flips of a few pixels in every alternation would keep the iteration from converging
         if iteration == select_at:  # fewer rounds at half resolution, which only places the surface
-            used, m, albedo, normals = _select(rejection, images, vectors, used, m, albedo, normals, mask,
-                                               _SELECTION_UPDATES if final else 1, 3 if final else 1)
+            used, fit, albedo, normals = _select(rejection, images, vectors, used, fit, albedo, normals, mask,
+                                                 _SELECTION_UPDATES if final else 1,
+                                                 _FINE_HIGHLIGHT_ROUNDS if final else 1)
         solved = albedo > 0
         state.used = used
         if previous is not None:
@@ -1010,14 +1035,14 @@ def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tenso
         p, q = normals_to_gradients(normals)
         # the depth of an alternation only places the light field: the fast "fill" integration is enough there;
         # the final integration (below) is the chosen integrator's
-        confidence = _confidence((albedo, normals, solved), vectors, used, domain)
+        confidence = _confidence((albedo, normals, solved), fit[2], used, domain)
         relative = _integrate(p, q, confidence, domain, "fill", pitch, None, mask is not None)
         _place(images, used & solved, relative, domain, coarse, state, scan if iteration == 0 else None, options, s)
         state.normals, state.solved, state.confidence = normals, solved, confidence
     if final and options.integrator != "fill" and state.normals is not None:
         p, q = normals_to_gradients(state.normals)
         relative = _integrate(p, q, state.confidence, domain, options.integrator, pitch, state.relative,
-                              mask is not None, cg_tol)
+                              mask is not None)
         _place(images, used & state.solved, relative, domain, coarse, state, None, options, s)
     return field
 

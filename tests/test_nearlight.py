@@ -10,6 +10,7 @@ from psmini.flatfield import flatfield
 from psmini.nearlight import (
     NearLightOptions,
     RefineOptions,
+    _adjugate,
     _confidence,
     _integrate,
     estimate_height_offset,
@@ -264,7 +265,8 @@ class TestSolveNearLight(BaseTester):
         solved[..., 2, 2] = False
         normals = torch.tensor([0.0, 0, 1]).view(1, 3, 1, 1).expand(1, 3, 6, 6)
         used = torch.ones(1, 4, 6, 6, dtype=torch.bool)
-        conf = _confidence((torch.ones(1, 1, 6, 6), normals, solved), (lx, ly, lz), used, torch.ones_like(solved))
+        matrix = _adjugate(lx, ly, lz, used)
+        conf = _confidence((torch.ones(1, 1, 6, 6), normals, solved), matrix, used, torch.ones_like(solved))
         assert float(conf[0, 0, 5, 5]) == 1.0 and float(conf[0, 0, 2, 2]) == 0.0
         assert float(conf[0, 0, 2, 3]) == pytest.approx(0.01)
 
