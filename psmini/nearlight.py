@@ -363,6 +363,7 @@ def _fit(intensities: Tensor, lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) 
     products: batched LAPACK on millions of 3 × 3 systems costs far more). Returns m (B, 3, H, W) (0 where not
     well posed), where it is well posed (B, 1, H, W), and the normal matrix's adjugate and determinant
     (:func:`_adjugate`), which the leverage and the confidence reuse."""
+    used = used.to(lx.dtype)  # once: a boolean factor costs twice a float one in every product
     matrix = _adjugate(lx, ly, lz, used)
     (c00, c01, c02, c11, c12, c22), det = matrix
     signal = used * intensities
@@ -389,6 +390,7 @@ def _predict(m: Tensor, lx: Tensor, ly: Tensor, lz: Tensor) -> Tensor:
 def _adjugate(lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) -> tuple[tuple[Tensor, ...], Tensor]:
     """The six entries of the adjugate of each pixel's normal matrix and its determinant, each (B, 1, H, W);
     the determinant is +inf where the matrix is not well posed (its inverse is then 0)."""
+    used = used.to(lx.dtype)
     wx, wy, wz = used * lx, used * ly, used * lz
     a, b, c = (wx * lx).sum(1, keepdim=True), (wx * ly).sum(1, keepdim=True), (wx * lz).sum(1, keepdim=True)
     d, e, f = (wy * ly).sum(1, keepdim=True), (wy * lz).sum(1, keepdim=True), (wz * lz).sum(1, keepdim=True)
@@ -488,9 +490,14 @@ class _Rejection:
         lx, ly, lz, length = field
         images, options = self.intensities, self.options
         m, _, matrix = fit
+        # (arithmetic on a float copy of the selection: on the CPU, where(), masked_fill() and reductions of
+        # booleans over K cost two to five times a float product)
+        weight = used.to(images.dtype)
         pred = _predict(m, lx, ly, lz)
+        positive = pred.clamp_min(0)
         scale = albedo * length.mean(dim=1, keepdim=True)
         relative = images / length.clamp_min(torch.finfo(length.dtype).tiny)
+        count = weight.sum(dim=1, keepdim=True)
         if highlights_only:
             # before the glints are out, the noise model would take them for noise: the median over pixels of
             # the residual of a fit without each pixel's brightest observation, relative to the pixel's scale
@@ -505,24 +512,25 @@ class _Rejection:
                                                                      ).clamp_min(1e-12)
                 self.relative_noise = _median(residual, (n >= 4) & (albedo_others > 0)).nan_to_num(0.0, posinf=0.0)
             # shot noise grows with the signal: scaled by the square root of the prediction over the pixel's mean
-            level = (pred.clamp_min(0) * used).sum(dim=1, keepdim=True) / used.sum(dim=1, keepdim=True).clamp_min(1)
-            sigma = self.relative_noise * scale * (pred.clamp_min(0) / level.clamp_min(1e-12)).sqrt()
+            level = (positive * weight).sum(dim=1, keepdim=True) / count.clamp_min(1)
+            sigma = self.relative_noise * scale * (positive / level.clamp_min(1e-12)).sqrt()
         else:
             if self.noise is None:  # first full update: the noise model, and shadows relative to it
                 self.noise = _noise_model(images, pred, used, self.valid, albedo, scale, mask)
                 shadow = self.noise[0].sqrt() * _SHADOW_SIGMAS
                 self.candidates = _candidates(images, self.valid & (images > shadow), options.shadow_fraction)
             floor_sq, gain = self.noise
-            sigma = (floor_sq + gain * pred.clamp_min(0)).sqrt()
+            sigma = (floor_sq + gain * positive).sqrt()
         leverage = _leverage(lx, ly, lz, matrix)
         # residuals of each observation against the fit of the others: r / (1 - h) for the observations in the
         # fit (leave-one-out, from the hat matrix), r itself for the others; and their spread in noise levels
-        kept = torch.where(used, (1 - leverage).clamp_min(1e-6), torch.ones_like(leverage))
-        spread = torch.where(used, 1 / kept, 1 + leverage).sqrt()
+        kept = 1 + weight * ((1 - leverage).clamp_min(1e-6) - 1)
+        spread = (1 + leverage + weight * (1 / kept - 1 - leverage)).sqrt()
         left_out = (images - pred) / kept
-        count = used.sum(dim=1, keepdim=True)
+        # the selection's ranks: unused observations pushed out of reach
+        beyond = (1 - weight) * torch.finfo(images.dtype).max
         if options.highlight_fraction is not None:
-            ranked = relative.masked_fill(~used, -torch.inf)
+            ranked = relative - beyond
             suspect = used & (ranked == ranked.amax(dim=1, keepdim=True))  # the brightest (amax: argmax is slow)
             sigmas = _FIRST_HIGHLIGHT_SIGMAS if highlights_only else _HIGHLIGHT_SIGMAS
             threshold = torch.maximum(sigma * sigmas * spread, options.highlight_fraction * scale)
@@ -536,7 +544,7 @@ class _Rejection:
             return used & ~self.highlights
         # cast shadows only darken: the darkest observation relative to its light leaves when the fit of the others
         # predicts it far brighter (with four observations the others still determine the normal)
-        ranked = relative.masked_fill(~used, torch.inf)
+        ranked = relative + beyond
         suspect = used & (ranked == ranked.amin(dim=1, keepdim=True))
         threshold = torch.maximum(options.outlier_fraction * scale, _OUTLIER_SIGMAS * sigma * spread)
         self.shadows = self.shadows | (suspect & ~glinting & (count >= 4) & (albedo > 0) & (left_out < -threshold))
@@ -549,7 +557,7 @@ class _Rejection:
         grazing = self.valid & ~bright & (others > _GRAZING_LOW * sigma) \
             & (left_out.abs() <= _GRAZING_SIGMAS * sigma * spread)
         proposal = (bright | grazing) & ~self.highlights & ~self.shadows
-        enough = proposal.sum(dim=1, keepdim=True) >= 3
+        enough = proposal.to(images.dtype).sum(dim=1, keepdim=True) >= 3
         fallback = torch.where(count >= 3, used, self.candidates & ~self.highlights)
         return torch.where(enough, proposal, fallback)
 
@@ -809,20 +817,24 @@ def _integrate(p: Tensor, q: Tensor, confidence: Tensor, domain: Tensor, method:
     solve on the rectangle (fast; the rest of the rectangle is a membrane when a mask is given). ``"masked"``:
     the same filled slopes, weighted by their confidence (at least :data:`_CONFIDENCE_FLOOR`), by least squares on
     the domain (edges carry the weighted mean of their two pixels' slopes): multigrid-preconditioned conjugate
-    gradients warm-started from ``previous`` (mm), the fill's depth, to :data:`_FINAL_CG_TOLERANCE`. The weights
+    gradients warm-started from ``previous`` (mm; the fill's depth when ``None``), to :data:`_FINAL_CG_TOLERANCE`. The weights
     keep the steep, noisy walls of a knit's loops from tilting their surroundings; the floor and the filled slopes
     keep every region tied to its neighbours. Other integrators of :func:`psmini.integrate.integrate` get the
     pixels with any confidence as their mask.
     """
     if method not in ("fill", "masked"):
         return integrate(p, q, method=method, pixel_pitch_mm=pitch, mask=confidence > 0)
-    if method == "fill":
-        return dct_poisson(_fill(p, confidence), _fill(q, confidence), pitch, domain if mask_given else None)
+    filled = _fill(p, confidence), _fill(q, confidence)
+    if method == "fill" or previous is None:
+        start = dct_poisson(*filled, pitch, domain if mask_given else None)
+        if method == "fill":
+            return start
+        previous = start
     weak = confidence < _FILL_BELOW
-    p, q = torch.where(weak, _fill(p, confidence), p), torch.where(weak, _fill(q, confidence), q)
+    p, q = torch.where(weak, filled[0], p), torch.where(weak, filled[1], q)
     half = torch.full_like(p, 0.5)
     wu, wv, tu, tv = _edge_system(p, -q, confidence.clamp_min(_CONFIDENCE_FLOOR), half, half)
-    start = None if previous is None else previous / pitch
+    start = previous / pitch
     return pitch * solve_weighted_poisson(wu, wv, tu, tv, domain.to(p.dtype), start, _FINAL_CG_TOLERANCE)
 
 
@@ -960,10 +972,13 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, light_model: nn.M
             scan, first = options.search_mm, True
         field = _alternate(images, valid, mask, domain, light_model, pitch, card_height, options, state, scan=scan,
                            tolerance=options.tolerance_deg, final=True, first_level=first)
-    # the last solve, at the final depth, carries the gradients (intensities, light model's parameters)
-    vectors = field(state.depth)
-    m, posed, _ = _fit(images, *vectors[:3], state.used)
-    albedo, normals = _split(m, posed, mask)
+    # the last solve, at the final depth, carries the gradients (intensities, light model's parameters); without
+    # them, a converged iteration's last fit is that solve already
+    learnable = any(parameter.requires_grad for parameter in light_model.parameters())
+    if state.fit is None or torch.is_grad_enabled() and (images.requires_grad or learnable):
+        vectors = field(state.depth)
+        state.fit = _fit(images, *vectors[:3], state.used)
+    albedo, normals = _split(*state.fit[:2], mask)
     p, q = normals_to_gradients(normals)
     return NearLightResult(albedo, normals, p, q, state.depth, albedo > 0, weights=state.used & (albedo > 0),
                            offset_mm=_masked_mean(state.depth, domain).view(-1), iterations=state.iterations,
@@ -981,9 +996,7 @@ class _State:
     changes: list[float] = dataclasses.field(default_factory=list)
     converged: bool = False
     iterations: int = 0
-    normals: Tensor | None = None
-    solved: Tensor | None = None
-    confidence: Tensor | None = None
+    fit: tuple | None = None
 
 
 def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tensor, light_model: nn.Module,
@@ -997,9 +1010,11 @@ def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tenso
     ``change_percentile`` quantile over the solved pixels) since the last alternation, a new depth: integration
     (warm-started) and the offset (scanned over ``scan`` in the first alternation, on every ``s``-th pixel). The
     test on the normals stops without one more integration: the depth is then consistent with its normals.
-    The alternations integrate by a Neumann (DCT) solve on the rectangle; with ``final``, the last normals are
-    integrated once more by ``options.integrator`` (warm-started from the last depth) and the offset refined.
+    The alternations at the coarse level integrate by a Neumann (DCT) solve on the rectangle (their depth only
+    places the light field); with ``final``, by ``options.integrator``, warm-started from the last depth. When the
+    test stops the iteration, ``state.fit`` keeps the last fit: it is the fit at the final depth.
     """
+    method = options.integrator if final else "fill"
     height, width = images.shape[-2:]
     field = _LightField(light_model, height, width, pitch, card_height, images)
     coarse = _LightField(light_model, height, width, pitch, card_height, images, s)
@@ -1033,17 +1048,12 @@ def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tenso
                 break
         previous = normals
         p, q = normals_to_gradients(normals)
-        # the depth of an alternation only places the light field: the fast "fill" integration is enough there;
-        # the final integration (below) is the chosen integrator's
         confidence = _confidence((albedo, normals, solved), fit[2], used, domain)
-        relative = _integrate(p, q, confidence, domain, "fill", pitch, None, mask is not None)
+        # warm start from the last depth at this level (the coarse level's lacks the weave: the fill's is closer)
+        warm = state.relative if iteration > 0 else None
+        relative = _integrate(p, q, confidence, domain, method, pitch, warm, mask is not None)
         _place(images, used & solved, relative, domain, coarse, state, scan if iteration == 0 else None, options, s)
-        state.normals, state.solved, state.confidence = normals, solved, confidence
-    if final and options.integrator != "fill" and state.normals is not None:
-        p, q = normals_to_gradients(state.normals)
-        relative = _integrate(p, q, state.confidence, domain, options.integrator, pitch, state.relative,
-                              mask is not None)
-        _place(images, used & state.solved, relative, domain, coarse, state, None, options, s)
+    state.fit = fit if state.converged else None
     return field
 
 
