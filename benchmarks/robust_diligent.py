@@ -13,8 +13,8 @@ of an image: its baseline is the same inexact ALM in plain NumPy with ``np.linal
 (the textbook form), run on the whole mask. "nonlambertian" (Lambertian + Blinn-Phong by robust Levenberg-Marquardt,
 psmini.nonlambertian) is compared with the same optimiser written per pixel in NumPy (same starts, race and
 iterations, ``np.linalg.solve`` of each 5x5 system, the lobe's likelihood-ratio test with the noise level pooled
-over the loop's pixels), timed on ``--nl-loop-pixels`` (200) mask pixels from the torch robust start and extrapolated; its per-pixel time adds that of the tukey loop, which the torch time includes as the
-start.
+over the loop's pixels), timed on ``--nl-loop-pixels`` (200) mask pixels from the torch robust start and
+extrapolated; its per-pixel time adds that of the tukey loop, which the torch time includes as the start.
 
 Then the same methods on data_synth fabrics rendered by the simulated rig (``--fabrics``, default lurex and satin:
 metallic tapes and long floats under 8 LEDs at ~58°, cast shadows, shot and read noise, 10 bits), with the LEDs as

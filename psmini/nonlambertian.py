@@ -36,10 +36,11 @@ pixels of the fit's residual variance (see :func:`_keep_lobe`). Otherwise it kee
 8 lights a lobe can fit the noise of a matte pixel; judged on each pixel's own residual alone (3 degrees of
 freedom left), it did so on 23% of the matte satin's pixels and lost 0.05° to its start, where the pooled test
 keeps the start on 99% of them. The test uses the pooled noise level, so it also decides pixels with too few readings
-to estimate their own (a glossy thread seen under 5 lights). All pixels are solved at once as the rows of :math:`N \times K` matrices (blocks of
-:data:`_CHUNK` that stay in the CPU caches, each pixel's readings contiguous); the normal equations of all pixels are
-one batched product and the 5×5 systems one batched solve. The fixed iteration count keeps the result
-differentiable.
+to estimate their own (a glossy thread seen under 5 lights).
+
+All pixels are solved at once as the rows of :math:`N \times K` matrices (blocks of :data:`_CHUNK` that stay in
+the CPU caches, each pixel's readings contiguous); the normal equations of all pixels are one batched product and
+the 5×5 systems one batched solve. The fixed iteration count keeps the result differentiable.
 """
 
 from __future__ import annotations
@@ -115,7 +116,8 @@ class NonLambertianOptions:
         if not self.max_shininess >= 1.0:
             raise InputError(f"NonLambertianOptions.max_shininess must be at least 1, got {self.max_shininess}")
         if not 0.0 < self.significance < 1.0:
-            raise InputError(f"NonLambertianOptions.significance must lie in (0, 1) (a test level), got {self.significance}")
+            raise InputError("NonLambertianOptions.significance must lie in (0, 1) (a test level), "
+                             f"got {self.significance}")
         exponents = tuple(float(e) for e in self.shininess)
         if not exponents or not all(1.0 <= e <= self.max_shininess for e in exponents):
             raise InputError("NonLambertianOptions.shininess (starting exponents) must be non-empty, each in "
@@ -385,7 +387,8 @@ def _fit_rows(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor, no
 
 def _wilson_hilferty_median(degrees: Tensor) -> Tensor:
     r"""Median of a :math:`\chi^2` variable with ``degrees`` degrees of freedom, :math:`d (1 - 2 / (9 d))^3`
-    (Wilson & Hilferty, "The distribution of chi-square", PNAS 1931; within 3.5% of the exact median for d = 1, 1% from d = 3)."""
+    (Wilson & Hilferty, "The distribution of chi-square", PNAS 1931; within 3.5% of the exact median for d = 1, 1%
+    from d = 3)."""
     return degrees * (1 - 2 / (9 * degrees)) ** 3
 
 
@@ -434,7 +437,8 @@ def _fit_chunked(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor,
                                                                                              for x in zip(*parts)]
     lobe = _keep_lobe(statistics, options.significance)[:, None]
     maps = [torch.where(lobe, albedo_fit, albedo_start), torch.where(lobe, normals_fit, normals_start),
-            torch.where(lobe, specular, torch.zeros_like(specular)), torch.where(lobe, shininess, torch.ones_like(shininess))]
+            torch.where(lobe, specular, torch.zeros_like(specular)),
+            torch.where(lobe, shininess, torch.ones_like(shininess))]
     return [x.T for x in maps]
 
 
