@@ -12,9 +12,9 @@ Two estimators are not per-pixel IRLS. "rpca" (low-rank recovery, Wu et al. 2010
 of an image: its baseline is the same inexact ALM in plain NumPy with ``np.linalg.svd`` of the matrix per iteration
 (the textbook form), run on the whole mask. "nonlambertian" (Lambertian + Blinn-Phong by robust Levenberg-Marquardt,
 psmini.nonlambertian) is compared with the same optimiser written per pixel in NumPy (same starts, race and
-iterations, ``np.linalg.solve`` of each 5x5 system), timed on ``--nl-loop-pixels`` (200) mask pixels from the torch
-robust start and extrapolated; its per-pixel time adds that of the tukey loop, which the torch time includes as the
-start.
+iterations, ``np.linalg.solve`` of each 5x5 system, the lobe's likelihood-ratio test with the noise level pooled
+over the loop's pixels), timed on ``--nl-loop-pixels`` (200) mask pixels from the torch robust start and
+extrapolated; its per-pixel time adds that of the tukey loop, which the torch time includes as the start.
 
 Then the same methods on data_synth fabrics rendered by the simulated rig (``--fabrics``, default lurex and satin:
 metallic tapes and long floats under 8 LEDs at ~58°, cast shadows, shot and read noise, 10 bits), with the LEDs as
@@ -223,12 +223,24 @@ def loop_nonlambertian(values: np.ndarray, lights: np.ndarray, rho0: float, n0: 
     state, _, damping = raced[0] if raced[0][1] <= raced[1][1] else raced[1]
     state, _, _ = _nl_iterate(values, usable, sigma, most, lights, energy, half, state, damping,
                               NL["iterations"] - NL["race"])
-    # the start's Lambertian model wins when its Cauchy cost per degree of freedom is lower
-    count = usable.sum()
-    fit = _nl_cost(values - _nl_shade(state[0], state[1], state[2], np.exp(state[3]), lights, energy, half)[3],
-                   usable, sigma) / max(count - 5, 0.5)
-    start = _nl_cost(values - _nl_shade(n0, rho0, 0.0, 1.0, lights, energy, half)[3], usable, sigma) / max(count - 3, 0.5)
-    return n0 if start < fit else state[0]
+    # the statistics of the likelihood-ratio test (psmini.nonlambertian._keep_lobe): both models' residual sums of
+    # squares on the usable readings, the median usable reading and the count; the test pools over pixels
+    squares = [float((usable * (values - _nl_shade(*x, lights, energy, half)[3]) ** 2).sum())
+               for x in ((state[0], state[1], state[2], np.exp(state[3])), (n0, rho0, 0.0, 1.0))]
+    return state[0], n0, np.array(squares + [kept[(len(kept) - 1) // 2], usable.sum()])
+
+
+def lobe_test(statistics: np.ndarray) -> np.ndarray:
+    """Per pixel, whether the lobe passes the likelihood-ratio test at NL["significance"]: (n, 4) statistics of
+    loop_nonlambertian, the noise level pooled over these pixels (psmini pools over the whole image)."""
+    fit, start, median, count = statistics.T
+    free = count > 5
+    if not free.any():
+        return np.zeros(len(count), bool)
+    degrees = np.maximum(count - 5, 1)
+    chi2_median = degrees * (1 - 2 / (9 * degrees)) ** 3  # Wilson & Hilferty 1931
+    noise = np.sort((fit / (median**2 * chi2_median))[free])[(free.sum() - 1) // 2]  # lower median
+    return (start - fit) / (noise * median**2) > -2 * np.log(NL["significance"])
 
 
 def torch_normals(images, lights, mask, method):
@@ -246,8 +258,9 @@ def loop_time(method, values_np, lights_np, start, ours):
         loop_m = loop_rpca(values_np, lights_np)
     elif method == "nonlambertian":
         rho0, n0 = start
-        loop_m = np.stack([loop_nonlambertian(values_np[:, i], lights_np, rho0[i], n0[:, i])
-                           for i in range(values_np.shape[1])], 1)
+        fits = [loop_nonlambertian(values_np[:, i], lights_np, rho0[i], n0[:, i]) for i in range(values_np.shape[1])]
+        lobe = lobe_test(np.stack([f[2] for f in fits]))
+        loop_m = np.stack([f[0] if keep else f[1] for f, keep in zip(fits, lobe)], 1)
     else:
         loop_m = np.stack([loop_pixel(values_np[:, i], lights_np, method) for i in range(values_np.shape[1])], 1)
     per_pixel = (time.perf_counter() - begin) / values_np.shape[1]
@@ -360,7 +373,8 @@ def main(argv: list[str] | None = None) -> int:
             "torch time for the mask). rpca: the same inexact ALM in NumPy with np.linalg.svd of the whole matrix "
             "per iteration, on the whole mask. nonlambertian: the same Levenberg-Marquardt per pixel in NumPy on "
             f"{args.nl_loop_pixels} of those pixels from the torch robust start, extrapolated, plus the tukey loop's "
-            "time per pixel (the torch time includes the robust start); torch timed once. "
+            "time per pixel (the torch time includes the robust start), with the lobe's likelihood-ratio test "
+            "pooling its noise level over those pixels (psmini over the whole image); torch timed once. "
             f"Torch: best of {args.repeat}, device {args.device}, "
             f"{torch.get_num_threads()} threads. Defaults for every method: {DEFAULTS}; no per-object tuning.")
     fabrics = [name for name in args.fabrics.split(",") if name]

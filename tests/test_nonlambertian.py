@@ -162,7 +162,8 @@ class TestFit(BaseTester):
         for options, match in (({"iterations": -1}, "iterations"), ({"iterations": 2.5}, "iterations"),
                                ({"shadow": 1.0}, "shadow"), ({"scale": 0.0}, "scale"),
                                ({"saturation": 0.0}, "saturation"), ({"shininess": (0.5,)}, "shininess"),
-                               ({"shininess": (3000.0,)}, "shininess")):
+                               ({"shininess": (3000.0,)}, "shininess"), ({"significance": 0.0}, "significance"),
+                               ({"significance": 1.0}, "significance")):
             with pytest.raises(InputError, match=match):
                 NonLambertianOptions(**options)
         with pytest.raises(InputError, match="NaN"):
@@ -201,30 +202,102 @@ class TestPipeline(BaseTester):
 
 @pytest.mark.slow
 def test_cli_evaluate_ball(capsys):
-    """DiLiGenT ball: 1.81° measured (robust start 2.01°, least squares 4.1°); the issue asks for at most 1.9°."""
+    """DiLiGenT ball: 1.83° measured (robust start 1.99°, least squares 4.1°); the issue asks for at most 1.9°."""
     folder = shared_data("DiLiGenT", "ball")
     assert main(["evaluate", str(folder), "--method", "nonlambertian", "--json"]) == 0
     scores = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert scores["mean_angular_error_deg"] <= 1.85
 
 
-def test_never_worse_than_the_start_on_lambertian_readings():
-    """8 lights, Lambertian sphere with 1% noise: a lobe could only fit noise; pixels whose fit does not beat the
-    start's Lambertian model per degree of freedom keep the start (specular 0, normal of the start).
-
-    Measured: 1.58° against the start's 1.49° (+6%): with 8 readings and 5 unknowns the fit still follows noise on
-    the pixels it keeps (as on the satin fabric); the bound below holds that damage to 10%."""
+def _noisy_sphere(count, specular, noise, dtype=torch.float64):
+    """Sphere under a ring of ``count`` lights at 45°, a Blinn–Phong lobe of albedo ``specular`` (0: matte) and
+    multiplicative Gaussian noise of relative size ``noise`` (shot-like), with the robust start."""
     from psmini.robust import robust_normals
 
-    normals, inside, albedo = analytic_sphere(32, dtype=torch.float64)
-    lights = ring_lights(8, 45.0, dtype=torch.float64)
-    clean = render(torch.zeros_like(normals), normals, albedo, DirectionalLights(lights))
-    noisy = clean + 0.01 * torch.randn(clean.shape, generator=torch.Generator().manual_seed(0), dtype=clean.dtype)
-    start = robust_normals(noisy, lights, "robust", inside)
-    fit = fit_blinn_phong(noisy, lights, inside, init=start)
+    normals, inside, albedo = analytic_sphere(32, dtype=dtype)
+    lights = ring_lights(count, 45.0, dtype=dtype)
+    clean = render(torch.zeros_like(normals), normals, albedo, DirectionalLights(lights),
+                   specular=specular * torch.ones_like(albedo) if specular else None, shininess=SHININESS)
+    generator = torch.Generator().manual_seed(0)
+    images = clean * (1 + noise * torch.randn(clean.shape, generator=generator, dtype=dtype))
+    return normals, inside, lights, images, robust_normals(images, lights, "robust", inside)
+
+
+def test_lobe_kept_only_where_the_likelihood_ratio_test_supports_it():
+    """8 lights, matte sphere: a lobe could only fit noise, and the test keeps the robust start on almost every pixel
+    (measured 98% with 2% relative noise; 96% with 1% absolute noise, which the relative noise model of the test
+    misjudges on dark pixels). Judged on each pixel's own residual per degree of freedom (the rule before the test)
+    the fit kept only ~75% and lost 6% to the start."""
+    normals, inside, lights, images, start = _noisy_sphere(8, 0.0, 0.02)
+    fit = fit_blinn_phong(images, lights, inside, init=start)
     kept = inside & (fit.specular == 0) & (fit.shininess == 1)
-    assert int(kept.sum()) > 0.2 * int(inside.sum())
+    assert int(kept.sum()) >= 0.95 * int(inside.sum())
     torch.testing.assert_close(fit.normals * kept, start[1] * kept)
     scored = inside & (normals[:, 2:] > 0.5)
     error = lambda n: float(mean_angular_error(n, normals, scored)[0])
-    assert error(fit.normals) <= error(start[1]) * 1.10
+    assert error(fit.normals) <= error(start[1]) * 1.01
+    # 1% absolute noise: dark pixels have a larger relative noise, a few more lobes pass, still within 3%
+    clean = images / (1 + 0.02 * torch.randn(images.shape, generator=torch.Generator().manual_seed(0),
+                                             dtype=images.dtype))
+    absolute = clean + 0.01 * torch.randn(clean.shape, generator=torch.Generator().manual_seed(1), dtype=clean.dtype)
+    from psmini.robust import robust_normals
+
+    start = robust_normals(absolute, lights, "robust", inside)
+    assert error(fit_blinn_phong(absolute, lights, inside, init=start).normals) <= error(start[1]) * 1.03
+
+
+def test_lobe_identifiable_beats_the_robust_start():
+    """8 lights, glossy sphere (specular 0.8, exponent 40), 2% noise: where highlights are seen the lobe passes the
+    test and the fit beats the robust Lambertian start (measured 0.74° against 3.78°)."""
+    normals, inside, lights, images, start = _noisy_sphere(8, SPECULAR, 0.02)
+    fit = fit_blinn_phong(images, lights, inside, init=start)
+    scored = inside & (normals[:, 2:] > 0.5)
+    error = lambda n: float(mean_angular_error(n, normals, scored)[0])
+    assert error(fit.normals) < 0.3 * error(start[1])
+    assert float((fit.specular[scored] > 0).double().mean()) > 0.3
+
+
+def test_lobe_not_identifiable_returns_the_robust_start():
+    """5 lights: no pixel has more readings than the fit has parameters, so the image gives no noise level to test
+    a lobe against; every pixel returns the robust start unchanged (albedo, normal, no lobe), glossy or not."""
+    normals, inside, lights, images, start = _noisy_sphere(5, SPECULAR, 0.02)
+    fit = fit_blinn_phong(images, lights, inside, init=start)
+    assert bool((fit.specular == 0).all()) and bool((fit.shininess == 1).all())
+    torch.testing.assert_close(fit.normals[inside.expand_as(fit.normals)], start[1][inside.expand_as(start[1])],
+                               rtol=0, atol=0)
+    torch.testing.assert_close(fit.albedo[inside], start[0][inside], rtol=0, atol=0)
+
+
+def test_keep_lobe_test_level():
+    """_keep_lobe on statistics drawn from its own null model: residual sums of squares of the fit
+    tau^2 mu^2 chi^2_{K-5} and a drop tau^2 mu^2 chi^2_2 for the start; the lobe passes on a fraction close to the
+    significance (the pooled noise level is estimated, not given), and always for a drop 50 times the noise."""
+    from psmini.nonlambertian import _keep_lobe
+
+    generator = torch.Generator().manual_seed(0)
+    n = 200_000
+    count = torch.randint(6, 97, (n,), generator=generator).double()
+    median = 0.05 + torch.rand(n, generator=generator, dtype=torch.float64)
+    tau = 0.03
+    chi2 = lambda d: torch.randn(n, int(d.max()), generator=generator, dtype=torch.float64).square().mul(
+        torch.arange(int(d.max()), dtype=torch.float64) < d[:, None]).sum(dim=1)
+    fit_squares = (tau * median) ** 2 * chi2(count - 5)
+    start_squares = fit_squares + (tau * median) ** 2 * chi2(torch.full_like(count, 2.0))
+    for level in (0.05, 0.01):
+        rate = float(_keep_lobe(torch.stack([fit_squares, start_squares, median, count], 1), level).double().mean())
+        assert 0.7 * level < rate < 1.3 * level
+    strong = fit_squares + 50 * (tau * median) ** 2
+    assert bool(_keep_lobe(torch.stack([fit_squares, strong, median, count], 1), 0.01).all())
+    # no pixel with more than 5 readings: no noise level, no lobe
+    assert not bool(_keep_lobe(torch.stack([fit_squares, strong, median, torch.full_like(count, 5.0)], 1), 0.5).any())
+
+
+def test_wilson_hilferty_median():
+    """The chi-square median approximation against SciPy's exact quantile: within 3.5% for 1 degree, 1% from 3."""
+    stats = pytest.importorskip("scipy.stats")
+    from psmini.nonlambertian import _wilson_hilferty_median
+
+    degrees = torch.arange(1, 101, dtype=torch.float64)
+    exact = torch.tensor(stats.chi2.median(degrees.numpy()))
+    torch.testing.assert_close(_wilson_hilferty_median(degrees), exact, rtol=0.035, atol=0)
+    torch.testing.assert_close(_wilson_hilferty_median(degrees[2:]), exact[2:], rtol=0.01, atol=0)
