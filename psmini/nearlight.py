@@ -120,7 +120,11 @@ _FINAL_CG_TOLERANCE = 1e-2
 # confidence-weighted mean around them) at this weight, so no region of the mask floats on its own and the
 # conjugate gradients meet a weight range of 100 rather than 1000 (knit and net: depth within 30 µm, not 100).
 _CONFIDENCE_FLOOR = 1e-2
+# Slopes are replaced by that filled slope when their confidence is below this (a variance ten times the median)...
 _FILL_BELOW = 0.1
+# ... and their standard deviation (from the images' noise model) exceeds this, in slope units (about a degree):
+# exact slopes (noise-free renders) are never replaced, however few lights determine them.
+_SLOPE_NOISE = 0.02
 # Pixels fitted to exactly three observations get this share of their confidence (nothing checks their fit).
 _THREE_OBSERVATIONS_CONFIDENCE = 0.1
 # Side (pixels) of the window from which unconfident slopes are filled.
@@ -776,8 +780,11 @@ def estimate_height_offset(
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def _confidence(fit: tuple[Tensor, Tensor, Tensor], matrix: tuple, used: Tensor, domain: Tensor) -> Tensor:
-    r"""Per-pixel confidence of the slopes in the integration, (B, 1, H, W), in [0, 1].
+def _confidence(fit: tuple[Tensor, Tensor, Tensor], matrix: tuple, used: Tensor, domain: Tensor,
+                noise_sq: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    r"""Per-pixel confidence of the slopes in the integration, (B, 1, H, W), in [0, 1], and where the slopes are
+    noisy: their standard deviation, from the images' noise variance ``noise_sq`` (B, 1, 1, 1), above
+    :data:`_SLOPE_NOISE` (none without ``noise_sq``: then every slope is taken as it is).
 
     The inverse of the slope's variance, relative to its median over the solved pixels: a pixel's normal varies
     as :math:`\sigma^2 \operatorname{tr}(G^{-1}) / \rho^2` (:math:`G` its normal matrix) and its slope
@@ -797,7 +804,8 @@ def _confidence(fit: tuple[Tensor, Tensor, Tensor], matrix: tuple, used: Tensor,
     padded = F.pad(gap, (1, 1, 1, 1), value=0.0)  # the image border is no gap
     beside = (padded[..., 1:-1, :-2] + padded[..., 1:-1, 2:] + padded[..., :-2, 1:-1] + padded[..., 2:, 1:-1]) > 0
     confidence = torch.where(beside, confidence.clamp(max=_EDGE_CONFIDENCE), confidence)
-    return torch.where(solved, confidence, torch.zeros_like(confidence))
+    noisy = ~solved if noise_sq is None else ~solved | (noise_sq > _SLOPE_NOISE**2 * inverse)
+    return torch.where(solved, confidence, torch.zeros_like(confidence)), noisy
 
 
 def _fill(g: Tensor, confidence: Tensor) -> Tensor:
@@ -810,17 +818,18 @@ def _fill(g: Tensor, confidence: Tensor) -> Tensor:
 
 
 def _integrate(p: Tensor, q: Tensor, confidence: Tensor, domain: Tensor, method: str, pitch: float,
-               previous: Tensor | None, mask_given: bool) -> Tensor:
+               previous: Tensor | None, mask_given: bool, noisy: Tensor | None = None) -> Tensor:
     """Height (zero mean over the domain) from the slopes, weighted by ``confidence`` (:func:`_confidence`).
 
     ``"fill"``: unconfident slopes replaced by their confident surroundings (:func:`_fill`), then a Neumann (DCT)
     solve on the rectangle (fast; the rest of the rectangle is a membrane when a mask is given). ``"masked"``:
-    the same filled slopes, weighted by their confidence (at least :data:`_CONFIDENCE_FLOOR`), by least squares on
-    the domain (edges carry the weighted mean of their two pixels' slopes): multigrid-preconditioned conjugate
-    gradients warm-started from ``previous`` (mm; the fill's depth when ``None``), to :data:`_FINAL_CG_TOLERANCE`. The weights
-    keep the steep, noisy walls of a knit's loops from tilting their surroundings; the floor and the filled slopes
-    keep every region tied to its neighbours. Other integrators of :func:`psmini.integrate.integrate` get the
-    pixels with any confidence as their mask.
+    the slopes, those both ``noisy`` (:func:`_confidence`; all when ``None``) and below :data:`_FILL_BELOW`
+    confidence replaced by the filled ones, weighted by their confidence (at least :data:`_CONFIDENCE_FLOOR`), by
+    least squares on the domain (edges carry the weighted mean of their two pixels' slopes): multigrid-
+    preconditioned conjugate gradients warm-started from ``previous`` (mm; the fill's depth when ``None``), to
+    :data:`_FINAL_CG_TOLERANCE`. The weights keep the steep, noisy walls of a knit's loops from tilting their
+    surroundings; the floor and the filled slopes keep every region tied to its neighbours. Other integrators of
+    :func:`psmini.integrate.integrate` get the pixels with any confidence as their mask.
     """
     if method not in ("fill", "masked"):
         return integrate(p, q, method=method, pixel_pitch_mm=pitch, mask=confidence > 0)
@@ -830,7 +839,7 @@ def _integrate(p: Tensor, q: Tensor, confidence: Tensor, domain: Tensor, method:
         if method == "fill":
             return start
         previous = start
-    weak = confidence < _FILL_BELOW
+    weak = confidence < _FILL_BELOW if noisy is None else noisy & (confidence < _FILL_BELOW)  # noisy and unconfident
     p, q = torch.where(weak, filled[0], p), torch.where(weak, filled[1], q)
     half = torch.full_like(p, 0.5)
     wu, wv, tu, tv = _edge_system(p, -q, confidence.clamp_min(_CONFIDENCE_FLOOR), half, half)
@@ -1048,10 +1057,12 @@ def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tenso
                 break
         previous = normals
         p, q = normals_to_gradients(normals)
-        confidence = _confidence((albedo, normals, solved), fit[2], used, domain)
+        noise_sq = None if rejection.noise is None else \
+            rejection.noise[0] + rejection.noise[1] * images.mean(dim=(1, 2, 3), keepdim=True)
+        confidence, noisy = _confidence((albedo, normals, solved), fit[2], used, domain, noise_sq)
         # warm start from the last depth at this level (the coarse level's lacks the weave: the fill's is closer)
         warm = state.relative if iteration > 0 else None
-        relative = _integrate(p, q, confidence, domain, method, pitch, warm, mask is not None)
+        relative = _integrate(p, q, confidence, domain, method, pitch, warm, mask is not None, noisy)
         _place(images, used & solved, relative, domain, coarse, state, scan if iteration == 0 else None, options, s)
     state.fit = fit if state.converged else None
     return field

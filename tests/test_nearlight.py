@@ -266,7 +266,8 @@ class TestSolveNearLight(BaseTester):
         normals = torch.tensor([0.0, 0, 1]).view(1, 3, 1, 1).expand(1, 3, 6, 6)
         used = torch.ones(1, 4, 6, 6, dtype=torch.bool)
         matrix = _adjugate(lx, ly, lz, used)
-        conf = _confidence((torch.ones(1, 1, 6, 6), normals, solved), matrix, used, torch.ones_like(solved))
+        conf, noisy = _confidence((torch.ones(1, 1, 6, 6), normals, solved), matrix, used, torch.ones_like(solved))
+        assert noisy.sum() == 1 and bool(noisy[0, 0, 2, 2])  # without a noise model only the unsolved pixel
         assert float(conf[0, 0, 5, 5]) == 1.0 and float(conf[0, 0, 2, 2]) == 0.0
         assert float(conf[0, 0, 2, 3]) == pytest.approx(0.01)
 
