@@ -808,13 +808,18 @@ def _confidence(fit: tuple[Tensor, Tensor, Tensor], matrix: tuple, used: Tensor,
     return torch.where(solved, confidence, torch.zeros_like(confidence)), noisy
 
 
-def _fill(g: Tensor, confidence: Tensor) -> Tensor:
-    """Slopes with the unconfident ones replaced, in proportion, by the confidence-weighted mean around them
-    (normalised convolution over :data:`_FILL_SIZE` pixels)."""
+def _box(x: Tensor) -> Tensor:
+    """Mean over a :data:`_FILL_SIZE`-pixel square around each pixel, zeros beyond the border (two 1-D passes)."""
     k = _FILL_SIZE
-    num = F.avg_pool2d(g * confidence, k, 1, k // 2, count_include_pad=False)
-    den = F.avg_pool2d(confidence, k, 1, k // 2, count_include_pad=False)
-    return confidence * g + (1 - confidence) * num / den.clamp_min(1e-6)
+    return F.avg_pool2d(F.avg_pool2d(x, (k, 1), 1, (k // 2, 0)), (1, k), 1, (0, k // 2))
+
+
+def _fill(p: Tensor, q: Tensor, confidence: Tensor) -> tuple[Tensor, Tensor]:
+    """Slopes with the unconfident ones replaced, in proportion, by the confidence-weighted mean around them
+    (normalised convolution over :data:`_FILL_SIZE` pixels: the ratio of two box means, whose border counts
+    cancel)."""
+    den = _box(confidence).clamp_min(1e-6)
+    return tuple(confidence * g + (1 - confidence) * _box(g * confidence) / den for g in (p, q))
 
 
 def _integrate(p: Tensor, q: Tensor, confidence: Tensor, domain: Tensor, method: str, pitch: float,
@@ -833,7 +838,7 @@ def _integrate(p: Tensor, q: Tensor, confidence: Tensor, domain: Tensor, method:
     """
     if method not in ("fill", "masked"):
         return integrate(p, q, method=method, pixel_pitch_mm=pitch, mask=confidence > 0)
-    filled = _fill(p, confidence), _fill(q, confidence)
+    filled = _fill(p, q, confidence)
     if method == "fill" or previous is None:
         start = dct_poisson(*filled, pitch, domain if mask_given else None)
         if method == "fill":
