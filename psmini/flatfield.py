@@ -115,7 +115,11 @@ def flatfield(
     # One new tensor per sample, updated in place: the difference, its clamp, the card's scale (each a pass over
     # memory; there is no fused kernel for max(I - D, 0) * s in eager torch).
     signal = images.clamp_min(0) if dark is None else (images - dark.to(images)).clamp_min_(0)
-    saturated = None if saturation_level is None else images >= saturation_level
+    # one read of the images decides whether anything is saturated: when nothing is (the usual capture), the
+    # bool map, its masked fill and the per-observation valid map are skipped, and the card alone decides
+    saturated = None
+    if saturation_level is not None and bool(images.detach().amax() >= saturation_level):
+        saturated = images >= saturation_level
     if reference is None:
         if saturated is None:
             return FlatFieldResult(signal, torch.ones_like(images, dtype=torch.bool), True)

@@ -71,6 +71,17 @@ class TestFlatField(BaseTester):
         reference = (torch.rand(3, 3, 3, dtype=torch.float64) + 0.5).requires_grad_()
         self.gradcheck(lambda i, r: flatfield(i, r, card_albedo=0.8).images, (images, reference))
 
+    def test_saturated_card_unsaturated_images(self, device, dtype):
+        # no image reaches the level (the one-read shortcut), but the card does at one pixel: only the card decides
+        images = torch.rand(2, 4, 5, 6, device=device, dtype=dtype) * 0.9
+        reference = torch.full((4, 5, 6), 0.5, device=device, dtype=dtype)
+        reference[2, 1, 3] = 1.0
+        result = flatfield(images, reference, saturation_level=1.0)
+        expected = torch.ones(2, 4, 5, 6, dtype=torch.bool, device=device)
+        expected[:, 2, 1, 3] = False
+        assert torch.equal(result.valid, expected) and result.all_valid is False
+        self.assert_close(result.images, torch.where(expected, images / 0.5, 0.0))
+
     def test_gradcheck_with_dark_and_saturation(self):
         """The in-place path (difference, clamp, scale, saturation fill on one new tensor) keeps its gradients."""
         torch.manual_seed(0)
