@@ -82,6 +82,19 @@ class TestFlatField(BaseTester):
         assert torch.equal(result.valid, expected) and result.all_valid is False
         self.assert_close(result.images, torch.where(expected, images / 0.5, 0.0))
 
+    def test_card_terms_follow_the_card(self, device, dtype):
+        # the card's terms are kept for the same, unmodified reference object: an in-place change, another card
+        # object with other values, or another dark frame must each give their own result
+        images = torch.rand(2, 3, 4, 5, device=device, dtype=dtype) + 0.1
+        reference = torch.full((3, 4, 5), 0.5, device=device, dtype=dtype)
+        first = flatfield(images, reference).images
+        self.assert_close(flatfield(images, reference).images, first)
+        reference.mul_(2.0)  # in place: a new version of the same tensor
+        self.assert_close(flatfield(images, reference).images, first / 2)
+        self.assert_close(flatfield(images, torch.full_like(reference, 0.25)).images, first * 2)
+        dark = torch.full((1, 1, 4, 5), 0.05, device=device, dtype=dtype)
+        self.assert_close(flatfield(images, reference, reference_dark=dark).images, images / 0.95)
+
     def test_gradcheck_with_dark_and_saturation(self):
         """The in-place path (difference, clamp, scale, saturation fill on one new tensor) keeps its gradients."""
         torch.manual_seed(0)
