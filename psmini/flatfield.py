@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass
+from functools import partial
 from typing import NamedTuple
 
 import torch
@@ -147,6 +148,12 @@ class _CardEntry(NamedTuple):
 _last_card: list[_CardEntry] = []  # the last card's terms (a batch run flat-fields every sample with one card)
 
 
+def _forget(key: tuple, _: weakref.ref) -> None:
+    """Drop the kept terms once their card (or its dark frame) is freed, unless another card replaced them."""
+    if _last_card and _last_card[0].key == key:
+        _last_card.clear()
+
+
 def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tuple[Tensor, Tensor | None],
                 images: Tensor, card_albedo: float, min_reference: float,
                 saturation_level: float | None) -> tuple[Tensor, Tensor, bool]:
@@ -178,8 +185,8 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
     scale = card_albedo / torch.where(trusted, card, torch.inf)
     terms = (scale, trusted, bool(trusted.all()))
     if cacheable:
-        _last_card[:] = [_CardEntry(key, weakref.ref(original),
-                                    None if original_dark is None else weakref.ref(original_dark), terms)]
+        _last_card[:] = [_CardEntry(key, weakref.ref(original, partial(_forget, key)), None if original_dark is None
+                                    else weakref.ref(original_dark, partial(_forget, key)), terms)]
     return terms
 
 

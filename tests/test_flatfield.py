@@ -94,6 +94,11 @@ class TestFlatField(BaseTester):
         self.assert_close(flatfield(images, torch.full_like(reference, 0.25)).images, first * 2)
         dark = torch.full((1, 1, 4, 5), 0.05, device=device, dtype=dtype)
         self.assert_close(flatfield(images, reference, reference_dark=dark).images, images / 0.95)
+        from psmini.flatfield import _last_card  # the one-entry list, updated in place
+
+        assert _last_card  # kept while the card lives ...
+        del reference, dark
+        assert not _last_card  # ... and dropped with it
 
     def test_gradcheck_with_dark_and_saturation(self):
         """The in-place path (difference, clamp, scale, saturation fill on one new tensor) keeps its gradients."""
