@@ -98,7 +98,7 @@ class TestOpenCVPath(BaseTester):
         assert fast.dtype == slow.dtype == torch.float32
         self.assert_close(fast, slow, rtol=2e-5, atol=1e-8)
 
-    @pytest.mark.parametrize("code", ["HELM", "SFIL", "WAVV", "WAVR", "GLLV"])
+    @pytest.mark.parametrize("code", ["HELM", "SFIL", "WAVV", "WAVR", "GLLV", "LAPM", "LAPD", "CURV"])
     @pytest.mark.parametrize("dtype", [torch.uint8, torch.uint16, torch.float32])
     def test_strips_equal_torch(self, code, dtype, monkeypatch):
         # frames taller than two strips (and not a multiple of one): every strip seam is inside the valid grid

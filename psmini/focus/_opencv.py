@@ -364,20 +364,28 @@ _DIAGONALS = (
 
 
 def modified_laplacian(region: Tensor, diagonal: bool) -> Tensor:
-    """LAPM (threshold 0 only: the caller keeps the torch path otherwise) and LAPD."""
+    """LAPM (threshold 0 only: the caller keeps the torch path otherwise) and LAPD, in row strips (see
+    :data:`_STRIP_ROWS`): each strip filters its rows plus one on either side into one small reused buffer."""
     cv2 = _cv2
     out = []
     for f, s in _each(region):
-        # integer frames are filtered as they are, into float32 (no converted copy), into one reused buffer
-        (second,) = _scratch(f.shape, 1)
-        valid = second[1:-1, 1:-1]
-        total = cv2.norm(cv2.Sobel(f, cv2.CV_32F, 2, 0, dst=second, ksize=1)[1:-1, 1:-1], cv2.NORM_L1)
-        total += cv2.norm(cv2.Sobel(f, cv2.CV_32F, 0, 2, dst=second, ksize=1)[1:-1, 1:-1], cv2.NORM_L1)
-        if diagonal:
-            for kernel in _DIAGONALS:
-                cv2.filter2D(f, cv2.CV_32F, kernel, dst=second)
-                total += math.sqrt(0.5) * cv2.norm(valid, cv2.NORM_L1)
-        out.append(total * s / ((f.shape[0] - 2) * (f.shape[1] - 2)))
+        h, w = f.shape
+        # integer frames are filtered as they are, into float32 (no converted copy)
+        (buffer,) = _scratch((min(_STRIP_ROWS, h - 2) + 2, w), 1)
+        total = 0.0
+        for a, b in _strips(1, h - 1):
+            n = b - a + 2
+            src, second = f[a - 1 : b + 1], buffer[:n]
+            valid = second[1 : n - 1, 1 : w - 1]
+            cv2.Sobel(src, cv2.CV_32F, 2, 0, dst=second, ksize=1)
+            total += cv2.norm(valid, cv2.NORM_L1)
+            cv2.Sobel(src, cv2.CV_32F, 0, 2, dst=second, ksize=1)
+            total += cv2.norm(valid, cv2.NORM_L1)
+            if diagonal:
+                for kernel in _DIAGONALS:
+                    cv2.filter2D(src, cv2.CV_32F, kernel, dst=second)
+                    total += math.sqrt(0.5) * cv2.norm(valid, cv2.NORM_L1)
+        out.append(total * s / ((h - 2) * (w - 2)))
     return _out(out)
 
 
@@ -549,15 +557,21 @@ _CURVATURE = (  # (row taps, column taps) of p0 = Σx g/6, p1 = Σy g/6, p2 = Σ
 
 
 def curvature(region: Tensor) -> Tensor:
+    """Helmli & Scherer's four curvature coefficients, each a separable 3 × 3 filter, in row strips (see
+    :data:`_STRIP_ROWS`)."""
     cv2 = _cv2
     out = []
     for f, s in _each(region):
-        (response,) = _scratch(f.shape, 1)
+        h, w = f.shape
+        (buffer,) = _scratch((min(_STRIP_ROWS, h - 2) + 2, w), 1)
         total = 0.0
-        for kx, ky in _CURVATURE:  # each coefficient's 3 × 3 kernel is separable
-            cv2.sepFilter2D(f, cv2.CV_32F, kx, ky, dst=response)
-            total += cv2.norm(response[1:-1, 1:-1], cv2.NORM_L1)
-        out.append(total * s / ((f.shape[0] - 2) * (f.shape[1] - 2)))
+        for a, b in _strips(1, h - 1):
+            n = b - a + 2
+            src, response = f[a - 1 : b + 1], buffer[:n]
+            for kx, ky in _CURVATURE:  # each coefficient's 3 × 3 kernel is separable
+                cv2.sepFilter2D(src, cv2.CV_32F, kx, ky, dst=response)
+                total += cv2.norm(response[1 : n - 1, 1 : w - 1], cv2.NORM_L1)
+        out.append(total * s / ((h - 2) * (w - 2)))
     return _out(out)
 
 
