@@ -25,6 +25,7 @@ viridis (van der Walt and Smith, 2015; CC0), perceptually uniform and readable i
 
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 from typing import Any
@@ -64,6 +65,7 @@ _VIRIDIS = np.array([
     (0.9932, 0.9062, 0.1439),
 ])
 #: Colours of the hatching that marks unsolved pixels (light gray and white stripes: no colour of viridis).
+_VIRIDIS_COLUMNS = [np.ascontiguousarray(_VIRIDIS[:, channel]) for channel in range(3)]
 _HATCH = (np.array([0.80, 0.80, 0.80]), np.array([1.0, 1.0, 1.0]))
 #: Default robust colour limits, percentiles over the valid pixels.
 DEFAULT_PERCENTILES = (1.0, 99.0)
@@ -244,14 +246,26 @@ def apply_colormap(values: Any, limits: tuple[float, float]) -> np.ndarray:
     t = np.clip((np.nan_to_num(_plane(values, "values").astype(np.float64), nan=low) - low) / (high - low), 0.0, 1.0)
     position = t * (len(_VIRIDIS) - 1)
     index = np.minimum(position.astype(np.int64), len(_VIRIDIS) - 2)
-    frac = (position - index)[..., None]
-    return _VIRIDIS[index] * (1.0 - frac) + _VIRIDIS[index + 1] * frac
+    frac = position - index
+    rest = 1.0 - frac
+    # channel by channel from contiguous columns: the same products and sums as interpolating the (H, W, 3)
+    # gathers at once, without four (H, W, 3) temporaries (a 400 x 400 map: 30 ms -> ~10 ms)
+    rgb = np.empty(t.shape + (3,))
+    following = index + 1
+    for channel in range(3):
+        column = _VIRIDIS_COLUMNS[channel]
+        rgb[..., channel] = column.take(index) * rest + column.take(following) * frac
+    return rgb
 
 
+@functools.lru_cache(maxsize=4)
 def _hatch(shape: tuple[int, int], period: int = 6) -> np.ndarray:
+    """The hatch pattern of a picture size, built once per size (read-only: callers only select from it)."""
     rows, cols = np.indices(shape)
     stripe = ((rows + cols) // max(1, period // 2)) % 2 == 0
-    return np.where(stripe[..., None], _HATCH[0], _HATCH[1])
+    pattern = np.where(stripe[..., None], _HATCH[0], _HATCH[1])
+    pattern.flags.writeable = False
+    return pattern
 
 
 def shaded_depth(depth: Any, mask: Any = None, pixel_pitch_mm: float = 1.0, *,
@@ -369,7 +383,7 @@ def depth_preview(depth: Any, mask: Any = None, pixel_pitch_mm: float | None = N
     rgb, (low, high) = shaded_depth(z, mask, pitch, limits=limits)
     height, width = z.shape
     scale = max(1, math.ceil(min_width / width))
-    relief = np.repeat(np.repeat(rgb, scale, axis=0), scale, axis=1)
+    relief = rgb if scale == 1 else np.repeat(np.repeat(rgb, scale, axis=0), scale, axis=1)
     picture_w = relief.shape[1]
     font, thick = cv2.FONT_HERSHEY_SIMPLEX, 1
     size = 0.4 if picture_w < 500 else 0.55

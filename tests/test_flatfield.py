@@ -71,6 +71,35 @@ class TestFlatField(BaseTester):
         reference = (torch.rand(3, 3, 3, dtype=torch.float64) + 0.5).requires_grad_()
         self.gradcheck(lambda i, r: flatfield(i, r, card_albedo=0.8).images, (images, reference))
 
+    def test_saturated_card_unsaturated_images(self, device, dtype):
+        # no image reaches the level (the one-read shortcut), but the card does at one pixel: only the card decides
+        images = torch.rand(2, 4, 5, 6, device=device, dtype=dtype) * 0.9
+        reference = torch.full((4, 5, 6), 0.5, device=device, dtype=dtype)
+        reference[2, 1, 3] = 1.0
+        result = flatfield(images, reference, saturation_level=1.0)
+        expected = torch.ones(2, 4, 5, 6, dtype=torch.bool, device=device)
+        expected[:, 2, 1, 3] = False
+        assert torch.equal(result.valid, expected) and result.all_valid is False
+        self.assert_close(result.images, torch.where(expected, images / 0.5, 0.0))
+
+    def test_card_terms_follow_the_card(self, device, dtype):
+        # the card's terms are kept for the same, unmodified reference object: an in-place change, another card
+        # object with other values, or another dark frame must each give their own result
+        images = torch.rand(2, 3, 4, 5, device=device, dtype=dtype) + 0.1
+        reference = torch.full((3, 4, 5), 0.5, device=device, dtype=dtype)
+        first = flatfield(images, reference).images
+        self.assert_close(flatfield(images, reference).images, first)
+        reference.mul_(2.0)  # in place: a new version of the same tensor
+        self.assert_close(flatfield(images, reference).images, first / 2)
+        self.assert_close(flatfield(images, torch.full_like(reference, 0.25)).images, first * 2)
+        dark = torch.full((1, 1, 4, 5), 0.05, device=device, dtype=dtype)
+        self.assert_close(flatfield(images, reference, reference_dark=dark).images, images / 0.95)
+        from psmini.flatfield import _last_card  # the one-entry list, updated in place
+
+        assert _last_card  # kept while the card lives ...
+        del reference, dark
+        assert not _last_card  # ... and dropped with it
+
     def test_gradcheck_with_dark_and_saturation(self):
         """The in-place path (difference, clamp, scale, saturation fill on one new tensor) keeps its gradients."""
         torch.manual_seed(0)

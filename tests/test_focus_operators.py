@@ -98,6 +98,17 @@ class TestOpenCVPath(BaseTester):
         assert fast.dtype == slow.dtype == torch.float32
         self.assert_close(fast, slow, rtol=2e-5, atol=1e-8)
 
+    @pytest.mark.parametrize("code", ["HELM", "SFIL", "WAVV", "WAVR", "GLLV", "LAPM", "LAPD", "CURV"])
+    @pytest.mark.parametrize("dtype", [torch.uint8, torch.uint16, torch.float32])
+    def test_strips_equal_torch(self, code, dtype, monkeypatch):
+        # frames taller than two strips (and not a multiple of one): every strip seam is inside the valid grid
+        rows = 2 * _opencv._STRIP_ROWS + 37
+        raw = np.random.default_rng(11).integers(0, 256, (2, rows, 41))
+        frames = torch.from_numpy(raw.astype(np.float32) / 255.0 if dtype == torch.float32 else raw).to(dtype)
+        fast = focus_measure(frames, code)
+        monkeypatch.setattr(_opencv, "enabled", False)
+        self.assert_close(fast, focus_measure(frames, code), rtol=2e-5, atol=1e-8)
+
     def test_grad_and_float64_take_the_torch_path(self):
         frames = torch.rand(1, 16, 16, requires_grad=True)
         assert focus_measure(frames, "TENG").requires_grad
@@ -210,7 +221,10 @@ class TestLocal(BaseTester):
 class TestGradients(BaseTester):
     @pytest.mark.parametrize("code", [c for c in CODES if c != "HISE"])
     def test_gradcheck_global(self, code):
-        frames = (torch.rand(2, 9, 10, dtype=torch.float64) * 0.8 + 0.1).requires_grad_()
+        # seeded: with the global generator the frames depended on the tests run before, and one draw in a
+        # thousand puts two pixels within gradcheck's step of each other (a kink of |a - b| or max(a, b))
+        generator = torch.Generator().manual_seed(17)
+        frames = (torch.rand(2, 9, 10, dtype=torch.float64, generator=generator) * 0.8 + 0.1).requires_grad_()
         params = {"sigma": 0.6} if code in ("GDER", "SFIL") else {"block": 4} if code in ("DCTE", "DCTR") else {}
         self.gradcheck(lambda x: focus_measure(x, code, **params), (frames,))
 

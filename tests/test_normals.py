@@ -185,6 +185,19 @@ class TestPartiallyWeightedSolve(BaseTester):
         self.assert_close(normals, expected_normals)
         assert float(albedo[0, 0, 2, 3]) == 0.0
 
+    def test_per_sample_lights_equal_full_weighted_solve(self, device):
+        # lights (B, K, 3) that differ per sample take the gathered branch, one matrix for all the shared one
+        from psmini.normals import _unit_and_length, _weighted_solve
+
+        torch.manual_seed(1)
+        lights = torch.stack([ring_lights(8, zenith, dtype=torch.float64) for zenith in (40.0, 55.0, 70.0)]).to(device)
+        intensities = torch.rand(3, 8, 10, 9, dtype=torch.float64, device=device)
+        weights = torch.rand(3, 8, 10, 9, device=device) > 0.2
+        albedo, normals = albedo_normals(intensities, lights, None, weights)
+        expected = _unit_and_length(*_weighted_solve(intensities, lights, weights))
+        self.assert_close(albedo, expected[0])
+        self.assert_close(normals, expected[1])
+
     def test_gradcheck(self):
         lights = ring_lights(6, 50.0, dtype=torch.float64)
         intensities = (torch.rand(1, 6, 3, 4, dtype=torch.float64) + 0.2).requires_grad_()
