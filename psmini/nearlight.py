@@ -671,15 +671,15 @@ def _offset_cost(field: _LightField, images: Tensor, used: Tensor, depth: Tensor
     return cost.view(batch, count)
 
 
-def _parabola_step(field, images, used, depth, centre: Tensor, step: float) -> Tensor:
-    """One Newton step on the cost, from three values at ``centre`` ± ``step`` (B,), kept within ± ``step``
+def _parabola_step(field, images, used, depth, centre: Tensor, step: Tensor) -> Tensor:
+    """One Newton step on the cost, from three values at ``centre`` ± ``step`` (both (B,)), kept within ± ``step``
     (downhill by ``step`` where the three values are not convex)."""
-    offsets = centre[:, None] + torch.tensor([-step, 0.0, step], device=centre.device, dtype=centre.dtype)
+    offsets = centre[:, None] + step[:, None] * torch.tensor([-1.0, 0.0, 1.0], device=centre.device, dtype=centre.dtype)
     f0, f1, f2 = _offset_cost(field, images, used, depth, offsets).unbind(1)
     curvature = f0 - 2 * f1 + f2
     newton = step * (f0 - f2) / (2 * curvature).clamp_min(torch.finfo(centre.dtype).tiny)
-    downhill = torch.where(f0 < f2, -step, step) * torch.ones_like(centre)
-    return centre + torch.where(curvature > 0, newton.clamp(-step, step), downhill)
+    downhill = torch.where(f0 < f2, -step, step)
+    return centre + torch.where(curvature > 0, torch.minimum(torch.maximum(newton, -step), step), downhill)
 
 
 def _search_offset(field, images, used, depth, centre: Tensor, search: tuple[float, float] | None,
@@ -687,22 +687,26 @@ def _search_offset(field, images, used, depth, centre: Tensor, search: tuple[flo
     """Scan :data:`_SCAN_POINTS` offsets over ``search`` around ``centre``, then parabolic steps down to
     ``tolerance``; without ``search``, the steps alone from :data:`_NEWTON_STEP_MM`.
 
-    Each step's width is twice the last move (at least a fourfold shrink, at most ``tolerance`` below it): near the
-    minimum the cost is a parabola and a step from a close centre lands within micrometres, so refining an offset
-    that barely moved (later alternations) takes two steps rather than four."""
+    Each item's step width becomes twice its last move (at least a fourfold shrink): near the minimum the cost is a
+    parabola and a step from a close centre lands within micrometres, so refining an offset that barely moved
+    (later alternations) takes two steps rather than four; an item whose step fell below ``tolerance`` is not
+    evaluated again."""
     if search is None:  # refine around the centre only
-        best, step = centre, _NEWTON_STEP_MM
+        best, width = centre.clone(), _NEWTON_STEP_MM
     else:
         grid = torch.linspace(search[0], search[1], points, device=centre.device, dtype=centre.dtype)
         costs = _offset_cost(field, images, used, depth, centre[:, None] + grid)
         best = centre + grid[costs.argmin(dim=1)]
-        step = (search[1] - search[0]) / (points - 1)
+        width = (search[1] - search[0]) / (points - 1)
+    step = torch.full_like(best, width)
     for _ in range(_MAX_OFFSET_STEPS):
-        if step <= tolerance:
+        going = (step > tolerance).nonzero().flatten()
+        if going.numel() == 0:
             break
-        moved = _parabola_step(field, images, used, depth, best, step)
-        largest = float((moved - best).abs().max())
-        best, step = moved, min(step / 4, 2 * largest) if largest < step else step
+        moved = _parabola_step(field, images[going], used[going], depth[going], best[going], step[going])
+        move = (moved - best[going]).abs()
+        best[going] = moved
+        step[going] = torch.where(move < step[going], torch.minimum(step[going] / 4, 2 * move), step[going])
     return best
 
 
@@ -1024,66 +1028,102 @@ def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tenso
     ``change_percentile`` quantile over the solved pixels) since the last alternation, a new depth: integration
     (warm-started) and the offset (scanned over ``scan`` in the first alternation, on every ``s``-th pixel). The
     test on the normals stops without one more integration: the depth is then consistent with its normals.
+    The test is made per batch item, and an item that passes leaves the batch: a batch costs what its items cost
+    one by one, not its slowest item's alternations times the batch size.
     The alternations at the coarse level integrate by a Neumann (DCT) solve on the rectangle (their depth only
-    places the light field); with ``final``, by ``options.integrator``, warm-started from the last depth. When the
-    test stops the iteration, ``state.fit`` keeps the last fit: it is the fit at the final depth.
+    places the light field); with ``final``, by ``options.integrator``, warm-started from the last depth. When every
+    item passed the test, ``state.fit`` keeps their last fits: the fits at the final depth.
     """
     method = options.integrator if final else "fill"
-    height, width = images.shape[-2:]
+    batch, _, height, width = images.shape
     field = _LightField(light_model, height, width, pitch, card_height, images)
     coarse = _LightField(light_model, height, width, pitch, card_height, images, s)
     rejection = _Rejection(images, valid, options)
     used = rejection.candidates
     state.converged = False
+    active = torch.arange(batch, device=images.device)  # the items still alternating
+    last_m = images.new_zeros(batch, 3, height, width)
+    last_posed = torch.zeros(batch, 1, height, width, dtype=torch.bool, device=images.device)
     previous: Tensor | None = None
     select_at = 1 if first_level and options.max_iterations > 1 else 0
     for iteration in range(options.max_iterations):
         state.iterations += 1
-        vectors = field(state.depth)
-        fit = _fit(images, *vectors[:3], used)
-        albedo, normals = _split(*fit[:2], mask)
+        take = _taker(active, batch)
+        sub_images, sub_mask, sub_domain = take(images), take(mask), take(domain)
+        vectors = field(take(state.depth))
+        fit = _fit(sub_images, *vectors[:3], take(used))
+        albedo, normals = _split(*fit[:2], sub_mask)
         # the observations' selection: its updates (one highlight and one cast shadow per pixel and update) run in
         # one alternation, at fixed lights, once the surface is near its height (the second alternation when the
         # height is still unknown: far from it, model errors look like highlights and shadows); then the selection
-        # stays: flips of a few pixels in every alternation would keep the iteration from converging
+        # stays: flips of a few pixels in every alternation would keep the iteration from converging. No item has
+        # left the batch yet (the first test comes after it).
         if iteration == select_at:  # fewer rounds at half resolution, which only places the surface
             used, fit, albedo, normals = _select(rejection, images, vectors, used, fit, albedo, normals, mask,
                                                  _SELECTION_UPDATES if final else 1,
                                                  _FINE_HIGHLIGHT_ROUNDS if final else 1)
-        solved = albedo > 0
         state.used = used
         if previous is not None:
-            change = _change(normals - previous, solved & domain, options.change_percentile)
-            state.changes.append(change)
+            changes = _changes(normals - previous, (albedo > 0) & sub_domain, options.change_percentile)
+            state.changes.append(float(changes.max()))
             logger.info("near-light alternation %d at %d x %d: %.0f%% of the normals moved less than %.2e deg",
-                        len(state.changes), height, width, 100 * options.change_percentile, change)
-            if change < tolerance:
-                state.converged = True
-                break
+                        len(state.changes), height, width, 100 * options.change_percentile, state.changes[-1])
+            done = changes < tolerance
+            if bool(done.any()):  # these items' fits are at their final depth
+                last_m[active[done]], last_posed[active[done]] = fit[0][done], fit[1][done]
+                if bool(done.all()):
+                    state.converged = True
+                    break
+                keep = ~done
+                active, fit, albedo, normals = active[keep], _subset(fit, keep), albedo[keep], normals[keep]
+                take = _taker(active, batch)
+                sub_images, sub_mask, sub_domain = take(images), take(mask), take(domain)
+        sub_used = take(used)
+        solved = albedo > 0
         previous = normals
         p, q = normals_to_gradients(normals)
         noise_sq = None if rejection.noise is None else \
-            rejection.noise[0] + rejection.noise[1] * images.mean(dim=(1, 2, 3), keepdim=True)
-        confidence, noisy = _confidence((albedo, normals, solved), fit[2], used, domain, noise_sq)
+            take(rejection.noise[0] + rejection.noise[1] * images.mean(dim=(1, 2, 3), keepdim=True))
+        confidence, noisy = _confidence((albedo, normals, solved), fit[2], sub_used, sub_domain, noise_sq)
         # warm start from the last depth at this level (the coarse level's lacks the weave: the fill's is closer)
-        warm = state.relative if iteration > 0 else None
-        relative = _integrate(p, q, confidence, domain, method, pitch, warm, mask is not None, noisy)
-        _place(images, used & solved, relative, domain, coarse, state, scan if iteration == 0 else None, options, s)
-    state.fit = fit if state.converged else None
+        warm = take(state.relative) if iteration > 0 else None
+        relative = _integrate(p, q, confidence, sub_domain, method, pitch, warm, mask is not None, noisy)
+        placed = _place(sub_images, sub_used & solved, relative, sub_domain, coarse, take(state.offset),
+                        scan if iteration == 0 else None, options, s)
+        if active.numel() == batch:
+            state.depth, state.offset, state.relative = placed
+        else:
+            state.depth, state.offset, state.relative = (
+                whole.index_copy(0, active, part) for whole, part in zip((state.depth, state.offset, state.relative),
+                                                                        placed))
+    state.fit = (last_m, last_posed) if state.converged else None
     return field
 
 
-def _place(images: Tensor, used: Tensor, relative: Tensor, domain: Tensor, coarse: _LightField, state: _State,
-           search: tuple[float, float] | None, options: NearLightOptions, s: int) -> None:
-    """Set ``state``'s depth to ``relative`` (re-centred on the domain) plus the offset that explains the images
-    best (scanned over ``search`` when given, then parabolic steps; kept without ``options.estimate_offset``)."""
+def _taker(active: Tensor, batch: int):
+    """Indexing of full-batch tensors (or ``None``) by the ``active`` items; the tensor itself when all are."""
+    if active.numel() == batch:
+        return lambda x: x
+    return lambda x: None if x is None else x[active]
+
+
+def _subset(fit: tuple, keep: Tensor) -> tuple:
+    """A fit of :func:`_fit` restricted to the ``keep`` items."""
+    m, posed, (cofactors, det) = fit
+    return m[keep], posed[keep], (tuple(c[keep] for c in cofactors), det[keep])
+
+
+def _place(images: Tensor, used: Tensor, relative: Tensor, domain: Tensor, coarse: _LightField, offset: Tensor,
+           search: tuple[float, float] | None, options: NearLightOptions, s: int) -> tuple[Tensor, Tensor, Tensor]:
+    """The depth ``relative`` (re-centred on the domain) plus the offset that explains the images best (scanned
+    over ``search`` when given, then parabolic steps from ``offset``; kept without ``options.estimate_offset``);
+    returns the depth, the offset (B,) and the re-centred relative depth."""
     relative = relative - _masked_mean(relative, domain)
-    offset = state.offset
     if options.estimate_offset:
         sub_images, sub_used, sub_depth = images[..., ::s, ::s], used[..., ::s, ::s].to(images), relative[..., ::s, ::s]
         points = _SCAN_POINTS if search is None or search[1] - search[0] > 1.5 else _FINE_SCAN_POINTS
         offset = _search_offset(coarse, sub_images, sub_used, sub_depth, offset, search, _OFFSET_TOLERANCE_MM, points)
-    state.depth, state.offset, state.relative = relative + offset.view(-1, 1, 1, 1), offset, relative
+    return relative + offset.view(-1, 1, 1, 1), offset, relative
 
 
 def _masked_mean(x: Tensor, region: Tensor) -> Tensor:
@@ -1091,17 +1131,16 @@ def _masked_mean(x: Tensor, region: Tensor) -> Tensor:
     return (x * weight).sum(dim=(1, 2, 3), keepdim=True) / weight.sum(dim=(1, 2, 3), keepdim=True).clamp_min(1)
 
 
-def _change(difference: Tensor, region: Tensor, percentile: float) -> float:
+def _changes(difference: Tensor, region: Tensor, percentile: float) -> Tensor:
     """The ``percentile`` quantile over the region of the angle between unit normals whose difference is given,
-    degrees, the largest over the batch (2 asin(|a - b| / 2))."""
+    degrees, per batch item (B,) (2 asin(|a - b| / 2)); 0 for an item with no pixel in the region."""
     chord = difference.square().sum(dim=1, keepdim=True).sqrt()
-    largest = 0.0
+    largest = []
     for c, r in zip(chord, region):
         values = c[r]
-        if values.numel():
-            rank = min(values.numel(), max(1, math.ceil(percentile * values.numel())))
-            largest = max(largest, float(values.kthvalue(rank).values))
-    return math.degrees(2 * math.asin(min(1.0, largest / 2)))
+        rank = min(values.numel(), max(1, math.ceil(percentile * values.numel())))
+        largest.append(float(values.kthvalue(rank).values) if values.numel() else 0.0)
+    return torch.tensor([math.degrees(2 * math.asin(min(1.0, x / 2))) for x in largest], device=difference.device)
 
 
 @dataclass(frozen=True)

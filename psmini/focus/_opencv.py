@@ -453,7 +453,7 @@ def gray_level_variance(region: Tensor) -> Tensor:
 
 
 def gray_level_local_variance(region: Tensor, window: int) -> Tensor:
-    """Local variances E[g²] - E[g]² from a box filter and a squared-box filter, then their population variance.
+    r"""Local variances E[g²] - E[g]² from a box filter and a squared-box filter, then their population variance.
 
     uint8 frames whose window sums stay below 2^24 (``window`` ≤ 3) are computed exactly: with the window sums
     :math:`S_1 = \sum g` and :math:`S_2 = \sum g^2` (integers, exact in float32), :math:`n^2 V = n S_2 - S_1^2`
