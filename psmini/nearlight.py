@@ -724,8 +724,9 @@ def estimate_height_offset(
 
     Minimises the per-pixel least-squares residual of the images under the light vectors at
     ``relative_depth + c`` over :math:`c`, on every fourth pixel: a scan of 25 values over ``search_mm`` (one
-    batched evaluation), then parabolic (Newton) steps on three values at a time, the step shrinking fourfold
-    until below ``tolerance_mm``. Each batch item gets its own offset. Not differentiated (a search).
+    batched evaluation), then parabolic (Newton) steps on three values at a time, each item's step shrinking to
+    twice its last move (at least fourfold) until below ``tolerance_mm``. Each batch item gets its own offset. Not
+    differentiated (a search).
 
     Args:
         intensities: images, shape :math:`(B, K, H, W)`.

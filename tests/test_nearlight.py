@@ -198,9 +198,27 @@ class TestSolveNearLight(BaseTester):
         b = _capture(size=32, offset_mm=0.8, dtype=torch.float64)
         flat = _flat(torch.cat([a[3], b[3]]), a[4])
         both = solve_near_light(flat.images, a[0], PITCH, 0.0, flat.valid)
-        alone = solve_near_light(flat.images[1:], a[0], PITCH, 0.0, flat.valid[1:])
-        self.assert_close(both.depth[1:], alone.depth, rtol=0, atol=2e-3)
+        for item in (0, 1):  # converged items leave the batch: each ends where it ends alone
+            alone = solve_near_light(flat.images[item : item + 1], a[0], PITCH, 0.0, flat.valid[item : item + 1])
+            self.assert_close(both.depth[item : item + 1], alone.depth, rtol=0, atol=1e-5)
+            self.assert_close(both.normals[item : item + 1], alone.normals, rtol=0, atol=1e-6)
         assert abs(float(both.offset_mm[0]) - 0.2) < 0.02 and abs(float(both.offset_mm[1]) - 0.8) < 0.02
+
+    def test_items_leave_the_batch_when_they_converge(self):
+        """A clean and a noisy capture converge after different numbers of alternations: in one batch each still
+        ends exactly where it ends alone (the clean one stopped, not dragged along by the noisy one)."""
+        leds, _, _, images, card = _capture(size=32, offset_mm=0.8, dtype=torch.float64)
+        noise = 0.01 * images.amax() * torch.randn(images.shape, generator=torch.Generator().manual_seed(0),
+                                                   dtype=torch.float64)
+        flat = _flat(torch.cat([images, (images + noise).clamp_min(0)]), card)
+        options = NearLightOptions(tolerance_deg=0.001)
+        both = solve_near_light(flat.images, leds, PITCH, 0.0, flat.valid, options=options)
+        alone = [solve_near_light(flat.images[i : i + 1], leds, PITCH, 0.0, flat.valid[i : i + 1], options=options)
+                 for i in (0, 1)]
+        assert alone[0].iterations < alone[1].iterations == both.iterations and both.converged
+        for item in (0, 1):
+            self.assert_close(both.depth[item : item + 1], alone[item].depth, rtol=0, atol=1e-9)
+            self.assert_close(both.normals[item : item + 1], alone[item].normals, rtol=0, atol=1e-9)
 
     def test_distant_assumption_is_much_worse(self):
         """The reason the module exists: least squares with the lights seen from the centre errs by degrees."""
