@@ -98,6 +98,9 @@ _GRAZING_SIGMAS = 3.0
 _GRAZING_LOW = 1.0
 # Residuals within this many noise levels are never outliers.
 _OUTLIER_SIGMAS = 6.0
+# On the CPU a batch is solved in chunks of at most this many observations (one 8 × 400 × 400 capture): a larger
+# working set leaves the caches, and a batch of 16 such captures ran 1.4 times slower per sample than single calls.
+_CPU_CHUNK = 8 * 400 * 400
 # Pixels next to an unsolved one get this confidence in the integration (see solve_near_light).
 _EDGE_CONFIDENCE = 0.01
 # Images at least this large (and of even size) run their first alternations at half resolution.
@@ -908,7 +911,9 @@ def solve_near_light(
     pipeline's first stage (:func:`psmini.flatfield.flatfield`).
 
     Differentiable with respect to the intensities and the light model's parameters through the last
-    alternation's solve (the offset search and the observations' selection are not differentiated).
+    alternation's solve (the offset search and the observations' selection are not differentiated). On the CPU a
+    batch is solved in chunks of one 8 × 400 × 400 capture's size, whose working set stays in the caches; on CUDA
+    in one piece. Either way each sample gets the answer it gets alone.
 
     Args:
         intensities: flat-fielded images :math:`(B, K, H, W)` (divided by the card under the same LEDs and
@@ -954,7 +959,23 @@ def solve_near_light(
     mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
     valid = _check_valid(valid, intensities)
     options = _check_options(options)
-    return _solve(intensities, valid, mask, light_model, pixel_pitch_mm, card_height_mm, options)
+    chunk = sizes["B"] if intensities.device.type != "cpu" else max(1, _CPU_CHUNK // intensities[0].numel())
+    if chunk >= sizes["B"]:
+        return _solve(intensities, valid, mask, light_model, pixel_pitch_mm, card_height_mm, options)
+    parts = [_solve(intensities[i : i + chunk], valid[i : i + chunk], None if mask is None else mask[i : i + chunk],
+                    light_model, pixel_pitch_mm, card_height_mm, options) for i in range(0, sizes["B"], chunk)]
+    return _concatenate(parts)
+
+
+def _concatenate(parts: list[NearLightResult]) -> NearLightResult:
+    """One result from those of consecutive chunks of a batch: tensors concatenated, the alternations' counts and
+    changes the largest over the chunks, converged when every chunk converged."""
+    tensors = {name: torch.cat([getattr(part, name) for part in parts])
+               for name in ("albedo", "normals", "p", "q", "depth", "mask", "weights", "offset_mm")}
+    longest = max(len(part.changes_deg) for part in parts)
+    changes = tuple(max(part.changes_deg[i] for part in parts if i < len(part.changes_deg)) for i in range(longest))
+    return NearLightResult(**tensors, iterations=max(part.iterations for part in parts), changes_deg=changes,
+                           converged=all(part.converged for part in parts))
 
 
 def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, light_model: nn.Module, pitch: float,

@@ -220,6 +220,21 @@ class TestSolveNearLight(BaseTester):
             self.assert_close(both.depth[item : item + 1], alone[item].depth, rtol=0, atol=1e-9)
             self.assert_close(both.normals[item : item + 1], alone[item].normals, rtol=0, atol=1e-9)
 
+    def test_cpu_chunks_give_the_batch_answer(self, monkeypatch):
+        import psmini.nearlight as nearlight
+
+        a = _capture(size=32, offset_mm=0.2, dtype=torch.float64)
+        b = _capture(size=32, offset_mm=0.8, dtype=torch.float64)
+        flat = _flat(torch.cat([a[3], b[3], a[3]]), a[4])
+        whole = solve_near_light(flat.images, a[0], PITCH, 0.0, flat.valid)
+        monkeypatch.setattr(nearlight, "_CPU_CHUNK", 2 * flat.images[0].numel())  # chunks of 2 and 1
+        chunked = solve_near_light(flat.images, a[0], PITCH, 0.0, flat.valid)
+        for name in ("depth", "normals", "albedo", "offset_mm"):
+            self.assert_close(getattr(chunked, name), getattr(whole, name), rtol=0, atol=1e-9)
+        assert torch.equal(chunked.weights, whole.weights) and torch.equal(chunked.mask, whole.mask)
+        assert (chunked.iterations, chunked.converged) == (whole.iterations, whole.converged)
+        assert len(chunked.changes_deg) == len(whole.changes_deg)
+
     def test_distant_assumption_is_much_worse(self):
         """The reason the module exists: least squares with the lights seen from the centre errs by degrees."""
         leds, height, normals, images, card = _capture(offset_mm=1.0)
