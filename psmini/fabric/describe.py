@@ -132,8 +132,8 @@ def structure_row(reconstruction: Any, pixel_pitch_mm: float | None) -> dict[str
     """The scalar columns a feature table (``summary.csv`` of ``psmini batch --describe``) gets for one sample.
 
     Args:
-        reconstruction: a :class:`psmini.pipeline.Reconstruction` with a batch of one (``depth``, ``mask``,
-            ``albedo``).
+        reconstruction: a :class:`psmini.pipeline.Reconstruction` with a batch of one (its ``depth`` and ``mask``
+            are used).
         pixel_pitch_mm: the sample's pixel size, mm; ``None`` (unknown, DiLiGenT) gives empty structure columns.
 
     Returns:
@@ -157,8 +157,7 @@ def structure_row(reconstruction: Any, pixel_pitch_mm: float | None) -> dict[str
         row["structure_found"] = False
         row["structure_reason"] = "the pixel pitch is unknown: no lengths in mm"
         return row
-    depth = reconstruction.depth[:1]
-    entry = describe(depth, pixel_pitch_mm, reconstruction.mask[:1], reconstruction.albedo[:1])[0]
+    entry = describe(reconstruction.depth[:1], pixel_pitch_mm, reconstruction.mask[:1])[0]
     density = (entry["threads_per_cm"] or []) + [None, None]
     angles = (entry["thread_angles_deg"] or []) + [None, None]
     row = {"threads_per_cm_1": density[0], "threads_per_cm_2": density[1], "thread_angle_1_deg": angles[0],
