@@ -276,7 +276,7 @@ def structure_errors(result, truth):
     return worst_d, worst_a
 
 
-STRUCTURED = ["jute", "cotton", "silk", "twill", "satin", "knit", "net", "lurex", "taffeta", "print"]
+STRUCTURED = ["jute", "cotton", "silk", "twill", "satin", "knit", "purl", "net", "lurex", "taffeta", "print"]
 
 
 class TestStructure:
@@ -315,6 +315,42 @@ class TestStructure:
 
         fabric = make_fabric(name, size=400, seed=5, orientation_deg=0.0, randomness=0.25)
         assert fabric_structure(fabric.height_mm, PITCH)[0].weave_repeat == repeat
+
+    @pytest.mark.parametrize("orientation", [0.0, 17.0, 61.0, 95.0, 140.0, 178.0])
+    def test_purl_wales_and_courses(self, orientation):
+        """The purl side shifts alternate courses by half a wale: the strongest peaks are the two diagonals of a
+        centred-rectangular lattice, not the wales and courses; these come out of its axes, not 2x or diagonal."""
+        from data_synth import make_fabric
+
+        fabric = make_fabric("purl", size=400, seed=5, orientation_deg=orientation, randomness=0.25)
+        found = fabric_structure(fabric.height_mm, PITCH)[0]
+        wales, courses = 10 / fabric.params["wale_spacing_mm"], 10 / fabric.params["course_spacing_mm"]
+        assert found.wales_per_cm == pytest.approx(wales, rel=0.01)
+        assert found.courses_per_cm == pytest.approx(courses, rel=0.01)
+        assert found.weave_repeat == 1
+        assert found.threads_per_cm == pytest.approx([courses, wales], rel=0.01)  # the denser first
+        expected = [orientation % 180, (orientation + 90) % 180]  # courses run along u, wales along v
+        for got, want in zip(found.thread_angles_deg, expected):
+            assert abs((got - want + 90) % 180 - 90) < 0.5
+
+    def test_repeat_ignores_incommensurate_peaks(self, device, dtype):
+        """A plain weave's interlacing peak (1/2, 1/2) plus two weaker modulations near (1/2, 3/4) and (2/3, 1/2)
+        of the thread lattice (fibre twist, stripes): the grid (i/4, j/4) or (i/6, j/6) would hold them, no
+        regular weave of repeat 4 or 6 does; the repeat is 2."""
+        x, y = grid(320, dtype, device)
+        a = math.radians(25.0)
+        u, v = x * math.cos(a) + y * math.sin(a), -x * math.sin(a) + y * math.cos(a)
+        f = 1 / 0.2
+
+        def wave(i, j, amplitude):
+            return amplitude * torch.cos(2 * math.pi * f * (i * u + j * v))
+
+        z = wave(1, 0, 0.03) + wave(0, 1, 0.03) + wave(0.5, 0.5, 0.004) + wave(0.5, 0.74, 0.003) \
+            + wave(0.66, -0.5, 0.003)
+        found = fabric_structure(z[None, None], PITCH)[0]
+        assert found.threads_per_cm == pytest.approx([50.0, 50.0], rel=1e-3)
+        assert found.weave_repeat == 2
+        assert found.crimp_um == pytest.approx(8.0, rel=0.02)  # twice the interlacing amplitude, 4 um
 
     def test_net_openness(self):
         from data_synth import make_fabric

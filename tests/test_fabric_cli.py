@@ -35,9 +35,8 @@ def model_file(path: Path, version: int = MODEL_VERSION) -> Path:
 
 def test_capture_json_and_out(capture, tmp_path, capsys):
     out = tmp_path / "described"
-    # the classical pipeline: on the near-light reconstruction of this 4 mm crop densities and angles agree (within
-    # 0.2%, 0.01 deg) but the weave repeat comes out 4 instead of 2 (issue 18 stays open on it)
-    assert main(["describe", str(capture), "--json", "--out", str(out), "--light-model", "distant",
+    # psmini's default pipeline (near light for these LED captures)
+    assert main(["describe", str(capture), "--json", "--out", str(out),
                  "--model", str(model_file(tmp_path / "m.json"))]) == 0
     payload = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert payload["threads_per_cm"] == pytest.approx([50.0, 50.0], rel=0.02)  # cotton: 0.2 mm spacing
