@@ -96,7 +96,15 @@ def load_height(path: Path, config) -> tuple[Any, Any, Any, float, str]:
             raise InputError(f"{path}: the reconstruction has no pixel pitch (outputs.json pixel_pitch_mm), so no "
                              "length in mm can be measured")
         height = torch.from_numpy(depth.astype(np.float32))[None, None].to(config.device)
-        return height, torch.isfinite(height), None, float(pitch), path.name
+        albedo = None
+        if (path / "albedo.png").is_file():  # 8-bit, divided by a robust maximum: a relative albedo, what is needed
+            from psmini.io.images import read_gray
+
+            values, _ = read_gray(path / "albedo.png")  # a DataFormatError for an unreadable file
+            values = values.astype(np.float32)
+            if values.shape == depth.shape:
+                albedo = torch.from_numpy(values)[None, None].to(config.device)
+        return height, torch.isfinite(height), albedo, float(pitch), path.name
     from psmini.fabric import reconstruct_for_description
     from psmini.io import load_sample
 
