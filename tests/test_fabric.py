@@ -524,6 +524,7 @@ class TestAlbedoReliefCoupling:
         with pytest.raises(InputError):
             albedo_relief_coupling(z, torch.ones_like(z), -1.0)
 
+    @pytest.mark.slow
     def test_gradcheck(self):
         from psmini.fabric import albedo_relief_coupling
 

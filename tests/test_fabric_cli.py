@@ -59,6 +59,11 @@ def test_reconstruction_folder(capture, tmp_path, capsys):
     assert main(["describe", str(rec), "--json"]) == 0
     payload = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert payload["threads_per_cm"] == pytest.approx([50.0, 50.0], rel=0.02)
+    assert -1.0 <= payload["albedo_relief_coupling"] <= 1.0  # albedo.png read back with the depth
+    assert main(["describe", str(capture), "--json"]) == 0  # the same sample from its capture
+    direct = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    # albedo.png is 8-bit and clipped at its 99.5th percentile: 0.396 against 0.359 from the float albedo
+    assert payload["albedo_relief_coupling"] == pytest.approx(direct["albedo_relief_coupling"], abs=0.06)
 
 
 def test_folder_without_depth(tmp_path, capsys):
