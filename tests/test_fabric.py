@@ -415,7 +415,7 @@ class TestDescribe:
         assert structure_row(rec, None)["structure_found"] is False
         entry = describe(z, PITCH)[0]
         vector = descriptor_vector(entry)
-        assert vector.shape == (20,) and np.isfinite(vector).all()
+        assert vector.shape == (21,) and np.isfinite(vector).all()
         alpha = math.sqrt(math.log(2) / math.pi)  # waviness: S-filter 0.5 mm, L-filter 2.5 mm (ISO 16610-61)
 
         def passed(wavelength):
@@ -531,3 +531,40 @@ class TestAlbedoReliefCoupling:
         z = (self.blotches(20, 4) * 0.01).requires_grad_(True)
         a = 0.8 - 0.5 * self.blotches(20, 5)
         torch.autograd.gradcheck(lambda h: albedo_relief_coupling(h, a, 0.1), (z,), eps=1e-7, atol=1e-6)
+
+
+class TestAlbedoPeriodicity:
+    def test_stripes_dye_and_print(self, device, dtype):
+        from psmini.fabric import albedo_periodicity
+
+        x, y = grid(200, dtype, device)
+        stripes = 1 + 0.2 * torch.cos(2 * math.pi * (x * 0.6 + y * 0.8) / 0.3)  # every 0.3 mm, at an angle
+        got = albedo_periodicity(torch.stack([0.6 * stripes, 0.25 * stripes])[:, None], PITCH)
+        assert got.tolist() == pytest.approx([0.2, 0.2], rel=0.02)  # the dye does not change it
+        from data_synth.fabric_dataset import albedo_pattern
+
+        for seed in range(3):  # the recognition dataset's printed motifs have no spectral peak
+            pattern, info = albedo_pattern(200, torch.Generator().manual_seed(seed), 1.0, PITCH)
+            assert float(albedo_periodicity(pattern.to(device, dtype), PITCH)[0]) < 0.02, info
+        assert float(albedo_periodicity(torch.full((1, 1, 64, 64), 0.5, dtype=dtype, device=device), PITCH)[0]) < 1e-6
+
+    def test_data_synth_lurex_against_cotton(self):
+        """The Lurex's metallic tape every third weft is a periodic albedo; a cotton's dye and print are not (its
+        yarns' own tone and twist stripes stay below a few per cent)."""
+        from data_synth.fabric_dataset import DatasetOptions, draw_fabric
+        from psmini.fabric import albedo_periodicity
+
+        options = DatasetOptions(size=192, print_probability=1.0)
+        for seed in range(3):
+            lurex, cotton = draw_fabric("lurex", seed, options).fabric, draw_fabric("cotton", seed, options).fabric
+            p_lurex = float(albedo_periodicity(lurex.albedo, PITCH, lurex.mask)[0])
+            p_cotton = float(albedo_periodicity(cotton.albedo, PITCH, cotton.mask)[0])
+            assert p_lurex > 0.15 and p_cotton < 0.06, (seed, p_lurex, p_cotton)
+
+    def test_errors(self):
+        from psmini.fabric import albedo_periodicity
+
+        with pytest.raises(ShapeError, match="albedo"):
+            albedo_periodicity(torch.ones(8, 8), PITCH)
+        with pytest.raises(InputError):
+            albedo_periodicity(torch.ones(1, 1, 32, 32), 0.0)

@@ -23,7 +23,7 @@ from psmini.fabric.structure import FabricStructure, StructureOptions, fabric_st
 from psmini.fabric.surface import ISO_PARAMETERS, SurfaceOptions, iso25178
 
 __all__ = ["WAVINESS_OPTIONS", "COUPLING_OPTIONS", "DESCRIBE_SURFACE_OPTIONS", "DESCRIPTOR_NAMES", "MODEL_FORMAT",
-           "MODEL_VERSION", "FabricClassifier", "albedo_relief_coupling", "describe", "descriptor_vector",
+           "MODEL_VERSION", "FabricClassifier", "albedo_periodicity", "albedo_relief_coupling", "describe", "descriptor_vector",
            "structure_row", "reconstruct_for_description"]
 
 #: The scale-limited surface on which :func:`describe` reports the ISO parameters: plane removed, an L-filter of
@@ -35,6 +35,7 @@ DESCRIPTOR_NAMES = (
     "Sq_um", "Ssk", "Sku", "Sz_um", "Sa_um", "Sdq", "Sdr_pct", "Sal_mm", "Str",
     "structure_found", "log_density_1", "log_density_2", "density_ratio", "crossing_angle_deg",
     "weave_repeat", "crimp_um", "openness", "log_sq_over_sal", "log_waviness_um", "albedo_relief_coupling",
+    "log_albedo_periodicity",
 )
 
 #: The band of :func:`describe`'s ``waviness_um``: relief between the yarn scale and the L-filter (prints, felting,
@@ -137,6 +138,49 @@ def albedo_relief_coupling(height: Tensor, albedo: Tensor, pixel_pitch_mm: float
     return torch.where(flat, torch.full_like(norm, math.nan), cross / norm)
 
 
+def albedo_periodicity(albedo: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None) -> Tensor:
+    """The relative amplitude of the albedo's strongest periodic component (yarns of another colour or material).
+
+    The albedo divided by its median is searched for spectral peaks exactly as a height is
+    (:func:`~psmini.fabric.fabric_structure`: levelled, Hann-windowed, 18 dB above the local background, sub-bin
+    refined), and the largest peak amplitude is returned: 0.2 for an albedo ``m (1 + 0.2 cos(2 pi f x))``. A dye
+    scales the albedo and leaves it unchanged; a printed motif of blotches has no spectral peak; yarns of another
+    colour or a metallic tape every few threads (a yarn-dyed stripe, Lurex) give one. 0 when no peak stands out.
+
+    Args:
+        albedo: :math:`(B, 1, H, W)`, any positive scale.
+        pixel_pitch_mm: pixel size, mm.
+        mask: optional valid pixels :math:`(B, 1, H, W)` (non-finite or non-positive albedo is excluded too).
+
+    Returns:
+        :math:`(B,)`, dimensionless.
+
+    Raises:
+        InputError, ShapeError: as :func:`~psmini.fabric.fabric_structure`.
+
+    Example:
+        >>> x = torch.arange(200.0).view(1, 200).expand(200, 200) * 0.025
+        >>> albedo = 0.6 * (1 + 0.2 * torch.cos(2 * math.pi * x / 0.3))
+        >>> round(float(albedo_periodicity(albedo[None, None], 0.025)[0]), 3)
+        0.2
+    """
+    from psmini.errors import ShapeError
+    from psmini.fabric.surface import valid_pixels
+
+    if not isinstance(albedo, Tensor) or albedo.ndim != 4 or albedo.shape[1] != 1:
+        raise ShapeError(f"albedo must have shape (B, 1, H, W), got "
+                         f"{tuple(albedo.shape) if isinstance(albedo, Tensor) else type(albedo).__name__}")
+    valid = valid_pixels(albedo, mask) & (albedo > 0)
+    dt = albedo.dtype
+    median = torch.stack([albedo[i][valid[i]].median() if valid[i].any() else torch.ones((), dtype=dt,
+                                                                                         device=albedo.device)
+                          for i in range(albedo.shape[0])]).view(-1, 1, 1, 1)
+    relative = torch.where(valid, albedo / median, torch.zeros_like(albedo))
+    found = fabric_structure(relative, pixel_pitch_mm, valid)
+    return torch.tensor([max((p.amplitude_um for p in f.peaks), default=0.0) / 1000 for f in found],
+                        dtype=dt, device=albedo.device)
+
+
 def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, albedo: Tensor | None = None,
              surface: SurfaceOptions = DESCRIBE_SURFACE_OPTIONS,
              structure: StructureOptions = StructureOptions()) -> list[dict[str, Any]]:
@@ -147,8 +191,8 @@ def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, 
         pixel_pitch_mm: pixel size, mm.
         mask: optional valid pixels :math:`(B, 1, H, W)` (unsolved pixels False).
         albedo: optional :math:`(B, 1, H, W)`; its mean and spread over the valid pixels are reported (not used
-            by :func:`descriptor_vector`: dye and print are not structure), and the
-            :func:`albedo_relief_coupling` (which is).
+            by :func:`descriptor_vector`: dye and print are not structure), the :func:`albedo_relief_coupling` and
+            the :func:`albedo_periodicity` (which are).
         surface: the scale-limited surface of the ISO parameters.
         structure: options of :func:`~psmini.fabric.fabric_structure`.
 
@@ -157,8 +201,8 @@ def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, 
         ``wales_per_cm``, ``courses_per_cm``, ``crimp_um``, ``openness``, ``structure_found``,
         ``structure_reason``, ``iso25178`` (name to value, units in ``iso25178_units``), ``waviness_um`` (Sq of
         the band between 0.5 and 2.5 mm: relief between the yarns' scale and the L-filter), ``albedo_mean``,
-        ``albedo_std``, ``albedo_relief_coupling`` (None without albedo), ``pixel_pitch_mm``, ``peaks`` (the
-        refined spectral peaks).
+        ``albedo_std``, ``albedo_relief_coupling`` and ``albedo_periodicity`` (None without albedo),
+        ``pixel_pitch_mm``, ``peaks`` (the refined spectral peaks).
 
     Raises:
         InputError, ShapeError: as :func:`~psmini.fabric.iso25178`.
@@ -178,6 +222,7 @@ def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, 
     found = fabric_structure(height, pixel_pitch_mm, mask, structure)
     valid = valid_pixels(height, mask)
     coupling = albedo_relief_coupling(height, albedo, pixel_pitch_mm, mask) if albedo is not None else None
+    periodicity = albedo_periodicity(albedo, pixel_pitch_mm, valid) if albedo is not None else None
     out = []
     for i, result in enumerate(found):
         entry = result.to_dict()
@@ -188,6 +233,7 @@ def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, 
         entry["pixel_pitch_mm"] = float(pixel_pitch_mm)
         entry["waviness_um"] = _number(waviness[i])
         entry["albedo_relief_coupling"] = _number(coupling[i]) if coupling is not None else None
+        entry["albedo_periodicity"] = _number(periodicity[i]) if periodicity is not None else None
         if albedo is not None:
             values = albedo[i][valid[i]]
             entry["albedo_mean"] = _number(values.mean()) if values.numel() else None
@@ -253,13 +299,13 @@ def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
     """The orientation-free feature vector (:data:`DESCRIPTOR_NAMES`) of one :func:`describe` entry.
 
     Densities enter as logarithms (a scale change is a shift), the two systems' crossing angle instead of their
-    directions, and a missing structure as zeros with ``structure_found`` 0; a missing albedo-relief coupling
-    (no albedo) as 0.
+    directions, and a missing structure as zeros with ``structure_found`` 0; without albedo, the coupling as 0 and
+    the albedo periodicity as log(0.001).
 
     Example:
         >>> entry = {"iso25178": dict.fromkeys(ISO_PARAMETERS, 1.0), "structure_found": False}
         >>> descriptor_vector(entry).shape
-        (20,)
+        (21,)
     """
     iso = entry["iso25178"]
 
@@ -279,7 +325,7 @@ def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
               num(entry.get("weave_repeat")), num(entry.get("crimp_um")), num(entry.get("openness")),
               math.log(num(iso.get("Sq")) / 1000 / sal) if sal > 0 and num(iso.get("Sq")) > 0 else 0.0,
               math.log(num(entry.get("waviness_um"))) if num(entry.get("waviness_um")) > 0 else 0.0,
-              num(entry.get("albedo_relief_coupling"))]
+              num(entry.get("albedo_relief_coupling")), math.log(num(entry.get("albedo_periodicity")) + 1e-3)]
     return np.asarray(values, dtype=np.float64)
 
 
