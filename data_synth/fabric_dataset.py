@@ -6,9 +6,11 @@ sensor noise), so a train/test split by seed keeps every sample on one side. For
 - yarn spacing (every ``*spacing_mm`` parameter, one common factor), yarn width (with the spacing, times its own
   factor) and crimp scaled by factors drawn uniformly from :class:`DatasetOptions`' ranges; the orientation
   uniform over [0°, 180°);
-- an albedo pattern independent of the relief, drawn by :func:`albedo_pattern`: the generator's own albedo
-  times a random dye level, and with probability ``print_probability`` a printed motif (smooth blotches of a
-  second, darker or lighter tone) — so that colour and print tell nothing about the class;
+- an albedo pattern independent of the relief, drawn by :func:`albedo_pattern` for every class: the generator's
+  own albedo times a random dye level, and with probability ``print_probability`` a printed motif (blotches of
+  random size, edge sharpness and a darker or lighter tone, a range that holds the ``print`` class's own ink) —
+  so that colour and print tell nothing about the class, and a printed cotton looks like the ``print`` class in
+  any single image; only the ink layer's few µm of relief tell them apart;
 - the cloth lifted ``0..max_lift_mm`` above the card, and with probability ``wrinkle_probability`` a wrinkle (a
   Gaussian ridge of random height, width and direction added to the height);
 - the simulator's sensor (noise, 8-bit quantisation by default), flat-fielded by a card capture.
@@ -90,18 +92,27 @@ def _smooth_noise(size: int, cells: int, gen: torch.Generator) -> torch.Tensor:
     return F.interpolate(coarse, size=(size, size), mode="bicubic", align_corners=True)[0, 0]
 
 
-def albedo_pattern(size: int, gen: torch.Generator, print_probability: float) -> tuple[torch.Tensor, dict]:
-    """A multiplicative albedo pattern (1, 1, size, size): a dye level, maybe a printed motif of soft blotches."""
+def albedo_pattern(size: int, gen: torch.Generator, print_probability: float,
+                   pixel_pitch_mm: float = 0.025) -> tuple[torch.Tensor, dict]:
+    """A multiplicative albedo pattern (1, 1, size, size): a dye level, maybe a printed motif.
+
+    The motif is a field of blotches (a thresholded smooth noise) of random size (0.8-3 mm), edge (1.5-12 px,
+    from a sharp screen print to a soft dye), and tone (0.25-1.6 times the cloth's, darker or lighter): the
+    range holds the ``print`` class's own ink (dark, 2 mm, ~3 px edges), so the albedo alone cannot tell a
+    printed cloth of any class from the ``print`` class; only the ink layer's relief can.
+    """
     dye = _uniform(gen, 0.45, 1.25)
     pattern = torch.full((size, size), dye, dtype=torch.float64)
     printed = bool(torch.rand((), generator=gen) < print_probability)
     info: dict[str, Any] = {"dye": dye, "printed": printed}
     if printed:
         ink = _uniform(gen, 0.25, 1.6)
-        cells = int(_uniform(gen, 3, 8))
-        motif = torch.sigmoid(_smooth_noise(size, cells, gen) * 6.0)
+        scale_mm = _uniform(gen, 0.8, 3.0)
+        edge_px = _uniform(gen, 1.5, 12.0)
+        cells = max(2, math.ceil(size * pixel_pitch_mm / scale_mm)) + 3
+        motif = torch.sigmoid(_smooth_noise(size, cells, gen) * (scale_mm / pixel_pitch_mm) / edge_px)
         pattern = pattern * (1 - motif) + ink * dye * motif
-        info.update(ink=ink, cells=cells)
+        info.update(ink=ink, scale_mm=scale_mm, edge_px=edge_px)
     return pattern[None, None], info
 
 
@@ -136,7 +147,7 @@ def draw_fabric(name: str, seed: int, options: DatasetOptions = DatasetOptions()
             params[key] = value * crimp
     pitch = options.rig.pixel_pitch_mm
     fabric = make_fabric(name, size=options.size, pixel_pitch_mm=pitch, seed=int(seed), **params)
-    pattern, albedo_info = albedo_pattern(options.size, gen, options.print_probability)
+    pattern, albedo_info = albedo_pattern(options.size, gen, options.print_probability, pitch)
     albedo = (fabric.albedo.double() * pattern).clamp(0.02, 0.98)
     albedo = torch.where(fabric.mask, albedo, fabric.albedo.double())  # the card stays the card
     height = fabric.height_mm.double()

@@ -276,7 +276,7 @@ def structure_errors(result, truth):
     return worst_d, worst_a
 
 
-STRUCTURED = ["jute", "cotton", "silk", "twill", "satin", "knit", "net", "lurex", "taffeta", "print"]
+STRUCTURED = ["jute", "cotton", "silk", "twill", "satin", "knit", "purl", "net", "lurex", "taffeta", "print"]
 
 
 class TestStructure:
@@ -315,6 +315,42 @@ class TestStructure:
 
         fabric = make_fabric(name, size=400, seed=5, orientation_deg=0.0, randomness=0.25)
         assert fabric_structure(fabric.height_mm, PITCH)[0].weave_repeat == repeat
+
+    @pytest.mark.parametrize("orientation", [0.0, 17.0, 61.0, 95.0, 140.0, 178.0])
+    def test_purl_wales_and_courses(self, orientation):
+        """The purl side shifts alternate courses by half a wale: the strongest peaks are the two diagonals of a
+        centred-rectangular lattice, not the wales and courses; these come out of its axes, not 2x or diagonal."""
+        from data_synth import make_fabric
+
+        fabric = make_fabric("purl", size=400, seed=5, orientation_deg=orientation, randomness=0.25)
+        found = fabric_structure(fabric.height_mm, PITCH)[0]
+        wales, courses = 10 / fabric.params["wale_spacing_mm"], 10 / fabric.params["course_spacing_mm"]
+        assert found.wales_per_cm == pytest.approx(wales, rel=0.01)
+        assert found.courses_per_cm == pytest.approx(courses, rel=0.01)
+        assert found.weave_repeat == 1
+        assert found.threads_per_cm == pytest.approx([courses, wales], rel=0.01)  # the denser first
+        expected = [orientation % 180, (orientation + 90) % 180]  # courses run along u, wales along v
+        for got, want in zip(found.thread_angles_deg, expected):
+            assert abs((got - want + 90) % 180 - 90) < 0.5
+
+    def test_repeat_ignores_incommensurate_peaks(self, device, dtype):
+        """A plain weave's interlacing peak (1/2, 1/2) plus two weaker modulations near (1/2, 3/4) and (2/3, 1/2)
+        of the thread lattice (fibre twist, stripes): the grid (i/4, j/4) or (i/6, j/6) would hold them, no
+        regular weave of repeat 4 or 6 does; the repeat is 2."""
+        x, y = grid(320, dtype, device)
+        a = math.radians(25.0)
+        u, v = x * math.cos(a) + y * math.sin(a), -x * math.sin(a) + y * math.cos(a)
+        f = 1 / 0.2
+
+        def wave(i, j, amplitude):
+            return amplitude * torch.cos(2 * math.pi * f * (i * u + j * v))
+
+        z = wave(1, 0, 0.03) + wave(0, 1, 0.03) + wave(0.5, 0.5, 0.004) + wave(0.5, 0.74, 0.003) \
+            + wave(0.66, -0.5, 0.003)
+        found = fabric_structure(z[None, None], PITCH)[0]
+        assert found.threads_per_cm == pytest.approx([50.0, 50.0], rel=1e-3)
+        assert found.weave_repeat == 2
+        assert found.crimp_um == pytest.approx(8.0, rel=0.02)  # twice the interlacing amplitude, 4 um
 
     def test_net_openness(self):
         from data_synth import make_fabric
@@ -379,7 +415,7 @@ class TestDescribe:
         assert structure_row(rec, None)["structure_found"] is False
         entry = describe(z, PITCH)[0]
         vector = descriptor_vector(entry)
-        assert vector.shape == (19,) and np.isfinite(vector).all()
+        assert vector.shape == (21,) and np.isfinite(vector).all()
         alpha = math.sqrt(math.log(2) / math.pi)  # waviness: S-filter 0.5 mm, L-filter 2.5 mm (ISO 16610-61)
 
         def passed(wavelength):
@@ -421,3 +457,132 @@ def test_yarn_angle_of_a_vertical_peak_wraps_to_zero_not_180():
         assert 0.0 <= angle < 180.0 and round(angle, 2) in (0.0,), (fx, angle)
     assert SpectralPeak(2.0, 0.0, 30.0, 10.0).yarn_angle_deg == 90.0
     assert abs(SpectralPeak(1.0, 1.0, 30.0, 10.0).yarn_angle_deg - 135.0) < 1e-9
+
+
+class TestAlbedoReliefCoupling:
+    @staticmethod
+    def blotches(n, seed, dtype=torch.float64):
+        """A printed motif in [0, 1]: soft-edged blotches of about 1 mm at PITCH."""
+        gen = torch.Generator().manual_seed(seed)
+        coarse = torch.randn(1, 1, 9, 9, generator=gen, dtype=torch.float64)
+        field = torch.nn.functional.interpolate(coarse, size=(n, n), mode="bicubic", align_corners=True)
+        return torch.sigmoid(field * 6).to(dtype)
+
+    def test_ink_layer_and_independent_print(self, device, dtype):
+        from psmini.fabric import albedo_relief_coupling
+
+        x, y = grid(192, dtype, device)
+        yarns = (0.03 * torch.cos(2 * math.pi * x / 0.2) * torch.cos(2 * math.pi * y / 0.2))[None, None]
+        ink = self.blotches(192, 1, dtype).to(device)
+        other = self.blotches(192, 2, dtype).to(device)
+        raised_dark = albedo_relief_coupling(0.004 * ink, 0.8 - 0.6 * ink, PITCH)
+        assert float(raised_dark[0]) == pytest.approx(-1.0, abs=1e-6)
+        raised_bright = albedo_relief_coupling(0.004 * ink, 0.3 + 0.6 * ink, PITCH)
+        assert float(raised_bright[0]) == pytest.approx(1.0, abs=1e-6)
+        # scale-free: the same under any albedo and height scale
+        scaled = albedo_relief_coupling(0.04 * ink, 3 * (0.8 - 0.6 * ink), PITCH)
+        assert float(scaled[0]) == pytest.approx(-1.0, abs=1e-6)
+        # a print with no relief of its own on cloth with relief of its own: near 0
+        independent = albedo_relief_coupling(0.004 * other + yarns, 0.8 - 0.6 * ink, PITCH)
+        assert abs(float(independent[0])) < 0.2
+        # the yarns (0.2 mm) lie below the band: adding them to an inked surface changes little
+        with_yarns = albedo_relief_coupling(0.004 * ink + yarns, 0.8 - 0.6 * ink, PITCH)
+        assert float(with_yarns[0]) < -0.9
+        # batched: the same numbers as one by one
+        both = albedo_relief_coupling(torch.cat([0.004 * ink, 0.004 * other + yarns]),
+                                      torch.cat([0.8 - 0.6 * ink, 0.8 - 0.6 * ink]), PITCH)
+        tol = 1e-9 if dtype == torch.float64 else 1e-5
+        assert both.tolist() == pytest.approx([float(raised_dark[0]), float(independent[0])], abs=tol)
+
+    def test_data_synth_print_against_printed_cotton(self):
+        """Ground truth of the recognition dataset, every sample with a random print on top: the print class's ink
+        is raised where dark (c < 0); the same kind of motif on a cotton (no relief of its own) scatters around 0
+        (measured: print -0.31..-0.08, cotton -0.16..+0.11 over seeds 0-7)."""
+        from data_synth.fabric_dataset import DatasetOptions, draw_fabric
+        from psmini.fabric import albedo_relief_coupling
+
+        options = DatasetOptions(size=192, print_probability=1.0, wrinkle_probability=0.0)
+        inked = [draw_fabric("print", seed, options).fabric for seed in range(6)]
+        printed = [draw_fabric("cotton", seed, options).fabric for seed in range(6)]
+        c_print = albedo_relief_coupling(torch.cat([f.height_mm for f in inked]),
+                                         torch.cat([f.albedo for f in inked]), PITCH)
+        c_cotton = albedo_relief_coupling(torch.cat([f.height_mm for f in printed]),
+                                          torch.cat([f.albedo for f in printed]), PITCH)
+        assert (c_print < -0.05).all(), c_print
+        assert (c_cotton.abs() < 0.2).all(), c_cotton
+        assert float(c_cotton.mean() - c_print.mean()) > 0.12, (c_print, c_cotton)
+
+    def test_flat_albedo_and_errors(self):
+        from psmini.fabric import albedo_relief_coupling
+
+        z = self.blotches(64, 3) * 0.01
+        assert math.isnan(float(albedo_relief_coupling(z, torch.ones_like(z), PITCH)[0]))
+        assert describe(z, PITCH, albedo=torch.ones_like(z))[0]["albedo_relief_coupling"] is None
+        assert describe(z, PITCH)[0]["albedo_relief_coupling"] is None
+        with pytest.raises(ShapeError, match="albedo"):
+            albedo_relief_coupling(z, torch.ones(1, 1, 32, 32, dtype=z.dtype), PITCH)
+        with pytest.raises(InputError):
+            albedo_relief_coupling(z, torch.ones_like(z), -1.0)
+
+    @pytest.mark.slow
+    def test_gradcheck(self):
+        from psmini.fabric import albedo_relief_coupling
+
+        z = (self.blotches(20, 4) * 0.01).requires_grad_(True)
+        a = 0.8 - 0.5 * self.blotches(20, 5)
+        torch.autograd.gradcheck(lambda h: albedo_relief_coupling(h, a, 0.1), (z,), eps=1e-7, atol=1e-6)
+
+
+class TestAlbedoPeriodicity:
+    def test_stripes_dye_and_print(self, device, dtype):
+        from psmini.fabric import albedo_periodicity
+
+        x, y = grid(200, dtype, device)
+        stripes = 1 + 0.2 * torch.cos(2 * math.pi * (x * 0.6 + y * 0.8) / 0.3)  # every 0.3 mm, at an angle
+        got = albedo_periodicity(torch.stack([0.6 * stripes, 0.25 * stripes])[:, None], PITCH)
+        assert got.tolist() == pytest.approx([0.2, 0.2], rel=0.02)  # the dye does not change it
+        from data_synth.fabric_dataset import albedo_pattern
+
+        for seed in range(3):  # the recognition dataset's printed motifs have no spectral peak
+            pattern, info = albedo_pattern(200, torch.Generator().manual_seed(seed), 1.0, PITCH)
+            assert float(albedo_periodicity(pattern.to(device, dtype), PITCH)[0]) < 0.02, info
+        assert float(albedo_periodicity(torch.full((1, 1, 64, 64), 0.5, dtype=dtype, device=device), PITCH)[0]) < 1e-6
+
+    def test_data_synth_lurex_against_cotton(self):
+        """The Lurex's metallic tape every third weft is a periodic albedo; a cotton's dye and print are not (its
+        yarns' own tone and twist stripes stay below a few per cent)."""
+        from data_synth.fabric_dataset import DatasetOptions, draw_fabric
+        from psmini.fabric import albedo_periodicity
+
+        options = DatasetOptions(size=192, print_probability=1.0)
+        for seed in range(3):
+            lurex, cotton = draw_fabric("lurex", seed, options).fabric, draw_fabric("cotton", seed, options).fabric
+            p_lurex = float(albedo_periodicity(lurex.albedo, PITCH, lurex.mask)[0])
+            p_cotton = float(albedo_periodicity(cotton.albedo, PITCH, cotton.mask)[0])
+            assert p_lurex > 0.15 and p_cotton < 0.06, (seed, p_lurex, p_cotton)
+
+    def test_errors(self):
+        from psmini.fabric import albedo_periodicity
+
+        with pytest.raises(ShapeError, match="albedo"):
+            albedo_periodicity(torch.ones(8, 8), PITCH)
+        with pytest.raises(InputError):
+            albedo_periodicity(torch.ones(1, 1, 32, 32), 0.0)
+
+
+def test_structure_survives_reconstruction_spikes():
+    """Spikes of 2 mm on a few pixels (what near light leaves in the holes of a knit) on a 0.1 mm lattice: with the
+    default spike fence the densities come out; without it the spikes bury the lattice."""
+    x, y = grid(256)
+    z = 0.05 * torch.cos(2 * math.pi * x / 0.3) + 0.05 * torch.cos(2 * math.pi * y / 0.25)
+    gen = torch.Generator().manual_seed(0)
+    seeds = (torch.rand(1, 1, 256, 256, generator=gen, dtype=torch.float64) < 0.003).double()
+    spikes = torch.nn.functional.max_pool2d(seeds, 3, stride=1, padding=1)[0, 0] > 0  # 3 x 3 blobs, ~2.5 %
+    depth = -2.0 * torch.rand(256, 256, generator=gen, dtype=torch.float64)
+    z = torch.where(spikes, depth, z)[None, None]
+    found = fabric_structure(z, PITCH)[0]
+    assert found.found and found.threads_per_cm == pytest.approx([40.0, 33.333], rel=0.01)
+    bare = fabric_structure(z, PITCH, options=StructureOptions(spike_fence=None))[0]
+    assert not bare.found or bare.threads_per_cm != pytest.approx([40.0, 33.333], rel=0.01)
+    with pytest.raises(InputError, match="spike_fence"):
+        StructureOptions(spike_fence=0.0)

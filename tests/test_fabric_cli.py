@@ -35,9 +35,8 @@ def model_file(path: Path, version: int = MODEL_VERSION) -> Path:
 
 def test_capture_json_and_out(capture, tmp_path, capsys):
     out = tmp_path / "described"
-    # the classical pipeline: on the near-light reconstruction of this 4 mm crop densities and angles agree (within
-    # 0.2%, 0.01 deg) but the weave repeat comes out 4 instead of 2 (issue 18 stays open on it)
-    assert main(["describe", str(capture), "--json", "--out", str(out), "--light-model", "distant",
+    # psmini's default pipeline (near light for these LED captures)
+    assert main(["describe", str(capture), "--json", "--out", str(out),
                  "--model", str(model_file(tmp_path / "m.json"))]) == 0
     payload = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert payload["threads_per_cm"] == pytest.approx([50.0, 50.0], rel=0.02)  # cotton: 0.2 mm spacing
@@ -60,6 +59,11 @@ def test_reconstruction_folder(capture, tmp_path, capsys):
     assert main(["describe", str(rec), "--json"]) == 0
     payload = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert payload["threads_per_cm"] == pytest.approx([50.0, 50.0], rel=0.02)
+    assert -1.0 <= payload["albedo_relief_coupling"] <= 1.0  # albedo.png read back with the depth
+    assert main(["describe", str(capture), "--json"]) == 0  # the same sample from its capture
+    direct = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    # albedo.png is 8-bit and clipped at its 99.5th percentile: 0.396 against 0.359 from the float albedo
+    assert payload["albedo_relief_coupling"] == pytest.approx(direct["albedo_relief_coupling"], abs=0.06)
 
 
 def test_folder_without_depth(tmp_path, capsys):
@@ -97,3 +101,55 @@ def test_model_of_another_version(capture, tmp_path, capsys):
 def test_not_a_folder(tmp_path, capsys):
     assert main(["describe", str(tmp_path / "missing")]) == 1
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_batch_describe_feature_table(tmp_path, capsys):
+    """``psmini batch --describe`` (default pipeline): summary.csv gains the structure columns; a capture whose field
+    spans less than two periods of its relief gets the explicit empty values with the reason; a failed sample too."""
+    import csv
+
+    from data_synth.rig import RigConfig, write_synthetic_capture
+    from psmini.batch import SUMMARY_FIELDS
+
+    root = tmp_path / "captures"
+    write_synthetic_capture(root / "lot", "cotton", seed=2, size=128, config=RigConfig(bit_depth=8),
+                            orientation_deg=20.0)
+    # a net whose mesh (4 mm) is longer than the 3.2 mm field: no periodic structure to measure
+    write_synthetic_capture(root / "open", "net", seed=2, size=128, config=RigConfig(bit_depth=8), spacing_mm=4.0,
+                            orientation_deg=10.0)
+    write_synthetic_capture(root / "bad", "jute", seed=3, size=64)
+    image = root / "bad" / "jute" / "led_02.png"
+    image.write_bytes(image.read_bytes()[:80])
+    out = tmp_path / "out"
+    assert main(["batch", str(root), "--out", str(out), "--workers", "0", "--no-progress", "--describe"]) == 1
+    capsys.readouterr()
+    with (out / "summary.csv").open(newline="") as handle:
+        rows = {row["sample"]: row for row in csv.DictReader(handle)}
+    header = list(next(iter(rows.values())))
+    assert header[:len(SUMMARY_FIELDS)] == list(SUMMARY_FIELDS)
+    for column in ("threads_per_cm_1", "threads_per_cm_2", "thread_angle_1_deg", "thread_angle_2_deg",
+                   "weave_repeat", "crimp_um", "openness", "structure_found", "structure_reason", "Sq_um", "Sdr_pct",
+                   "Sal_mm", "Std_deg"):
+        assert column in header
+    cotton = rows["lot/cotton"]
+    assert cotton["status"] == "done" and cotton["structure_found"] == "True"
+    assert float(cotton["threads_per_cm_1"]) == pytest.approx(50.0, rel=0.02)
+    assert float(cotton["threads_per_cm_2"]) == pytest.approx(50.0, rel=0.02)
+    assert sorted(float(cotton[k]) for k in ("thread_angle_1_deg", "thread_angle_2_deg")) == pytest.approx(
+        [20.0, 110.0], abs=1.0)
+    assert float(cotton["Sq_um"]) > 1.0
+    net = rows["open/net"]
+    assert net["status"] == "done" and net["structure_found"] == "False" and net["structure_reason"]
+    assert net["threads_per_cm_1"] == net["weave_repeat"] == net["crimp_um"] == ""
+    assert float(net["Sq_um"]) > 0  # the ISO parameters are defined without a lattice
+    bad = rows["bad/jute"]
+    assert bad["status"] == "failed" and bad["structure_found"] == "False"
+    assert bad["structure_reason"] == "the sample was not reconstructed" and bad["Sq_um"] == ""
+    summary = json.loads((out / "summary.json").read_text())
+    assert {r["sample"]: r["structure_found"] for r in summary["samples"]} == {
+        "lot/cotton": True, "open/net": False, "bad/jute": False}
+    assert not list(out.glob(".summary*"))
+    # the depth is what is measured: --describe without it is refused before any work
+    assert main(["batch", str(root), "--out", str(tmp_path / "o2"), "--outputs", "normals", "--describe"]) == 1
+    assert "must include depth" in capsys.readouterr().err
+    assert not (tmp_path / "o2").exists()

@@ -36,6 +36,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "the same paths on every worker")
     parser.add_argument("--scheduler-timeout", type=float, default=10.0, metavar="S",
                         help="seconds to wait for the scheduler and its first worker (default 10)")
+    parser.add_argument("--describe", action="store_true",
+                        help="add the fabric structure columns of `psmini describe` (threads per cm, yarn angles, "
+                        "weave repeat, crimp, openness, ISO 25178-2 parameters) to summary.csv and summary.json; "
+                        "needs the depth output")
     add_config_flags(parser)
     add_json_flag(parser)
     parser.set_defaults(run=run)
@@ -53,6 +57,10 @@ def run(args: argparse.Namespace) -> int:
     from psmini.batch import parse_outputs, reconstruct_dataset
 
     outputs = parse_outputs(args.outputs)  # before any work: a typo fails at once
+    if args.describe and "depth" not in outputs:
+        from psmini.errors import InputError
+
+        raise InputError(f"--describe measures the written depth: --outputs must include depth, got {args.outputs!r}")
     if args.scheduler:  # with a cluster the workers' devices count, not this machine's
         args = argparse.Namespace(**{**vars(args), "device": "cpu"}) if args.device == "cuda" else args
     config = config_from_args(args)
@@ -68,6 +76,10 @@ def run(args: argparse.Namespace) -> int:
                                       scheduler=args.scheduler, scheduler_timeout_s=args.scheduler_timeout)
     finally:
         bar.close()
+    if args.describe:
+        from psmini.commands.describe import add_structure_columns
+
+        summary = add_structure_columns(args.out, summary, config)
     counts = summary["counts"]
     for row in summary["samples"]:
         if row["status"] == "failed":

@@ -96,7 +96,15 @@ def load_height(path: Path, config) -> tuple[Any, Any, Any, float, str]:
             raise InputError(f"{path}: the reconstruction has no pixel pitch (outputs.json pixel_pitch_mm), so no "
                              "length in mm can be measured")
         height = torch.from_numpy(depth.astype(np.float32))[None, None].to(config.device)
-        return height, torch.isfinite(height), None, float(pitch), path.name
+        albedo = None
+        if (path / "albedo.png").is_file():  # 8-bit, divided by a robust maximum: a relative albedo, what is needed
+            from psmini.io.images import read_gray
+
+            values, _ = read_gray(path / "albedo.png")  # a DataFormatError for an unreadable file
+            values = values.astype(np.float32)
+            if values.shape == depth.shape:
+                albedo = torch.from_numpy(values)[None, None].to(config.device)
+        return height, torch.isfinite(height), albedo, float(pitch), path.name
     from psmini.fabric import reconstruct_for_description
     from psmini.io import load_sample
 
@@ -112,6 +120,49 @@ def load_height(path: Path, config) -> tuple[Any, Any, Any, float, str]:
                          "measured")
     rec = reconstruct_for_description(sample, config)
     return rec.depth[:1], rec.mask[:1], rec.albedo[:1], float(sample.pixel_pitch_mm), sample.name
+
+
+def add_structure_columns(out: Path, summary: dict, config) -> dict:
+    """``psmini batch --describe``: the :func:`psmini.fabric.structure_row` columns of every sample, added to the
+    summary and to ``OUT/summary.csv`` and ``OUT/summary.json`` (each replaced through a temporary file).
+
+    A finished sample is measured on its written ``depth.npy``; a failed one, one without a pixel pitch (DiLiGenT)
+    or one whose output cannot be read gets empty cells and ``structure_found`` False with the reason.
+    """
+    import csv
+    from types import SimpleNamespace
+
+    from psmini.batch import SUMMARY_FIELDS
+    from psmini.fabric import structure_row
+
+    empty = structure_row(None, None)
+    for row in summary["samples"]:
+        if row["status"] not in ("done", "skipped"):
+            extra = {**empty, "structure_reason": "the sample was not reconstructed"}
+        else:
+            try:
+                height, mask, _, pitch, _ = load_height(Path(out) / row["sample"], config)
+                extra = structure_row(SimpleNamespace(depth=height, mask=mask), pitch)
+            except InputError as error:  # no pixel pitch, no valid pixel
+                extra = {**empty, "structure_reason": str(error)}
+            except DataFormatError as error:
+                extra = {**empty, "structure_reason": f"cannot read the reconstruction: {error}"}
+        row.update(extra)
+    fieldnames = list(SUMMARY_FIELDS) + [k for k in empty if k not in SUMMARY_FIELDS]
+    out = Path(out)
+    for name, write in (("summary.csv", lambda h: _write_csv(h, fieldnames, summary["samples"], csv)),
+                        ("summary.json", lambda h: h.write(json.dumps(summary, indent=2) + "\n"))):
+        temporary = out / f".{name}.tmp"
+        with temporary.open("w", newline="", encoding="utf-8") as handle:
+            write(handle)
+        temporary.replace(out / name)
+    return summary
+
+
+def _write_csv(handle, fieldnames: list[str], rows: list[dict], csv) -> None:
+    writer = csv.DictWriter(handle, fieldnames=fieldnames)
+    writer.writeheader()
+    writer.writerows({k: ("" if row.get(k) is None else row.get(k)) for k in fieldnames} for row in rows)
 
 
 def _figure(target: Path, height, mask, pitch: float, entry: dict) -> None:

@@ -22,8 +22,9 @@ from psmini.errors import DataFormatError, InputError
 from psmini.fabric.structure import FabricStructure, StructureOptions, fabric_structure
 from psmini.fabric.surface import ISO_PARAMETERS, SurfaceOptions, iso25178
 
-__all__ = ["WAVINESS_OPTIONS", "DESCRIBE_SURFACE_OPTIONS", "DESCRIPTOR_NAMES", "MODEL_FORMAT", "MODEL_VERSION", "FabricClassifier",
-           "describe", "descriptor_vector", "structure_row", "reconstruct_for_description"]
+__all__ = ["WAVINESS_OPTIONS", "COUPLING_OPTIONS", "DESCRIBE_SURFACE_OPTIONS", "DESCRIPTOR_NAMES", "MODEL_FORMAT",
+           "MODEL_VERSION", "FabricClassifier", "albedo_periodicity", "albedo_relief_coupling", "describe", "descriptor_vector",
+           "structure_row", "reconstruct_for_description"]
 
 #: The scale-limited surface on which :func:`describe` reports the ISO parameters: plane removed, an L-filter of
 #: 2.5 mm (an ISO 25178-3 nesting index; it removes wrinkles and drape, keeps yarn repeats up to ~1.5 mm).
@@ -33,12 +34,17 @@ DESCRIBE_SURFACE_OPTIONS = SurfaceOptions(form_degree=1, l_cutoff_mm=2.5)
 DESCRIPTOR_NAMES = (
     "Sq_um", "Ssk", "Sku", "Sz_um", "Sa_um", "Sdq", "Sdr_pct", "Sal_mm", "Str",
     "structure_found", "log_density_1", "log_density_2", "density_ratio", "crossing_angle_deg",
-    "weave_repeat", "crimp_um", "openness", "log_sq_over_sal", "log_waviness_um",
+    "weave_repeat", "crimp_um", "openness", "log_sq_over_sal", "log_waviness_um", "albedo_relief_coupling",
+    "log_albedo_periodicity",
 )
 
 #: The band of :func:`describe`'s ``waviness_um``: relief between the yarn scale and the L-filter (prints, felting,
 #: pilling), the Sq of the surface S-filtered at 0.5 mm and L-filtered at 2.5 mm.
 WAVINESS_OPTIONS = SurfaceOptions(form_degree=1, s_cutoff_mm=0.5, l_cutoff_mm=2.5)
+
+#: The band of :func:`describe`'s ``albedo_relief_coupling``: above the yarns' scale (0.5 mm S-filter), below
+#: wrinkles and drape (1.25 mm L-filter), where a print's blotch edges and an ink layer's relief live.
+COUPLING_OPTIONS = SurfaceOptions(form_degree=1, s_cutoff_mm=0.5, l_cutoff_mm=1.25)
 
 MODEL_FORMAT = "psmini-fabric-classifier"
 MODEL_VERSION = 1
@@ -67,6 +73,114 @@ def reconstruct_for_description(sample: Any, config: Any = None) -> Any:
     return reconstruct(sample, config)
 
 
+def albedo_relief_coupling(height: Tensor, albedo: Tensor, pixel_pitch_mm: float,
+                           mask: Tensor | None = None) -> Tensor:
+    r"""How the relief follows the albedo: the correlation of their gradients in the :data:`COUPLING_OPTIONS` band.
+
+    .. math:: c = \frac{\sum \nabla h \cdot \nabla a}{\sqrt{\sum |\nabla h|^2 \sum |\nabla a|^2}}
+
+    over the pixels whose central differences are valid, with h and a the height and the albedo (divided by its
+    median) band-passed between 0.5 and 1.25 mm (ISO 16610-61 Gaussian S- and L-filters). An ink layer raised
+    where it darkens the cloth gives c < 0 at the print's edges; a dye or print with no relief of its own, c near
+    0 (or what the reconstruction's shading leaks into the albedo). Dimensionless, in [-1, 1]; invariant to the
+    albedo's and the height's scale. Photometric stereo recovers albedo and relief separately, so this is a
+    relief measurement conditioned on the albedo, not the albedo itself.
+
+    Args:
+        height: :math:`(B, 1, H, W)`, mm.
+        albedo: :math:`(B, 1, H, W)`, any positive scale.
+        pixel_pitch_mm: pixel size, mm.
+        mask: optional valid pixels :math:`(B, 1, H, W)`.
+
+    Returns:
+        :math:`(B,)`; NaN where the band holds no gradient (a flat albedo or height).
+
+    Raises:
+        ShapeError: albedo of another shape than the height. InputError, ShapeError: as
+            :func:`~psmini.fabric.scale_limited_surface`.
+
+    Example:
+        >>> y, x = torch.meshgrid(torch.arange(128.0), torch.arange(128.0), indexing="ij")
+        >>> ink = torch.sigmoid(torch.cos(2 * math.pi * x / 64) * torch.cos(2 * math.pi * y / 64) * 8)[None, None]
+        >>> round(float(albedo_relief_coupling(0.004 * ink, 0.8 - 0.6 * ink, 0.025)[0]), 3)
+        -1.0
+    """
+    from psmini.errors import ShapeError
+    from psmini.fabric.surface import scale_limited_surface, valid_pixels
+
+    if not isinstance(albedo, Tensor) or albedo.shape != height.shape:
+        raise ShapeError(f"albedo must have the height's shape {tuple(height.shape)}, got "
+                         f"{tuple(albedo.shape) if isinstance(albedo, Tensor) else type(albedo).__name__}")
+    valid = valid_pixels(height, mask) & torch.isfinite(albedo) & (albedo > 0)
+    dt = height.dtype
+    h, valid = scale_limited_surface(height, pixel_pitch_mm, valid, COUPLING_OPTIONS)
+    a = albedo.to(dt)
+    median = torch.stack([a[i][valid[i]].median() if valid[i].any() else torch.ones((), dtype=dt, device=a.device)
+                          for i in range(a.shape[0])]).view(-1, 1, 1, 1)
+    a, _ = scale_limited_surface(torch.where(valid, a / median, torch.zeros_like(a)), pixel_pitch_mm, valid,
+                                 COUPLING_OPTIONS)
+
+    def gradient(z: Tensor) -> tuple[Tensor, Tensor]:
+        return z[..., 1:-1, 2:] - z[..., 1:-1, :-2], z[..., :-2, 1:-1] - z[..., 2:, 1:-1]
+
+    inner = valid[..., 1:-1, 1:-1] & valid[..., 1:-1, 2:] & valid[..., 1:-1, :-2] & valid[..., :-2, 1:-1] \
+        & valid[..., 2:, 1:-1]
+    (hx, hy), (ax, ay) = gradient(h), gradient(a)
+    w = inner.to(dt)
+    count = w.sum(dim=(1, 2, 3)).clamp_min(1)
+    cross = ((hx * ax + hy * ay) * w).sum(dim=(1, 2, 3))
+    hh = ((hx.square() + hy.square()) * w).sum(dim=(1, 2, 3))
+    aa = ((ax.square() + ay.square()) * w).sum(dim=(1, 2, 3))
+    # no gradient in the band: below 1e-5 of relative albedo and 1 nm of height per pixel (rounding of a flat map
+    # through the filters; a print's edge is ~1e-2 per pixel, the faintest relief ~1e-4 mm)
+    flat = (aa / count < 1e-10) | (hh / count < 1e-12) | (count < 2)
+    norm = torch.sqrt(hh * aa).clamp_min(torch.finfo(dt).tiny)
+    return torch.where(flat, torch.full_like(norm, math.nan), cross / norm)
+
+
+def albedo_periodicity(albedo: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None) -> Tensor:
+    """The relative amplitude of the albedo's strongest periodic component (yarns of another colour or material).
+
+    The albedo divided by its median is searched for spectral peaks exactly as a height is
+    (:func:`~psmini.fabric.fabric_structure`: levelled, Hann-windowed, 18 dB above the local background, sub-bin
+    refined), and the largest peak amplitude is returned: 0.2 for an albedo ``m (1 + 0.2 cos(2 pi f x))``. A dye
+    scales the albedo and leaves it unchanged; a printed motif of blotches has no spectral peak; yarns of another
+    colour or a metallic tape every few threads (a yarn-dyed stripe, Lurex) give one. 0 when no peak stands out.
+
+    Args:
+        albedo: :math:`(B, 1, H, W)`, any positive scale.
+        pixel_pitch_mm: pixel size, mm.
+        mask: optional valid pixels :math:`(B, 1, H, W)` (non-finite or non-positive albedo is excluded too).
+
+    Returns:
+        :math:`(B,)`, dimensionless.
+
+    Raises:
+        InputError, ShapeError: as :func:`~psmini.fabric.fabric_structure`.
+
+    Example:
+        >>> x = torch.arange(200.0).view(1, 200).expand(200, 200) * 0.025
+        >>> albedo = 0.6 * (1 + 0.2 * torch.cos(2 * math.pi * x / 0.3))
+        >>> round(float(albedo_periodicity(albedo[None, None], 0.025)[0]), 3)
+        0.2
+    """
+    from psmini.errors import ShapeError
+    from psmini.fabric.surface import valid_pixels
+
+    if not isinstance(albedo, Tensor) or albedo.ndim != 4 or albedo.shape[1] != 1:
+        raise ShapeError(f"albedo must have shape (B, 1, H, W), got "
+                         f"{tuple(albedo.shape) if isinstance(albedo, Tensor) else type(albedo).__name__}")
+    valid = valid_pixels(albedo, mask) & (albedo > 0)
+    dt = albedo.dtype
+    median = torch.stack([albedo[i][valid[i]].median() if valid[i].any() else torch.ones((), dtype=dt,
+                                                                                         device=albedo.device)
+                          for i in range(albedo.shape[0])]).view(-1, 1, 1, 1)
+    relative = torch.where(valid, albedo / median, torch.zeros_like(albedo))
+    found = fabric_structure(relative, pixel_pitch_mm, valid)
+    return torch.tensor([max((p.amplitude_um for p in f.peaks), default=0.0) / 1000 for f in found],
+                        dtype=dt, device=albedo.device)
+
+
 def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, albedo: Tensor | None = None,
              surface: SurfaceOptions = DESCRIBE_SURFACE_OPTIONS,
              structure: StructureOptions = StructureOptions()) -> list[dict[str, Any]]:
@@ -77,7 +191,8 @@ def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, 
         pixel_pitch_mm: pixel size, mm.
         mask: optional valid pixels :math:`(B, 1, H, W)` (unsolved pixels False).
         albedo: optional :math:`(B, 1, H, W)`; its mean and spread over the valid pixels are reported (not used
-            by :func:`descriptor_vector`: dye and print are not structure).
+            by :func:`descriptor_vector`: dye and print are not structure), the :func:`albedo_relief_coupling` and
+            the :func:`albedo_periodicity` (which are).
         surface: the scale-limited surface of the ISO parameters.
         structure: options of :func:`~psmini.fabric.fabric_structure`.
 
@@ -86,7 +201,8 @@ def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, 
         ``wales_per_cm``, ``courses_per_cm``, ``crimp_um``, ``openness``, ``structure_found``,
         ``structure_reason``, ``iso25178`` (name to value, units in ``iso25178_units``), ``waviness_um`` (Sq of
         the band between 0.5 and 2.5 mm: relief between the yarns' scale and the L-filter), ``albedo_mean``,
-        ``albedo_std``, ``pixel_pitch_mm``, ``peaks`` (the refined spectral peaks).
+        ``albedo_std``, ``albedo_relief_coupling`` and ``albedo_periodicity`` (None without albedo),
+        ``pixel_pitch_mm``, ``peaks`` (the refined spectral peaks).
 
     Raises:
         InputError, ShapeError: as :func:`~psmini.fabric.iso25178`.
@@ -105,6 +221,8 @@ def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, 
     waviness = height_parameters(band, band_valid)["Sq"] * 1000
     found = fabric_structure(height, pixel_pitch_mm, mask, structure)
     valid = valid_pixels(height, mask)
+    coupling = albedo_relief_coupling(height, albedo, pixel_pitch_mm, mask) if albedo is not None else None
+    periodicity = albedo_periodicity(albedo, pixel_pitch_mm, valid) if albedo is not None else None
     out = []
     for i, result in enumerate(found):
         entry = result.to_dict()
@@ -114,6 +232,8 @@ def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, 
         entry["iso25178_units"] = dict(ISO_UNITS)
         entry["pixel_pitch_mm"] = float(pixel_pitch_mm)
         entry["waviness_um"] = _number(waviness[i])
+        entry["albedo_relief_coupling"] = _number(coupling[i]) if coupling is not None else None
+        entry["albedo_periodicity"] = _number(periodicity[i]) if periodicity is not None else None
         if albedo is not None:
             values = albedo[i][valid[i]]
             entry["albedo_mean"] = _number(values.mean()) if values.numel() else None
@@ -132,8 +252,8 @@ def structure_row(reconstruction: Any, pixel_pitch_mm: float | None) -> dict[str
     """The scalar columns a feature table (``summary.csv`` of ``psmini batch --describe``) gets for one sample.
 
     Args:
-        reconstruction: a :class:`psmini.pipeline.Reconstruction` with a batch of one (``depth``, ``mask``,
-            ``albedo``).
+        reconstruction: a :class:`psmini.pipeline.Reconstruction` with a batch of one (its ``depth`` and ``mask``
+            are used).
         pixel_pitch_mm: the sample's pixel size, mm; ``None`` (unknown, DiLiGenT) gives empty structure columns.
 
     Returns:
@@ -157,8 +277,7 @@ def structure_row(reconstruction: Any, pixel_pitch_mm: float | None) -> dict[str
         row["structure_found"] = False
         row["structure_reason"] = "the pixel pitch is unknown: no lengths in mm"
         return row
-    depth = reconstruction.depth[:1]
-    entry = describe(depth, pixel_pitch_mm, reconstruction.mask[:1], reconstruction.albedo[:1])[0]
+    entry = describe(reconstruction.depth[:1], pixel_pitch_mm, reconstruction.mask[:1])[0]
     density = (entry["threads_per_cm"] or []) + [None, None]
     angles = (entry["thread_angles_deg"] or []) + [None, None]
     row = {"threads_per_cm_1": density[0], "threads_per_cm_2": density[1], "thread_angle_1_deg": angles[0],
@@ -180,12 +299,13 @@ def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
     """The orientation-free feature vector (:data:`DESCRIPTOR_NAMES`) of one :func:`describe` entry.
 
     Densities enter as logarithms (a scale change is a shift), the two systems' crossing angle instead of their
-    directions, and a missing structure as zeros with ``structure_found`` 0.
+    directions, and a missing structure as zeros with ``structure_found`` 0; without albedo, the coupling as 0 and
+    the albedo periodicity as log(0.001).
 
     Example:
         >>> entry = {"iso25178": dict.fromkeys(ISO_PARAMETERS, 1.0), "structure_found": False}
         >>> descriptor_vector(entry).shape
-        (19,)
+        (21,)
     """
     iso = entry["iso25178"]
 
@@ -204,7 +324,8 @@ def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
               math.log(d1) if d1 > 0 else 0.0, math.log(d2) if d2 > 0 else 0.0, d2 / d1 if d1 > 0 else 0.0, crossing,
               num(entry.get("weave_repeat")), num(entry.get("crimp_um")), num(entry.get("openness")),
               math.log(num(iso.get("Sq")) / 1000 / sal) if sal > 0 and num(iso.get("Sq")) > 0 else 0.0,
-              math.log(num(entry.get("waviness_um"))) if num(entry.get("waviness_um")) > 0 else 0.0]
+              math.log(num(entry.get("waviness_um"))) if num(entry.get("waviness_um")) > 0 else 0.0,
+              num(entry.get("albedo_relief_coupling")), math.log(num(entry.get("albedo_periodicity")) + 1e-3)]
     return np.asarray(values, dtype=np.float64)
 
 

@@ -16,7 +16,11 @@ strongest peak is not always the thread count. This module:
    bins (20 per 2 mm⁻¹ on a 10 mm field) into frequencies within a fraction of a per cent;
 4. takes the strongest peak as the first yarn system and the strongest one roughly perpendicular to it
    (within 2°, else 10°, else any one 30° off) as the second, expresses every peak in that basis and finds the smallest
-   repeat R in which all of them sit on the lattice ``(i/R, j/R)``.
+   repeat R whose regular weave lattice (the multiples of one shift ``(1/R, k/R)``, k the move number) holds
+   the interlacing peaks; peaks of a modulation incommensurate with the threads do not count;
+5. recognises the stitch lattice of a purl (alternate courses shifted by half a wale): two equally strong
+   oblique peaks of equal frequency are the diagonals of a centred-rectangular lattice, whose axes give the
+   wales and courses.
 
 The directions are those in which the yarns run: degrees in [0, 180), counter-clockwise from x (x right,
 y up), i.e. the peak's direction plus 90°; densities are threads per cm counted across the yarns
@@ -52,13 +56,17 @@ class StructureOptions:
         weak_db: the same for the lattice peaks used to find the repeat and the crimp.
         max_repeat: largest weave repeat tried.
         lattice_tolerance: how far (in units of the lattice step 1/R) a peak may sit from the lattice.
-        lattice_share: the share of the interlacing peaks' summed amplitude the lattice of the repeat must
-            explain.
+        lattice_share: the repeat is the smallest one whose regular weave lattice explains at least this share
+            of the interlacing amplitude that the best lattice of any repeat up to ``max_repeat`` explains.
         interlacing_share: below this share of the two systems' amplitude, the interlacing peaks (fractional in
-            both coordinates) are too weak to call a repeat, which is then 1.
+            both coordinates) on the best regular weave lattice are too weak to call a repeat, which is then 1.
         dynamic_db: peaks more than this far below the strongest bin of the band are ignored (the window's
             leakage far from a steep spectrum's energy).
         max_peaks: most peaks kept per sample (strongest first).
+        spike_fence: pixels of the levelled height further than this many times its 5th-95th percentile range
+            outside that range (and 2 pixels around them) are treated as unsolved and the height levelled again
+            without them: the spikes that a near-light reconstruction leaves in the holes of a knit or a net
+            (up to 2 mm on a 0.2 mm relief), which otherwise bury the yarn peaks; ``None``: none removed.
         openness_level: share of the height range (1st to 99th percentile) above the lowest level below which a
             pixel counts as a hole (the card showing), for :attr:`FabricStructure.openness`.
     """
@@ -74,8 +82,11 @@ class StructureOptions:
     dynamic_db: float = 50.0
     max_peaks: int = 48
     openness_level: float = 0.1
+    spike_fence: float | None = 2.0
 
     def __post_init__(self) -> None:
+        if self.spike_fence is not None and not self.spike_fence > 0:
+            raise InputError(f"spike_fence must be > 0 or None, got {self.spike_fence!r}")
         if not self.strong_db >= self.weak_db > 0:
             raise InputError(f"need strong_db >= weak_db > 0, got {self.strong_db!r} and {self.weak_db!r}")
         if not isinstance(self.max_repeat, int) or not 1 <= self.max_repeat <= 16:
@@ -172,9 +183,21 @@ def _hann(n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
 def _levelled(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None,
               options: StructureOptions) -> tuple[Tensor, Tensor, Tensor]:
     """Scale-limited height and the windowed weights (B, 1, H, W), and the valid pixels."""
-    surface, valid = scale_limited_surface(height, pixel_pitch_mm, mask,
-                                           SurfaceOptions(form_degree=options.form_degree,
-                                                          l_cutoff_mm=options.l_cutoff_mm))
+    levelling = SurfaceOptions(form_degree=options.form_degree, l_cutoff_mm=options.l_cutoff_mm)
+    surface, valid = scale_limited_surface(height, pixel_pitch_mm, mask, levelling)
+    if options.spike_fence is not None:
+        spikes = torch.zeros_like(valid)
+        for i in range(height.shape[0]):
+            values = surface[i][valid[i]]
+            if values.numel() < 2:
+                continue
+            lo, hi = torch.quantile(values.double(), torch.tensor([0.05, 0.95], dtype=torch.float64,
+                                                                  device=values.device)).to(surface.dtype)
+            reach = options.spike_fence * (hi - lo)
+            spikes[i] = valid[i] & ((surface[i] < lo - reach) | (surface[i] > hi + reach))
+        if bool(spikes.any()):
+            spikes = F.max_pool2d(spikes.to(height.dtype), 5, stride=1, padding=2) > 0  # and 2 px around
+            surface, valid = scale_limited_surface(height, pixel_pitch_mm, valid & ~spikes, levelling)
     h, w = height.shape[-2:]
     window = _hann(h, height.dtype, height.device).view(h, 1) * _hann(w, height.dtype, height.device).view(1, w)
     return surface, window * valid.to(height.dtype), valid
@@ -377,6 +400,75 @@ def _fundamental(peak: SpectralPeak, peaks: list[SpectralPeak], options: Structu
     return peak
 
 
+def _regular_lattice_fit(coords: np.ndarray, amplitude: np.ndarray, repeat: int,
+                         tolerance: float) -> tuple[float, np.ndarray]:
+    """The summed amplitude of the interlacing peaks on the best regular weave lattice of ``repeat``, and which.
+
+    A regular weave of repeat R (plain, twill, sateen: every thread floats once per repeat) shifts its interlacing
+    by s = (1/R, k/R) from thread to thread, k coprime to R (the move number), so its interlacing peaks sit at
+    m s modulo the thread lattice, m = 1..R-1 (Schneider, Holtermann and Merhof's weave lattice; the 2-D analogue
+    of a crystal's reciprocal lattice). Peaks at other positions of the finer grid (i/R, j/R), such as a
+    modulation incommensurate with the threads (fibre twist, stripes) that happens to sit near one, do not count.
+    ``coords`` (K, 2) are the peaks in the yarn systems' basis; a peak counts when it lies within ``tolerance``
+    lattice steps (1/R) of a lattice point, with its sign either way (the spectrum is symmetric)."""
+    if coords.shape[0] == 0:
+        return 0.0, np.zeros(0, dtype=bool)
+    best, best_on = -1.0, np.zeros(coords.shape[0], dtype=bool)
+    m = np.arange(1, repeat)
+    for k in (k for k in range(1, repeat) if math.gcd(k, repeat) == 1):
+        points = np.stack([m / repeat, (m * k % repeat) / repeat], axis=1)  # (R-1, 2)
+        on = np.zeros(coords.shape[0], dtype=bool)
+        for sign in (1.0, -1.0):
+            wrapped = np.mod(sign * coords, 1.0)  # (K, 2)
+            diff = np.abs(wrapped[:, None, :] - points[None, :, :])
+            diff = np.minimum(diff, 1.0 - diff).max(axis=2) * repeat  # in lattice steps
+            on |= diff.min(axis=1) <= tolerance
+        total = float(amplitude[on].sum())
+        if total > best:
+            best, best_on = total, on
+    return best, best_on
+
+
+#: Courses per wale of a relaxed plain knit (Munden's loop-shape ratio K_c / K_w, about 1.3): which of the two
+#: readings of a centred-rectangular stitch lattice is the knit (see :func:`_centred_rectangular`).
+_COURSE_WALE_RATIO = 1.3
+
+
+def _centred_rectangular(systems: list[SpectralPeak], peaks: list[SpectralPeak]) -> list[SpectralPeak] | None:
+    """Wales and courses of a knit whose alternate courses are shifted by half a wale (the purl side of a jersey:
+    loop heads and sinker arcs alternate from row to row), or None for any other lattice.
+
+    Such a stitch lattice is centred rectangular: its strongest spectral peaks are the two diagonal ones g1, g2 =
+    (±1/2 course-step, 1 wale-step) of equal frequency, crossing at an oblique angle, and the rectangular axes are
+    g1 + g2 and g1 - g2 (both peaks of the lattice). Read with rows along the shift, the wales are |g1 + g2| / 2
+    and the courses |g1 - g2|; read with columns along it, |g1 + g2| and |g1 - g2| / 2. The reading whose courses
+    per wale is nearer Munden's 1.3 for a relaxed knit is returned, as (wales, courses) peaks. Two systems that
+    cross near a right angle, differ in frequency by more than 3% or in amplitude by more than 1.5x, or whose
+    axis g1 - g2 is no peak of the spectrum, are not such a lattice."""
+    g1 = np.array([systems[0].fx_per_mm, systems[0].fy_per_mm])
+    g2 = np.array([systems[1].fx_per_mm, systems[1].fy_per_mm])
+    if g1 @ g2 < 0:
+        g2 = -g2
+    a1, a2 = systems[0].amplitude_um, systems[1].amplitude_um
+    if _angle_between(g1, g2) >= 80.0 or abs(np.linalg.norm(g1) / np.linalg.norm(g2) - 1) > 0.03 \
+            or max(a1, a2) > 1.5 * min(a1, a2):
+        return None
+    plus, minus = g1 + g2, g1 - g2
+    axis = next((p for p in peaks if min(np.linalg.norm(np.array([p.fx_per_mm, p.fy_per_mm]) - s * minus)
+                                         for s in (1, -1)) <= 0.03 * np.linalg.norm(minus)), None)
+    if axis is None:
+        return None
+    readings = [(plus / 2, minus), (plus, minus / 2)]  # (wales, courses)
+    wales, courses = min(readings, key=lambda r: abs(math.log(np.linalg.norm(r[1]) / np.linalg.norm(r[0])
+                                                              / _COURSE_WALE_RATIO)))
+
+    def peak(v: np.ndarray) -> SpectralPeak:
+        v = v if v[1] > 0 or (v[1] == 0 and v[0] > 0) else -v
+        return SpectralPeak(float(v[0]), float(v[1]), min(systems[0].snr_db, systems[1].snr_db), axis.amplitude_um)
+
+    return [peak(wales), peak(courses)]
+
+
 def _lattice(peaks: list[SpectralPeak], openness: float, options: StructureOptions, field_mm: float,
              low_peak: bool) -> FabricStructure:
     """Yarn systems, repeat and crimp from the refined peaks (strongest first)."""
@@ -397,13 +489,19 @@ def _lattice(peaks: list[SpectralPeak], openness: float, options: StructureOptio
     # 10°, else any 30° off; the fine detail of a satin aliases to peaks a few degrees off), not below 0.3 x the
     # first system's frequency (what an L-filter leaves of a wrinkle).
     second = None
+    # a stitch lattice with alternate courses shifted (purl): two equal diagonal peaks, oblique to each other
+    twins = [k for k in range(1, len(strong)) if 20.0 <= _angle_between(vec[0], vec[k]) < 80.0
+             and abs(strong[k].frequency / strong[0].frequency - 1) <= 0.03
+             and strong[k].amplitude_um * strong[k].frequency >= 0.5 * strong[0].amplitude_um * strong[0].frequency]
+    centred = _centred_rectangular([strong[0], strong[twins[0]]], peaks) if twins else None
     for least in (88.0, 80.0, 30.0):
         pool = [k for k in range(1, len(strong)) if _angle_between(vec[0], vec[k]) >= least
                 and strong[k].frequency >= 0.3 * strong[0].frequency]
         if pool:
             second = pool[0]  # strong is sorted by slope amplitude
             break
-    systems = [strong[first]] + ([strong[second]] if second is not None else [])
+    systems = list(centred) if centred is not None else \
+        [strong[first]] + ([strong[second]] if second is not None else [])
     systems.sort(key=lambda p: -p.frequency)  # the denser first
     density = [10.0 * p.frequency for p in systems]
     angles = [p.yarn_angle_deg for p in systems]
@@ -419,18 +517,21 @@ def _lattice(peaks: list[SpectralPeak], openness: float, options: StructureOptio
     tol = options.lattice_tolerance
     fractional = near & (np.abs(coords - np.round(coords)) > tol / 2).all(axis=1)
     system_amp = sum(p.amplitude_um for p in systems)
-    repeat = 1
-    if amplitude[fractional].sum() >= options.interlacing_share * system_amp:
-        repeat = options.max_repeat
-        for r in range(2, options.max_repeat + 1):
-            off = np.abs(r * coords[fractional] - np.round(r * coords[fractional])).max(axis=1)
-            if amplitude[fractional][off <= tol].sum() >= options.lattice_share * amplitude[fractional].sum():
-                repeat = r
-                break
-    on = np.abs(repeat * coords - np.round(repeat * coords)).max(axis=1) <= tol
-    crimp = 2.0 * float(amplitude[fractional & on].max()) if bool((fractional & on).any()) else 0.0
+    explained = {r: _regular_lattice_fit(coords[fractional], amplitude[fractional], r, tol)
+                 for r in range(2, options.max_repeat + 1)}  # r -> (amplitude on the best lattice, its peaks)
+    best = max((amp for amp, _ in explained.values()), default=0.0)
+    repeat, amp_on = 1, np.zeros(0)
+    if centred is not None:  # a stitch lattice: no interlacing; the crimp is the alternate courses' relief wave
+        amp_on = np.array([strong[0].amplitude_um, strong[twins[0]].amplitude_um])
+    elif best > 0 and best >= options.interlacing_share * system_amp:
+        repeat = min(r for r, (amp, _) in explained.items() if amp >= options.lattice_share * best)
+        amp_on = amplitude[fractional][explained[repeat][1]]
+    crimp = 2.0 * float(amp_on.max()) if amp_on.size else 0.0
     wales = courses = None
-    if repeat == 1:
+    if centred is not None:
+        wales_peak, courses_peak = centred
+        wales, courses = 10.0 * wales_peak.frequency, 10.0 * courses_peak.frequency
+    elif repeat == 1:
         wales_peak = max(systems, key=lambda p: p.snr_db)
         courses_peak = systems[1] if wales_peak is systems[0] else systems[0]
         wales, courses = 10.0 * wales_peak.frequency, 10.0 * courses_peak.frequency
