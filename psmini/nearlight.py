@@ -47,13 +47,13 @@ from torch import Tensor, nn
 
 from psmini._checks import check_finite, check_mask, check_positive, check_shape
 from psmini.errors import InputError, ShapeError
-from psmini.geometry import depth_to_points, pixel_grid_mm
+from psmini.geometry import pixel_grid_mm
 from psmini.integrate import METHODS as INTEGRATORS
 from psmini.integrate import dct_poisson, integrate
 from psmini.integrate.least_squares import _edge_system
 from psmini.integrate.poisson import solve_weighted_poisson
 from psmini.lights import LEDLights, PointLights
-from psmini.normals import normals_to_gradients, solve_normal_equations
+from psmini.normals import normals_to_gradients
 from psmini.render import normals_from_height
 from psmini.result import Reconstruction
 
@@ -1067,6 +1067,7 @@ def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tenso
     last_m = images.new_zeros(batch, 3, height, width)
     last_posed = torch.zeros(batch, 1, height, width, dtype=torch.bool, device=images.device)
     previous: Tensor | None = None
+    level = images.mean(dim=(1, 2, 3), keepdim=True)  # the signal at which the noise model's variance is read
     select_at = 1 if first_level and options.max_iterations > 1 else 0
     for iteration in range(options.max_iterations):
         state.iterations += 1
@@ -1105,7 +1106,7 @@ def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tenso
         previous = normals
         p, q = normals_to_gradients(normals)
         noise_sq = None if rejection.noise is None else \
-            take(rejection.noise[0] + rejection.noise[1] * images.mean(dim=(1, 2, 3), keepdim=True))
+            take(rejection.noise[0] + rejection.noise[1] * level)
         confidence, noisy = _confidence((albedo, normals, solved), fit[2], sub_used, sub_domain, noise_sq)
         # warm start from the last depth at this level (the coarse level's lacks the weave: the fill's is closer)
         warm = take(state.relative) if iteration > 0 else None

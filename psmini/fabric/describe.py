@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from psmini.errors import DataFormatError, InputError
-from psmini.fabric.structure import FabricStructure, StructureOptions, fabric_structure
+from psmini.fabric.structure import StructureOptions, fabric_structure
 from psmini.fabric.surface import ISO_PARAMETERS, SurfaceOptions, iso25178
 
 __all__ = ["WAVINESS_OPTIONS", "COUPLING_OPTIONS", "DESCRIBE_SURFACE_OPTIONS", "DESCRIPTOR_NAMES", "MODEL_FORMAT",
