@@ -96,6 +96,15 @@ class TestWeights(BaseTester):
         # ranks 2 .. 7 kept by rank; the band keeps every reading equal to a bound as well
         assert _trim_band(tied, 0.25, 0.0, torch.ones_like(tied, dtype=torch.bool)).tolist() == [[False, False] + [True] * 6]
 
+    def test_trim_band_numpy_path_matches_torch_path(self):
+        """The CPU band (NumPy) and the device band (torch) agree, ties and unusable readings included."""
+        from psmini.robust import _trim_band, _trim_band_torch
+
+        rows = torch.randint(0, 6, (2000, 16)).float() / 5  # many ties
+        usable = torch.rand(2000, 16) > 0.3
+        for low, high in ((0.25, 0.10), (0.0, 0.5), (0.4, 0.0)):
+            assert torch.equal(_trim_band(rows, low, high, usable), _trim_band_torch(rows, low, high, usable))
+
     def test_errors(self):
         images = torch.rand(1, 8, 2, 2)
         for low, high in ((-0.1, 0.1), (0.5, 0.5), (1.0, 0.0)):
