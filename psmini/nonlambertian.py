@@ -56,7 +56,8 @@ from psmini._checks import check_finite, check_mask, check_shape, check_tensor
 from psmini.errors import InputError, ShapeError
 from psmini.lights import as_batched_lights
 from psmini.normals import _check_lights, _check_weights, albedo_normals
-from psmini.robust import RobustOptions, _median, _median_padding, _scatter, robust_normals, threshold_weights
+from psmini.robust import (RobustOptions, _float_mask, _median, _median_padding, _scatter, robust_normals,
+                           threshold_weights)
 
 __all__ = ["BlinnPhongFit", "NonLambertianNormals", "NonLambertianOptions", "blinn_phong_images", "fit_blinn_phong", "nonlambertian_normals"]
 
@@ -170,14 +171,24 @@ def _shade(normals: Tensor, albedo: Tensor, specular: Tensor, shininess: Tensor,
            half: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The model on pixel rows: normals (N, 3), maps (N, 1).
 
-    Returns cosine E(n·u), lit lobe E g^α, g = n·h and the images, each (N, K).
+    Returns cosine E(n·u), where it is positive (0/1 floats), lit lobe E g^α, g = n·h, log g and the images, each
+    (N, K).
     """
     cosine = _dot(lights, normals)  # E (n · u): lights carry their irradiance
     tiny = torch.finfo(normals.dtype).tiny
     # g is clamped to a tiny positive value: g**α has an infinite gradient at 0 for α < 1, and log(g) is needed
     g = _dot(half, normals).clamp_min(tiny)
-    lobe = torch.where(cosine > 0, energy * torch.exp(shininess * torch.log(g)), torch.zeros_like(g))
-    return cosine, lobe, g, albedo * cosine.clamp_min(0) + specular * lobe
+    log_g = torch.log(g)
+    if torch.is_grad_enabled() and any(x.requires_grad for x in (normals, albedo, specular, shininess, lights, energy,
+                                                                 half)):
+        lit = cosine > 0
+        # where, not a product with the mask: the unlit branch's gradient can be infinite, and 0 * inf is NaN
+        lobe = torch.where(lit, energy * torch.exp(shininess * log_g), 0.0)
+        lit = _float_mask(lit, cosine.dtype)
+    else:  # the same values as a product with a 0/1 float mask, in place: 2.4x cheaper than the bool where
+        lit = torch.gt(cosine, 0, out=torch.empty_like(cosine))
+        lobe = torch.exp(shininess * log_g).mul_(energy).mul_(lit)
+    return cosine, lit, lobe, g, log_g, albedo * cosine.clamp_min(0) + specular * lobe
 
 
 def blinn_phong_images(normals: Tensor, albedo: Tensor, specular: Tensor, shininess: Tensor, lights: Tensor) -> Tensor:
@@ -227,7 +238,7 @@ def blinn_phong_images(normals: Tensor, albedo: Tensor, specular: Tensor, shinin
         rows = lights[b].to(normals).flatten(2).permute(2, 0, 1) if lights.ndim == 5 else lights[b]
         energy, half = _split_lights(rows)
         maps = [x[b].flatten(1).T for x in (albedo, specular, shininess)]
-        images.append(_shade(normals[b].flatten(1).T, *maps, rows, energy, half)[3].T)
+        images.append(_shade(normals[b].flatten(1).T, *maps, rows, energy, half)[-1].T)
     return torch.stack(images).view(sizes["B"], -1, sizes["H"], sizes["W"])
 
 
@@ -277,7 +288,7 @@ def _starts(values: Tensor, usable: Tensor, albedo: Tensor, normals: Tensor, lig
     for start_normals in (normals, peak, bisector):
         for exponent in options.shininess:
             log_alpha = torch.full_like(albedo, math.log(exponent))
-            cosine, lobe, _, _ = _shade(start_normals, albedo, albedo, log_alpha.exp(), lights, energy, half)
+            cosine, _, lobe, _, _, _ = _shade(start_normals, albedo, albedo, log_alpha.exp(), lights, energy, half)
             diffuse = cosine.clamp_min(0)
             a, b, d, r1, r2 = [(usable * x * y).sum(dim=1, keepdim=True) for x, y in (
                 (diffuse, diffuse), (diffuse, lobe), (lobe, lobe), (diffuse, values), (lobe, values))]
@@ -313,19 +324,19 @@ def _iterate(values: Tensor, usable: Tensor, sigma: Tensor, lights: Tensor, ener
     # the lobe's peak stays within a few times the brightest reading: a huge, narrow lobe far from every light
     # would otherwise fit a tail of readings (the peak between lights is unobserved, not unbounded)
     most = _PEAK_RATIO * (usable * values / energy).amax(dim=1, keepdim=True)
-    cost = _cauchy_cost(values - _shade(normals, albedo, specular, log_alpha.exp(), lights, energy, half)[3],
+    cost = _cauchy_cost(values - _shade(normals, albedo, specular, log_alpha.exp(), lights, energy, half)[-1],
                         usable, sigma)
     for _ in range(iterations):
         alpha = log_alpha.exp()
-        cosine, lobe, g, model = _shade(normals, albedo, specular, alpha, lights, energy, half)
+        cosine, lit, lobe, g, log_g, model = _shade(normals, albedo, specular, alpha, lights, energy, half)
         residuals = values - model
         weights = usable / (1 + (residuals / sigma).square())  # IRLS weights of the Cauchy loss
         first, second = _tangents(normals)
-        diffuse = albedo * (cosine > 0)  # d model / d (n · l)
+        diffuse = albedo * lit  # d model / d (n · l)
         glossy = specular * alpha * lobe / g  # d model / d (n · h)
         jacobian = [diffuse * _dot(lights, first) + glossy * _dot(half, first),
                     diffuse * _dot(lights, second) + glossy * _dot(half, second),
-                    cosine.clamp_min(0), lobe, specular * alpha * lobe * torch.log(g)]
+                    cosine.clamp_min(0), lobe, specular * alpha * lobe * log_g]
         gram, rhs = _normal_equations(jacobian, residuals, weights)
         diagonal = gram.diagonal(dim1=1, dim2=2)
         # Marquardt's scaled damping, plus a floor so that a parameter without effect (s = 0) keeps the system regular
@@ -338,7 +349,7 @@ def _iterate(values: Tensor, usable: Tensor, sigma: Tensor, lights: Tensor, ener
                  torch.minimum((specular + step[:, 3:4]).clamp_min(0), most),
                  (log_alpha + step[:, 4:5]).clamp(0.0, top)]
         trial_cost = _cauchy_cost(values - _shade(trial[0], trial[1], trial[2], trial[3].exp(), lights, energy,
-                                                  half)[3], usable, sigma)
+                                                  half)[-1], usable, sigma)
         better = trial_cost < cost  # per pixel: accept and trust the model more, or reject and damp
         normals, albedo, specular, log_alpha = [torch.where(better, new, old) for new, old in
                                                 zip(trial, (normals, albedo, specular, log_alpha))]
@@ -378,7 +389,7 @@ def _fit_rows(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor, no
                            options.iterations - race, top)
     start = [normals, albedo, torch.zeros_like(albedo), torch.zeros_like(albedo)]
     # the residual sums of squares of both models on the usable readings, for the test of :func:`_keep_lobe`
-    squares = [(usable * (values - _shade(x[0], x[1], x[2], x[3].exp(), lights, energy, half)[3]).square())
+    squares = [(usable * (values - _shade(x[0], x[1], x[2], x[3].exp(), lights, energy, half)[-1]).square())
                .sum(dim=1, keepdim=True) for x in (state, start)]
     fitted = [state[1], state[0], state[2], state[3].exp()]
     statistics = torch.cat(squares + [median, usable.sum(dim=1, keepdim=True)], dim=1)  # (N, 4)

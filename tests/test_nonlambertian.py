@@ -150,6 +150,16 @@ class TestFit(BaseTester):
         corrupted[:, 3] = 10.0
         self.assert_close(nonlambertian_normals(corrupted, lights, scored, weights, init=start)[1], dropped)
 
+    def test_autograd_path_gives_the_no_gradient_values(self):
+        """The model's no-gradient fast path (in-place product with a 0/1 mask) and its autograd path (a where)
+        fit the same values."""
+        _, scored, _, lights, images = _glossy_sphere("cpu", torch.float64, size=12)
+        options = NonLambertianOptions(iterations=5)
+        plain = nonlambertian_normals(images, lights, scored, options=options)
+        tracked = nonlambertian_normals(images.clone().requires_grad_(), lights, scored, options=options)
+        for expected, actual in zip(plain, tracked):
+            self.assert_close(actual.detach(), expected, rtol=1e-12, atol=1e-12)
+
     def test_differentiable(self):
         normals, scored, albedo, lights, images = _glossy_sphere("cpu", torch.float64, size=12)
         images = images.clone().requires_grad_()
