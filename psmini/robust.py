@@ -437,7 +437,14 @@ def _singular_value_threshold(x: Tensor, threshold: float | Tensor) -> Tensor:
 
 
 def _low_rank(values: Tensor, observed: Tensor, iterations: int, weight: float | None) -> Tensor:
-    """Low-rank part A of values (K, N) with ``observed`` entries (bool): inexact ALM of Wu et al. (ACCV 2010)."""
+    r"""Low-rank part A of values (K, N) with ``observed`` entries (bool): inexact ALM of Wu et al. (ACCV 2010).
+
+    Each iteration soft-thresholds :math:`T = D - A + Y/\mu` on the observed entries (the L1 term; a missing entry's
+    sparse part takes all of it), written as :math:`E = T - S` with :math:`S = \mathrm{clip}(T, \pm\lambda/\mu)` on
+    the observed entries and 0 elsewhere, so that the SVT's argument :math:`D - E + Y/\mu` is :math:`A + S`.
+    Without autograd the iteration runs in place on three (K, N) buffers: its passes over whole images are
+    memory-bound, and fresh arrays of that size cost a page fault per 4 KB.
+    """
     if values.shape[1] == 0:
         return values
     weight = weight or 1.0 / max(values.shape) ** 0.5
@@ -446,13 +453,24 @@ def _low_rank(values: Tensor, observed: Tensor, iterations: int, weight: float |
     spectral = spectral + torch.finfo(values.dtype).tiny
     multiplier = values / torch.maximum(spectral, values.abs().amax() / weight)  # dual start of Lin et al.
     penalty = 1.25 / spectral
+    observed = _float_mask(observed, values.dtype)
     low_rank = torch.zeros_like(values)
+    if torch.is_grad_enabled() and values.requires_grad:
+        for _ in range(iterations):
+            target = values - low_rank + multiplier / penalty
+            shrunk = torch.minimum(torch.maximum(target, -weight / penalty), weight / penalty) * observed
+            low_rank = _singular_value_threshold(low_rank + shrunk, 1.0 / penalty)
+            multiplier = multiplier + penalty * (values - low_rank - (target - shrunk))
+            penalty = penalty * _ALM_GROWTH
+        return low_rank
+    target, shrunk = torch.empty_like(values), torch.empty_like(values)
     for _ in range(iterations):
-        target = values - low_rank + multiplier / penalty
-        # observed entries: soft thresholding (the L1 term); missing ones: E takes whatever A leaves
-        sparse = torch.where(observed, target.sign() * (target.abs() - weight / penalty).clamp_min(0), target)
-        low_rank = _singular_value_threshold(values - sparse + multiplier / penalty, 1.0 / penalty)
-        multiplier = multiplier + penalty * (values - low_rank - sparse)
+        torch.div(multiplier, penalty, out=target).add_(values).sub_(low_rank)
+        bound = weight / penalty
+        torch.clamp(target, -bound, bound, out=shrunk).mul_(observed)
+        low_rank = _singular_value_threshold(low_rank.add_(shrunk), 1.0 / penalty)
+        sparse = target.sub_(shrunk)
+        multiplier.add_(torch.sub(values, low_rank, out=shrunk).sub_(sparse).mul_(penalty))
         penalty = penalty * _ALM_GROWTH
     return low_rank
 

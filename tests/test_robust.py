@@ -267,6 +267,17 @@ class TestRpca(BaseTester):
         recovered = _low_rank(images[0].flatten(1), observed, 30, None)
         assert float((recovered - clean).norm() / clean.norm()) < 1e-2
 
+    def test_low_rank_in_place_path_matches_autograd_path(self):
+        """Without autograd the ALM iterations run in place; with it, out of place: the same low-rank part."""
+        from psmini.robust import _low_rank
+
+        _, _, _, images = self._corrupted("cpu", torch.float64)
+        values = images[0].flatten(1)
+        observed = values > 0.02
+        plain = _low_rank(values, observed, 30, None)
+        tracked = _low_rank(values.clone().requires_grad_(), observed, 30, None)
+        self.assert_close(tracked.detach(), plain, rtol=1e-10, atol=1e-12)
+
     def test_gradcheck(self):
         generator = torch.Generator().manual_seed(0)
         images = torch.rand(1, 6, 2, 3, generator=generator, dtype=torch.float64) + 0.2
