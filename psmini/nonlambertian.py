@@ -179,8 +179,7 @@ def _shade(normals: Tensor, albedo: Tensor, specular: Tensor, shininess: Tensor,
     # g is clamped to a tiny positive value: g**α has an infinite gradient at 0 for α < 1, and log(g) is needed
     g = _dot(half, normals).clamp_min(tiny)
     log_g = torch.log(g)
-    if torch.is_grad_enabled() and any(x.requires_grad for x in (normals, albedo, specular, shininess, lights, energy,
-                                                                 half)):
+    if _tracked(normals, albedo, specular, shininess, lights, energy, half):
         lit = cosine > 0
         # where, not a product with the mask: the unlit branch's gradient can be infinite, and 0 * inf is NaN
         lobe = torch.where(lit, energy * torch.exp(shininess * log_g), 0.0)
@@ -255,8 +254,19 @@ def _tangents(normals: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _cauchy_cost(residuals: Tensor, usable: Tensor, sigma: Tensor) -> Tensor:
-    """Cauchy cost (N, 1) of residuals (N, K) over the usable readings, scale sigma (N, 1)."""
-    return (usable * torch.log1p((residuals / sigma).square())).sum(dim=1, keepdim=True)
+    """Cauchy cost (N, 1) of residuals (N, K) over the usable readings, scale sigma (N, 1).
+
+    Without autograd the residuals (a temporary of the caller's) are overwritten: one (N, K) array instead of
+    five fresh ones, each a few MB that the allocator maps anew.
+    """
+    if _tracked(residuals, usable, sigma):
+        return (usable * torch.log1p((residuals / sigma).square())).sum(dim=1, keepdim=True)
+    return residuals.div_(sigma).square_().log1p_().mul_(usable).sum(dim=1, keepdim=True)
+
+
+def _tracked(*tensors: Tensor) -> bool:
+    """Whether autograd records operations on any of ``tensors`` (then no in-place arithmetic on them)."""
+    return torch.is_grad_enabled() and any(x.requires_grad for x in tensors)
 
 
 def _brightest_half(values: Tensor, usable: Tensor, half: Tensor) -> Tensor:
@@ -330,7 +340,12 @@ def _iterate(values: Tensor, usable: Tensor, sigma: Tensor, lights: Tensor, ener
         alpha = log_alpha.exp()
         cosine, lit, lobe, g, log_g, model = _shade(normals, albedo, specular, alpha, lights, energy, half)
         residuals = values - model
-        weights = usable / (1 + (residuals / sigma).square())  # IRLS weights of the Cauchy loss
+        # IRLS weights of the Cauchy loss
+        if _tracked(residuals, usable, sigma):
+            weights = usable / (1 + (residuals / sigma).square())
+        else:
+            scaled = (residuals / sigma).square_().add_(1)
+            weights = torch.div(usable, scaled, out=scaled)
         first, second = _tangents(normals)
         diffuse = albedo * lit  # d model / d (n · l)
         glossy = specular * alpha * lobe / g  # d model / d (n · h)

@@ -79,11 +79,23 @@ class TestAlbedoNormals(BaseTester):
         with pytest.raises(CalibrationError, match="got 2"):
             albedo_normals(torch.rand(1, 2, 8, 8), ring_lights(2, 45.0))
 
-    def test_nan_raise(self):
+    @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+    def test_nan_raise(self, bad):
+        """NaN or inf anywhere raises, whether found in the solution (the pseudo-inverse path scans the images only
+        then) or in the images (the weighted and per-pixel paths), masked out or not, with a light component 0."""
         images = torch.rand(1, 8, 4, 4)
-        images[0, 3, 1, 1] = float("nan")
+        images[0, 3, 1, 1] = bad
+        lights = ring_lights(8, 55.0)
+        lights[3, 0] = 0.0  # a zero in the light matrix: 0 * inf and 0 * NaN are NaN all the same
+        outside = torch.ones(1, 1, 4, 4, dtype=torch.bool)
+        outside[0, 0, 1, 1] = False
+        for kwargs in ({}, {"mask": outside}, {"weights": torch.ones(1, 8, 4, 4)},
+                       {"weights": torch.ones(1, 8, 4, 4).index_fill_(1, torch.tensor([3]), 0.0)}):
+            with pytest.raises(InputError, match="intensities must be finite"):
+                albedo_normals(images, lights, **kwargs)
+        per_pixel = lights[None, :, :, None, None].expand(1, 8, 3, 4, 4)
         with pytest.raises(InputError, match="intensities must be finite"):
-            albedo_normals(images, ring_lights(8, 55.0))
+            albedo_normals(images, per_pixel)
 
     def test_wrong_shape_raise(self):
         with pytest.raises(ShapeError, match=r"\(B, K, H, W\)"):
