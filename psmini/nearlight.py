@@ -53,7 +53,7 @@ from psmini.integrate import dct_poisson, integrate
 from psmini.integrate.least_squares import _edge_system
 from psmini.integrate.poisson import solve_weighted_poisson
 from psmini.lights import LEDLights, PointLights
-from psmini.normals import normals_to_gradients
+from psmini.normals import _symmetric_adjugate, _unit_and_length, normals_to_gradients
 from psmini.render import normals_from_height
 from psmini.result import Reconstruction
 
@@ -382,11 +382,7 @@ def _fit(intensities: Tensor, lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) 
 
 def _split(m: Tensor, well_posed: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
     """Albedo |m| and unit normal; albedo 0 and normal (0, 0, 1) where not solved."""
-    solved = well_posed if mask is None else well_posed & mask.bool()
-    length = m.square().sum(dim=1, keepdim=True).clamp_min(torch.finfo(m.dtype).tiny).sqrt()
-    solved = solved & (length > torch.finfo(m.dtype).eps)
-    up = torch.tensor([0.0, 0.0, 1.0], device=m.device, dtype=m.dtype).view(1, 3, 1, 1)
-    return length.masked_fill(~solved, 0), torch.where(solved, m / length, up)
+    return _unit_and_length(m, well_posed if mask is None else well_posed & mask.bool())
 
 
 def _predict(m: Tensor, lx: Tensor, ly: Tensor, lz: Tensor) -> Tensor:
@@ -401,12 +397,8 @@ def _adjugate(lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) -> tuple[tuple[T
     wx, wy, wz = used * lx, used * ly, used * lz
     a, b, c = (wx * lx).sum(1, keepdim=True), (wx * ly).sum(1, keepdim=True), (wx * lz).sum(1, keepdim=True)
     d, e, f = (wy * ly).sum(1, keepdim=True), (wy * lz).sum(1, keepdim=True), (wz * lz).sum(1, keepdim=True)
-    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
-    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * c00 + b * c01 + c * c02
-    scale = ((a + d + f) / 3).pow(3).clamp_min(torch.finfo(lx.dtype).tiny)
-    det = torch.where(det > 1e-6 * scale, det, torch.full_like(det, torch.inf))
-    return (c00, c01, c02, c11, c12, c22), det
+    adjugate, det, well_posed = _symmetric_adjugate(a, b, c, d, e, f)
+    return adjugate, torch.where(well_posed, det, torch.full_like(det, torch.inf))
 
 
 def _leverage(lx: Tensor, ly: Tensor, lz: Tensor, matrix: tuple) -> Tensor:

@@ -57,6 +57,22 @@ def _check_weights(weights: Tensor | None, shape: torch.Size) -> Tensor | None:
 _ROWS, _COLS = (0, 0, 0, 1, 1, 2), (0, 1, 2, 1, 2, 2)
 
 
+def _symmetric_adjugate(a: Tensor, b: Tensor, c: Tensor, d: Tensor, e: Tensor,
+                       f: Tensor) -> tuple[tuple[Tensor, ...], Tensor, Tensor]:
+    """Adjugate and determinant of symmetric 3×3 matrices given element-wise by their entries (00, 01, 02, 11, 12,
+    22), and where each is well posed: its determinant at least ``_RANK_RATIO`` times (trace / 3)³ (1 for a
+    multiple of the identity, 0 for a singular matrix), which holds when three usable, non-coplanar lights remain.
+
+    Returns the adjugate's six distinct entries (00, 01, 02, 11, 12, 22), the determinant and the bool test, each of
+    the entries' shape. Shared by :func:`solve_normal_equations` and the near-light fit, which reuses the adjugate.
+    """
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * c00 + b * c01 + c * c02
+    scale = ((a + d + f).detach() / 3).pow(3).clamp_min(torch.finfo(a.dtype).tiny)
+    return (c00, c01, c02, c11, c12, c22), det, det.detach() > _RANK_RATIO * scale
+
+
 def solve_normal_equations(gram: Tensor, rhs: Tensor, dim: int = 1) -> tuple[Tensor, Tensor]:
     """Solve many symmetric 3×3 systems in closed form (adjugate over determinant), element-wise.
 
@@ -73,14 +89,9 @@ def solve_normal_equations(gram: Tensor, rhs: Tensor, dim: int = 1) -> tuple[Ten
         kept with size 1): its determinant is at least ``_RANK_RATIO`` times (trace / 3)³, which holds when three
         usable, non-coplanar lights remain.
     """
-    a, b, c, d, e, f = gram.unbind(dim)
     r0, r1, r2 = rhs.unbind(dim)
-    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
-    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * c00 + b * c01 + c * c02
-    # det / (trace / 3)^3 is 1 for a multiple of the identity and 0 for a singular matrix
-    scale = ((a + d + f).detach() / 3).pow(3).clamp_min(torch.finfo(gram.dtype).tiny)
-    well_posed = (det.detach() > _RANK_RATIO * scale).unsqueeze(dim)
+    (c00, c01, c02, c11, c12, c22), det, well_posed = _symmetric_adjugate(*gram.unbind(dim))
+    well_posed = well_posed.unsqueeze(dim)
     safe_det = torch.where(well_posed, det.unsqueeze(dim), torch.ones_like(well_posed, dtype=det.dtype))
     m = torch.stack(
         [c00 * r0 + c01 * r1 + c02 * r2, c01 * r0 + c11 * r1 + c12 * r2, c02 * r0 + c12 * r1 + c22 * r2], dim=dim
