@@ -364,29 +364,33 @@ _DIAGONALS = (
 
 
 def modified_laplacian(region: Tensor, diagonal: bool) -> Tensor:
-    """LAPM (threshold 0 only: the caller keeps the torch path otherwise) and LAPD, in row strips (see
-    :data:`_STRIP_ROWS`): each strip filters its rows plus one on either side into one small reused buffer."""
+    """LAPM (threshold 0 only: the caller keeps the torch path otherwise) and LAPD, in row strips
+    (:func:`_strip_l1`)."""
     cv2 = _cv2
-    out = []
-    for f, s in _each(region):
-        h, w = f.shape
-        # integer frames are filtered as they are, into float32 (no converted copy)
-        (buffer,) = _scratch((min(_STRIP_ROWS, h - 2) + 2, w), 1)
-        total = 0.0
-        for a, b in _strips(1, h - 1):
-            n = b - a + 2
-            src, second = f[a - 1 : b + 1], buffer[:n]
-            valid = second[1 : n - 1, 1 : w - 1]
-            cv2.Sobel(src, cv2.CV_32F, 2, 0, dst=second, ksize=1)
-            total += cv2.norm(valid, cv2.NORM_L1)
-            cv2.Sobel(src, cv2.CV_32F, 0, 2, dst=second, ksize=1)
-            total += cv2.norm(valid, cv2.NORM_L1)
-            if diagonal:
-                for kernel in _DIAGONALS:
-                    cv2.filter2D(src, cv2.CV_32F, kernel, dst=second)
-                    total += math.sqrt(0.5) * cv2.norm(valid, cv2.NORM_L1)
-        out.append(total * s / ((h - 2) * (w - 2)))
-    return _out(out)
+    # integer frames are filtered as they are, into float32 (no converted copy)
+    filters = [(1.0, lambda src, dst: cv2.Sobel(src, cv2.CV_32F, 2, 0, dst=dst, ksize=1)),
+               (1.0, lambda src, dst: cv2.Sobel(src, cv2.CV_32F, 0, 2, dst=dst, ksize=1))]
+    if diagonal:
+        filters += [(math.sqrt(0.5), lambda src, dst, k=kernel: cv2.filter2D(src, cv2.CV_32F, k, dst=dst))
+                    for kernel in _DIAGONALS]
+    return _out([_strip_l1(f, filters) * s / ((f.shape[0] - 2) * (f.shape[1] - 2)) for f, s in _each(region)])
+
+
+def _strip_l1(f: np.ndarray, filters: list) -> float:
+    """Sum over ``filters`` (weight, apply) of weight times the L1 norm of each 3 × 3 filter's response on the
+    frame's interior, in row strips (see :data:`_STRIP_ROWS`): each strip filters its rows plus one on either
+    side into one small reused buffer (``apply(src, dst)`` writes a float32 response)."""
+    h, w = f.shape
+    (buffer,) = _scratch((min(_STRIP_ROWS, h - 2) + 2, w), 1)
+    total = 0.0
+    for a, b in _strips(1, h - 1):
+        n = b - a + 2
+        src, response = f[a - 1 : b + 1], buffer[:n]
+        interior = response[1 : n - 1, 1 : w - 1]
+        for weight, apply in filters:
+            apply(src, response)
+            total += weight * _cv2.norm(interior, _cv2.NORM_L1)
+    return total
 
 
 def normalized_variance(region: Tensor, eps: float) -> Tensor:
@@ -557,22 +561,12 @@ _CURVATURE = (  # (row taps, column taps) of p0 = Σx g/6, p1 = Σy g/6, p2 = Σ
 
 
 def curvature(region: Tensor) -> Tensor:
-    """Helmli & Scherer's four curvature coefficients, each a separable 3 × 3 filter, in row strips (see
-    :data:`_STRIP_ROWS`)."""
+    """Helmli & Scherer's four curvature coefficients, each a separable 3 × 3 filter, in row strips
+    (:func:`_strip_l1`)."""
     cv2 = _cv2
-    out = []
-    for f, s in _each(region):
-        h, w = f.shape
-        (buffer,) = _scratch((min(_STRIP_ROWS, h - 2) + 2, w), 1)
-        total = 0.0
-        for a, b in _strips(1, h - 1):
-            n = b - a + 2
-            src, response = f[a - 1 : b + 1], buffer[:n]
-            for kx, ky in _CURVATURE:  # each coefficient's 3 × 3 kernel is separable
-                cv2.sepFilter2D(src, cv2.CV_32F, kx, ky, dst=response)
-                total += cv2.norm(response[1 : n - 1, 1 : w - 1], cv2.NORM_L1)
-        out.append(total * s / ((h - 2) * (w - 2)))
-    return _out(out)
+    filters = [(1.0, lambda src, dst, kx=kx, ky=ky: cv2.sepFilter2D(src, cv2.CV_32F, kx, ky, dst=dst))
+               for kx, ky in _CURVATURE]
+    return _out([_strip_l1(f, filters) * s / ((f.shape[0] - 2) * (f.shape[1] - 2)) for f, s in _each(region)])
 
 
 def helmli_mean(region: Tensor, window: int, eps: float) -> Tensor:
