@@ -56,8 +56,8 @@ from psmini._checks import check_finite, check_mask, check_shape, check_tensor
 from psmini.errors import InputError, ShapeError
 from psmini.lights import as_batched_lights
 from psmini.normals import _check_lights, _check_weights, albedo_normals
-from psmini.robust import (RobustOptions, _float_mask, _median, _median_padding, _scatter, robust_normals,
-                           threshold_weights)
+from psmini.robust import (RobustOptions, _float_mask, _median, _median_padding, _scatter, _tracked,
+                           robust_normals, threshold_weights)
 
 __all__ = ["BlinnPhongFit", "NonLambertianNormals", "NonLambertianOptions", "blinn_phong_images", "fit_blinn_phong", "nonlambertian_normals"]
 
@@ -263,10 +263,6 @@ def _cauchy_cost(residuals: Tensor, usable: Tensor, sigma: Tensor) -> Tensor:
         return (usable * torch.log1p((residuals / sigma).square())).sum(dim=1, keepdim=True)
     return residuals.div_(sigma).square_().log1p_().mul_(usable).sum(dim=1, keepdim=True)
 
-
-def _tracked(*tensors: Tensor) -> bool:
-    """Whether autograd records operations on any of ``tensors`` (then no in-place arithmetic on them)."""
-    return torch.is_grad_enabled() and any(x.requires_grad for x in tensors)
 
 
 def _brightest_half(values: Tensor, usable: Tensor, half: Tensor) -> Tensor:

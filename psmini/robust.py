@@ -279,6 +279,12 @@ def _threshold_keep(values: Tensor, shadow: float, saturation: float | None, usa
     return keep & (values > shadow * brightest)
 
 
+def _tracked(*tensors: Tensor) -> bool:
+    """Whether autograd records operations on any of ``tensors``: then no in-place arithmetic on them or on what
+    they produce (the in-place paths of this module and :mod:`psmini.nonlambertian` run only otherwise)."""
+    return torch.is_grad_enabled() and any(x.requires_grad for x in tensors)
+
+
 def _float_mask(mask: Tensor, dtype: torch.dtype) -> Tensor:
     """A bool mask as 0/1 floats: through a uint8 view, since torch's CPU cast from bool measured 5.7x slower
     (620 against 109 us for 4096 × 96)."""
@@ -313,7 +319,7 @@ def _solve_rows(rows: Tensor, design: tuple[Tensor, Tensor], weights: Tensor | N
         weights = torch.ones_like(rows)
     # (6, K) @ (K, N): measured 2-5x faster than (N, K) @ (K, 6) for these skinny products
     gram = products_t @ weights.T
-    in_place = overwrite and not (weights.requires_grad or rows.requires_grad)
+    in_place = overwrite and not _tracked(weights, rows)
     weighted = weights.mul_(rows) if in_place else weights * rows
     m, well_posed = solve_normal_equations(gram, lights_t @ weighted.T, dim=0)
     return m, well_posed[0]
@@ -383,7 +389,7 @@ def _irls_weights(residuals: Tensor, padding: Tensor | None, method: str, tuning
     IRLS iteration's passes over it are memory-bound, and fewer allocations measured ~1.5x faster for the weights of
     4096 × 96 readings.
     """
-    fresh = not (residuals.requires_grad or floor.requires_grad)
+    fresh = not _tracked(residuals, floor)
     if method == "l1":
         if fresh:
             return residuals.abs_().clamp_min_(floor[:, None]).reciprocal_()
@@ -460,7 +466,7 @@ def _low_rank(values: Tensor, observed: Tensor, iterations: int, weight: float |
     penalty = 1.25 / spectral
     observed = _float_mask(observed, values.dtype)
     low_rank = torch.zeros_like(values)
-    if torch.is_grad_enabled() and values.requires_grad:
+    if _tracked(values):
         for _ in range(iterations):
             target = values - low_rank + multiplier / penalty
             shrunk = torch.minimum(torch.maximum(target, -weight / penalty), weight / penalty) * observed
@@ -546,11 +552,12 @@ def _trim_band(rows: Tensor, low: float, high: float, usable: Tensor) -> Tensor:
     and comparisons measured 3x faster than torch's bool-valued ones).
     """
     if rows.device.type == "cpu":
-        values = np.where(usable.numpy(), rows.detach().numpy(), np.inf)
+        kept = usable.numpy()
+        values = np.where(kept, rows.detach().numpy(), np.inf)
         ordered = np.sort(values, axis=1)
-        bounds = _band_ranks(torch.from_numpy(usable.numpy().sum(axis=1, keepdims=True)), low, high, rows.shape[1])
+        bounds = _band_ranks(torch.from_numpy(kept.sum(axis=1, keepdims=True)), low, high, rows.shape[1])
         lower, upper = np.split(np.take_along_axis(ordered, bounds.numpy(), axis=1), 2, axis=1)
-        return torch.from_numpy(usable.numpy() & (values >= lower) & (values <= upper))
+        return torch.from_numpy(kept & (values >= lower) & (values <= upper))
     return _trim_band_torch(rows, low, high, usable)
 
 
@@ -587,7 +594,7 @@ def _irls(rows: Tensor, design: tuple[Tensor, Tensor], kept: Tensor, padding: Te
             # reading itself (one median over a fixed set of readings, whatever the estimate puts in shadow)
             residuals = torch.where(lit > 0, residuals, rows)
         weights = _irls_weights(residuals, padding, method, options.tuning, floor)
-        if weights.requires_grad or kept.requires_grad:
+        if _tracked(weights, kept):
             weights = weights * kept if lit is None else weights * kept * lit
         else:
             weights = weights.mul_(kept) if lit is None else weights.mul_(kept).mul_(lit)
@@ -608,7 +615,7 @@ def _more_consistent(rows: Tensor, lights_t: Tensor, first: Tensor, second: Tens
     scales = []
     for m in (first, second):
         predicted = m.T @ lights_t
-        if rows.requires_grad or predicted.requires_grad:
+        if _tracked(rows, predicted):
             scales.append(_median((rows - predicted.clamp_min(0)).abs(), padding, nonnegative=True))
             continue
         # without autograd: one fresh (N, K) array, the arithmetic and the selection in place (3 passes fewer)
