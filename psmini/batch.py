@@ -582,12 +582,24 @@ def _write_summary(out: Path, records: list[BatchRecord], settings: dict[str, An
     counts = {status: sum(r["status"] == status for r in rows) for status in ("done", "skipped", "failed")}
     summary = {"settings": settings, "counts": counts, "samples": rows}
     out.mkdir(parents=True, exist_ok=True)
-    with (out / "summary.csv").open("w", newline="", encoding="utf-8") as handle:
-        writer = csv.DictWriter(handle, fieldnames=SUMMARY_FIELDS)
-        writer.writeheader()
-        writer.writerows(rows)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+    save_summary(out, summary, SUMMARY_FIELDS)
     return summary
+
+
+def save_summary(out: Path, summary: dict[str, Any], fieldnames: list[str] | tuple[str, ...]) -> None:
+    """Write ``out/summary.csv`` (the ``fieldnames`` columns of ``summary["samples"]``; None and missing cells
+    empty) and ``out/summary.json``, each through a temporary file replaced at the end."""
+    def write_csv(handle) -> None:
+        writer = csv.DictWriter(handle, fieldnames=list(fieldnames))
+        writer.writeheader()
+        writer.writerows(summary["samples"])
+
+    for name, write in (("summary.csv", write_csv),
+                        ("summary.json", lambda handle: handle.write(json.dumps(summary, indent=2) + "\n"))):
+        temporary = out / f".{name}.tmp"
+        with temporary.open("w", newline="", encoding="utf-8") as handle:
+            write(handle)
+        temporary.replace(out / name)
 
 
 def reconstruct_dataset(

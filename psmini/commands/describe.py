@@ -129,10 +129,9 @@ def add_structure_columns(out: Path, summary: dict, config) -> dict:
     A finished sample is measured on its written ``depth.npy``; a failed one, one without a pixel pitch (DiLiGenT)
     or one whose output cannot be read gets empty cells and ``structure_found`` False with the reason.
     """
-    import csv
     from types import SimpleNamespace
 
-    from psmini.batch import SUMMARY_FIELDS
+    from psmini.batch import SUMMARY_FIELDS, save_summary
     from psmini.fabric import structure_row
 
     empty = structure_row(None, None)
@@ -148,21 +147,8 @@ def add_structure_columns(out: Path, summary: dict, config) -> dict:
             except DataFormatError as error:
                 extra = {**empty, "structure_reason": f"cannot read the reconstruction: {error}"}
         row.update(extra)
-    fieldnames = list(SUMMARY_FIELDS) + [k for k in empty if k not in SUMMARY_FIELDS]
-    out = Path(out)
-    for name, write in (("summary.csv", lambda h: _write_csv(h, fieldnames, summary["samples"], csv)),
-                        ("summary.json", lambda h: h.write(json.dumps(summary, indent=2) + "\n"))):
-        temporary = out / f".{name}.tmp"
-        with temporary.open("w", newline="", encoding="utf-8") as handle:
-            write(handle)
-        temporary.replace(out / name)
+    save_summary(Path(out), summary, list(SUMMARY_FIELDS) + [k for k in empty if k not in SUMMARY_FIELDS])
     return summary
-
-
-def _write_csv(handle, fieldnames: list[str], rows: list[dict], csv) -> None:
-    writer = csv.DictWriter(handle, fieldnames=fieldnames)
-    writer.writeheader()
-    writer.writerows({k: ("" if row.get(k) is None else row.get(k)) for k in fieldnames} for row in rows)
 
 
 def _figure(target: Path, height, mask, pitch: float, entry: dict) -> None:

@@ -10,8 +10,7 @@ from __future__ import annotations
 
 from psmini.fabric.describe import (COUPLING_OPTIONS, DESCRIBE_SURFACE_OPTIONS, DESCRIPTOR_NAMES, MODEL_FORMAT,
                                     MODEL_VERSION, FabricClassifier, albedo_periodicity, albedo_relief_coupling,
-                                    describe,
-                                    descriptor_vector, reconstruct_for_description, structure_row)
+                                    describe, descriptor_vector, reconstruct_for_description, structure_row)
 from psmini.fabric.structure import FabricStructure, SpectralPeak, StructureOptions, fabric_structure, structure_spectrum
 from psmini.fabric.surface import (ISO_PARAMETERS, ISO_UNITS, SurfaceOptions, autocorrelation, gaussian_filter,
                                    height_parameters, hybrid_parameters, iso25178, remove_form,
@@ -21,6 +20,7 @@ __all__ = [
     "ISO_PARAMETERS", "ISO_UNITS", "SurfaceOptions", "autocorrelation", "gaussian_filter", "height_parameters",
     "hybrid_parameters", "iso25178", "remove_form", "scale_limited_surface", "spatial_parameters", "valid_pixels",
     "FabricStructure", "SpectralPeak", "StructureOptions", "fabric_structure", "structure_spectrum",
-    "COUPLING_OPTIONS", "albedo_periodicity", "albedo_relief_coupling", "DESCRIBE_SURFACE_OPTIONS", "DESCRIPTOR_NAMES", "MODEL_FORMAT", "MODEL_VERSION", "FabricClassifier", "describe",
+    "COUPLING_OPTIONS", "albedo_periodicity", "albedo_relief_coupling", "DESCRIBE_SURFACE_OPTIONS",
+    "DESCRIPTOR_NAMES", "MODEL_FORMAT", "MODEL_VERSION", "FabricClassifier", "describe",
     "descriptor_vector", "reconstruct_for_description", "structure_row",
 ]
