@@ -18,9 +18,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from psmini.errors import DataFormatError, InputError
+from psmini.errors import DataFormatError, InputError, ShapeError
 from psmini.fabric.structure import StructureOptions, fabric_structure
-from psmini.fabric.surface import ISO_PARAMETERS, SurfaceOptions, iso25178
+from psmini.fabric.surface import ISO_PARAMETERS, SurfaceOptions, iso25178, scale_limited_surface, valid_pixels
 
 __all__ = ["WAVINESS_OPTIONS", "COUPLING_OPTIONS", "DESCRIBE_SURFACE_OPTIONS", "DESCRIPTOR_NAMES", "MODEL_FORMAT",
            "MODEL_VERSION", "FabricClassifier", "albedo_periodicity", "albedo_relief_coupling", "describe", "descriptor_vector",
@@ -105,20 +105,13 @@ def albedo_relief_coupling(height: Tensor, albedo: Tensor, pixel_pitch_mm: float
         >>> round(float(albedo_relief_coupling(0.004 * ink, 0.8 - 0.6 * ink, 0.025)[0]), 3)
         -1.0
     """
-    from psmini.errors import ShapeError
-    from psmini.fabric.surface import scale_limited_surface, valid_pixels
-
     if not isinstance(albedo, Tensor) or albedo.shape != height.shape:
         raise ShapeError(f"albedo must have the height's shape {tuple(height.shape)}, got "
                          f"{tuple(albedo.shape) if isinstance(albedo, Tensor) else type(albedo).__name__}")
     valid = valid_pixels(height, mask) & torch.isfinite(albedo) & (albedo > 0)
     dt = height.dtype
     h, valid = scale_limited_surface(height, pixel_pitch_mm, valid, COUPLING_OPTIONS)
-    a = albedo.to(dt)
-    median = torch.stack([a[i][valid[i]].median() if valid[i].any() else torch.ones((), dtype=dt, device=a.device)
-                          for i in range(a.shape[0])]).view(-1, 1, 1, 1)
-    a, _ = scale_limited_surface(torch.where(valid, a / median, torch.zeros_like(a)), pixel_pitch_mm, valid,
-                                 COUPLING_OPTIONS)
+    a, _ = scale_limited_surface(_relative(albedo.to(dt), valid), pixel_pitch_mm, valid, COUPLING_OPTIONS)
 
     def gradient(z: Tensor) -> tuple[Tensor, Tensor]:
         return z[..., 1:-1, 2:] - z[..., 1:-1, :-2], z[..., :-2, 1:-1] - z[..., 2:, 1:-1]
@@ -164,21 +157,20 @@ def albedo_periodicity(albedo: Tensor, pixel_pitch_mm: float, mask: Tensor | Non
         >>> round(float(albedo_periodicity(albedo[None, None], 0.025)[0]), 3)
         0.2
     """
-    from psmini.errors import ShapeError
-    from psmini.fabric.surface import valid_pixels
-
     if not isinstance(albedo, Tensor) or albedo.ndim != 4 or albedo.shape[1] != 1:
         raise ShapeError(f"albedo must have shape (B, 1, H, W), got "
                          f"{tuple(albedo.shape) if isinstance(albedo, Tensor) else type(albedo).__name__}")
     valid = valid_pixels(albedo, mask) & (albedo > 0)
-    dt = albedo.dtype
-    median = torch.stack([albedo[i][valid[i]].median() if valid[i].any() else torch.ones((), dtype=dt,
-                                                                                         device=albedo.device)
-                          for i in range(albedo.shape[0])]).view(-1, 1, 1, 1)
-    relative = torch.where(valid, albedo / median, torch.zeros_like(albedo))
-    found = fabric_structure(relative, pixel_pitch_mm, valid)
+    found = fabric_structure(_relative(albedo, valid), pixel_pitch_mm, valid)
     return torch.tensor([max((p.amplitude_um for p in f.peaks), default=0.0) / 1000 for f in found],
-                        dtype=dt, device=albedo.device)
+                        dtype=albedo.dtype, device=albedo.device)
+
+
+def _relative(albedo: Tensor, valid: Tensor) -> Tensor:
+    """The albedo divided by each item's median over its valid pixels (1 for an item without any), 0 elsewhere."""
+    one = torch.ones((), dtype=albedo.dtype, device=albedo.device)
+    median = torch.stack([albedo[i][valid[i]].median() if valid[i].any() else one for i in range(albedo.shape[0])])
+    return torch.where(valid, albedo / median.view(-1, 1, 1, 1), torch.zeros_like(albedo))
 
 
 def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, albedo: Tensor | None = None,
