@@ -90,7 +90,19 @@ class TestArrays:
         with pytest.raises(InputError, match="ambient"):
             viz.shaded_depth(depth, ambient=2.0)
 
-    def test_depth_preview(self):
+    def test_float32_depth_is_shaded_as_float64_within_a_level(self):
+        """A float32 map (what save_depth writes) is coloured and shaded in float32: the picture is the float64
+        one within a quarter of an 8-bit level."""
+        rows, cols = np.mgrid[0:64, 0:64]
+        depth = 0.1 * np.sin(rows / 5.0) * np.cos(cols / 7.0) + 0.002 * cols
+        mask = np.ones((64, 64), bool)
+        mask[10:20, 30:40] = False
+        rgb64, limits = viz.shaded_depth(depth, mask, 0.025)
+        rgb32, limits32 = viz.shaded_depth(depth.astype(np.float32), mask, 0.025, limits=limits)
+        assert rgb64.dtype == np.float64 and rgb32.dtype == np.float32 and limits32 == limits
+        assert np.abs(rgb32 - rgb64).max() < 0.25 / 255
+        np.testing.assert_array_equal(rgb32[~mask], rgb64[~mask].astype(np.float32))  # the same hatching
+
         picture = viz.depth_preview(np.random.default_rng(1).random((30, 40)), pixel_pitch_mm=0.025)
         assert picture.dtype == np.uint8 and picture.shape[1] == 320 and picture.shape[0] > 30 * 8
         with pytest.raises(InputError, match="pixel_pitch_mm"):
