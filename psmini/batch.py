@@ -151,13 +151,15 @@ class _Decoded:
     error: str = ""
 
 
-def _decode(folder: Path, rel: str) -> _Decoded:
-    """Decode one sample folder; an error becomes the record's message (one bad file must not end the run)."""
+def _decode(folder: Path, rel: str, ground_truth: bool = True) -> _Decoded:
+    """Decode one sample folder (its ground truth only with ``ground_truth``, for scoring); an error becomes the
+    record's message (one bad file must not end the run)."""
     from psmini.io import load_sample  # OpenCV: imported where files are decoded, not with psmini
 
     start = time.perf_counter()
     try:
-        sample = load_sample(folder, with_flatfield=False)  # cards are decoded once per process, not per sample
+        # cards are decoded once per process, not per sample
+        sample = load_sample(folder, with_flatfield=False, with_ground_truth=ground_truth)
         card = sample.meta.get("flatfield")  # absent for DiLiGenT folders
         card = None if card is None else str(Path(card).resolve())
     except (PsminiError, OSError, ValueError) as error:
@@ -168,15 +170,15 @@ def _decode(folder: Path, rel: str) -> _Decoded:
 class _SampleFolders(Dataset):
     """Decodes one sample folder per item (the CUDA path: decode in workers, solve in the main process)."""
 
-    def __init__(self, root: Path, folders: Sequence[Path]) -> None:
-        self.root, self.folders = root, list(folders)
+    def __init__(self, root: Path, folders: Sequence[Path], ground_truth: bool = True) -> None:
+        self.root, self.folders, self.ground_truth = root, list(folders), ground_truth
 
     def __len__(self) -> int:
         return len(self.folders)
 
     def __getitem__(self, index: int) -> _Decoded:
         folder = self.folders[index]
-        return _decode(folder, _relative(self.root, folder))
+        return _decode(folder, _relative(self.root, folder), self.ground_truth)
 
 
 def _collate(items: list) -> list:
@@ -337,7 +339,7 @@ def _solved_stream(root: Path, folders: Sequence[Path], settings: _Settings, bat
                    workers: int) -> Iterator[_Solved]:
     """Decode ``folders`` with ``workers`` processes and solve them here, in batches (the CUDA and notebook path)."""
     loader = DataLoader(
-        _SampleFolders(root, folders), batch_size=batch_size, shuffle=False, num_workers=workers,
+        _SampleFolders(root, folders, settings.score), batch_size=batch_size, shuffle=False, num_workers=workers,
         collate_fn=_collate, persistent_workers=False, prefetch_factor=2 if workers else None,
     )
     device = torch.device(settings.device)
@@ -372,7 +374,7 @@ def _run_chunk(out: str | Path, chunk: Sequence[tuple[str, str]], settings: _Set
         raise InputError(f"device {settings.device} was asked for, but torch sees no CUDA device on this worker")
     out = Path(out)
     cards = _process_cards(device, settings.dtype) if cards is None else cards
-    items = [_decode(Path(folder), rel) for folder, rel in chunk]
+    items = [_decode(Path(folder), rel, settings.score) for folder, rel in chunk]
     return [_finish(out, solved, settings) for solved in _solve(items, cards, device, settings)]
 
 

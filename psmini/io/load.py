@@ -20,7 +20,7 @@ logger = logging.getLogger(__name__)
 NOT_SAMPLE_KINDS = ("flatfield", "sphere", "focus")
 
 
-def load_sample(path: str | Path, *, with_flatfield: bool = True) -> Sample:
+def load_sample(path: str | Path, *, with_flatfield: bool = True, with_ground_truth: bool = True) -> Sample:
     """Load a DiLiGenT object folder or a psmini capture folder as a :class:`Sample`.
 
     A folder with ``capture.json`` is a capture (``docs/capture-format.md``); one with ``filenames.txt`` and
@@ -33,6 +33,9 @@ def load_sample(path: str | Path, *, with_flatfield: bool = True) -> Sample:
         with_flatfield: read the referenced flat-field capture. ``False`` leaves ``reference`` and
             ``reference_dark`` empty (the card's path stays in ``meta["flatfield"]`` and its albedo in
             ``card_albedo``), for callers that decode each card once for many samples (:mod:`psmini.batch`).
+        with_ground_truth: read a capture's ground truth (``normals_gt``, ``depth_gt``, ...); ``False`` leaves
+            them ``None`` without opening the files, for callers that do not score (DiLiGenT's normals are read
+            either way: they come with the images).
 
     Returns:
         the :class:`Sample` (CPU tensors, ``float32``).
@@ -49,7 +52,7 @@ def load_sample(path: str | Path, *, with_flatfield: bool = True) -> Sample:
     """
     path = Path(path)
     if (path / MANIFEST_NAME).is_file():
-        return _capture_sample(path, with_flatfield)
+        return _capture_sample(path, with_flatfield, with_ground_truth)
     if is_diligent_folder(path):
         return read_diligent(path)
     if not path.is_dir():
@@ -60,8 +63,8 @@ def load_sample(path: str | Path, *, with_flatfield: bool = True) -> Sample:
     )
 
 
-def _capture_sample(path: Path, with_flatfield: bool) -> Sample:
-    capture = read_capture(path)
+def _capture_sample(path: Path, with_flatfield: bool, with_ground_truth: bool) -> Sample:
+    capture = read_capture(path, ground_truth=with_ground_truth)
     if capture.lights is None:
         raise DataFormatError(f"capture {path} is a {capture.kind!r} capture without lights; it cannot be "
             "reconstructed")

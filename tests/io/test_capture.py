@@ -13,6 +13,7 @@ from psmini import DataFormatError, DirectionalLights, InputError, LEDLights, Po
 from psmini.io import capture as capture_module
 from psmini.io.capture import lights_from_dict, lights_to_dict, read_capture, read_manifest, write_capture
 from psmini.io.images import write_image
+from psmini.io.load import load_sample
 
 H, W, K = 6, 7, 8
 
@@ -121,6 +122,14 @@ class TestRoundTrip:
         assert capture.crop == [120, 40, 400, 400] and capture.camera == {"exposure": -6}
         assert capture.metadata == {"fabric": "denim", "threads_per_cm": 24}
         assert capture.manifest["software"].startswith("psmini ")
+        # without ground truth nothing of it is read: a broken ground-truth file does not matter then
+        (tmp_path / "s" / capture.manifest["gt"]["normals"]).write_bytes(b"not an npy file")
+        bare = read_capture(tmp_path / "s", ground_truth=False)
+        assert bare.gt == {} and torch.equal(bare.images, capture.images)
+        sample = load_sample(tmp_path / "s", with_ground_truth=False)
+        assert sample.normals_gt is None and sample.depth_gt is None and sample.meta["gt_lights"] is None
+        with pytest.raises(DataFormatError, match="ground truth"):
+            read_capture(tmp_path / "s")
 
     def test_focus_capture(self, tmp_path):
         write_capture(tmp_path / "f", codes(8, count=3), None, pixel_pitch_mm=0.025, kind="focus", bit_depth=8, positions_mm=[0, 0.1, 0.2])

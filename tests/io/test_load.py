@@ -61,7 +61,7 @@ class TestLoadCapture:
 
         decoded = []
         real_read_capture = load_module.read_capture
-        monkeypatch.setattr(load_module, "read_capture", lambda path: decoded.append(Path(path).name) or real_read_capture(path))
+        monkeypatch.setattr(load_module, "read_capture", lambda path, **kw: decoded.append(Path(path).name) or real_read_capture(path, **kw))
         sample = load_sample(rig / "denim", with_flatfield=False)
         assert decoded == ["denim"]
         assert sample.reference is None and sample.reference_dark is None and sample.card_albedo == 0.8
