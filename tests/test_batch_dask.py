@@ -11,7 +11,6 @@ import torch
 
 from psmini.batch import reconstruct_dataset
 from psmini.cli import main
-from psmini.config import ReconstructionConfig
 from psmini.errors import InputError
 from tests._captures import DISTANT, GOOD, write_capture_tree
 

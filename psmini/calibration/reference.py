@@ -23,7 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from psmini._checks import check_finite, check_positive, check_tensor
 from psmini.errors import InputError, ShapeError

@@ -12,7 +12,7 @@ from torch import Tensor, nn
 
 from psmini.errors import InputError
 from psmini.integrate._common import centred_grid, check_gradients, masked_mean
-from psmini.integrate._dct import Plan, dct2, from_halves, half_spectra, idct2
+from psmini.integrate._dct import Plan, dct2, half_spectra, idct2
 from psmini.integrate._dct import plan as dct_plan
 
 __all__ = ["frankot_chellappa", "FrankotChellappa", "dct_poisson", "DCTPoisson"]

@@ -13,7 +13,6 @@ from psmini.integrate import (
     bilateral_integration,
     integrate,
     integrate_normals,
-    masked_least_squares,
 )
 from tests.conftest import BaseTester, shared_data
 from tests.test_integrate import bumps_surface, relative_rmse
