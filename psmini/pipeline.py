@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from psmini._checks import check_mask, check_positive, check_shape, check_tensor
+from psmini._checks import all_true, check_mask, check_positive, check_shape, check_tensor
 from psmini.config import ReconstructionConfig
 from psmini.errors import InputError
 from psmini.flatfield import flatfield
@@ -168,7 +168,7 @@ class PhotometricStereo(nn.Module):
             return solve_near_light(flat.images, self.lights, self.pixel_pitch_mm, card_height, flat.valid, mask,
                                     config.near_options(mask is not None))
         matrix = distant_light_matrix(self.lights, reference is not None, images)
-        all_valid = flat.all_valid if flat.all_valid is not None else bool(flat.valid.all())
+        all_valid = flat.all_valid if flat.all_valid is not None else all_true(flat.valid)
         weights = None if all_valid else flat.valid
         estimator = "lstsq" if config.estimator == "auto" else config.estimator
         albedo, normals = NORMAL_ESTIMATORS[estimator](flat.images, matrix, mask, weights, config.estimator_options)

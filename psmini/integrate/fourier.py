@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from psmini._checks import all_true
 from psmini.errors import InputError
 from psmini.integrate._common import centred_grid, check_gradients, masked_mean
 from psmini.integrate._dct import Plan, dct2, half_spectra, idct2
@@ -187,13 +188,13 @@ def frankot_chellappa(
         >>> round(float(z[0, 0, 0, 1] - z[0, 0, 0, 0]), 4)  # 0.2 * 0.5 mm per column
         0.1
     """
-    if isinstance(mask, Tensor) and mask.dtype == torch.bool and mask.shape == p.shape and bool(mask.all()):
+    if isinstance(mask, Tensor) and mask.dtype == torch.bool and mask.shape == p.shape and all_true(mask):
         mask = None  # an all-true mask: the same result without passes over it
     mask, pitch = check_gradients(p, q, mask, pixel_pitch_mm)
     if boundary not in _FC_BOUNDARIES:
         raise InputError(f"boundary must be one of {', '.join(_FC_BOUNDARIES)}, got {boundary!r}")
     height, width = p.shape[-2:]
-    if mask is not None and bool(mask.all()):
+    if mask is not None and all_true(mask):
         mask = None  # the same result without a pass over the mask per step
     if boundary == "mirror":
         return _frankot_chellappa_mirror(p, q, pitch, mask)
