@@ -64,11 +64,11 @@ _VIRIDIS = np.array([
     (0.6785, 0.8637, 0.1895), (0.7624, 0.8764, 0.1371), (0.8456, 0.8873, 0.0997), (0.9261, 0.8973, 0.1041),
     (0.9932, 0.9062, 0.1439),
 ])
-#: Colours of the hatching that marks unsolved pixels (light gray and white stripes: no colour of viridis).
 #: Entries of the colour lookup table between two of those samples: the table holds the linear interpolation at
 #: 2049 evenly spaced points, and a value takes the nearest (at most 1/4096 of the range away: under 0.2 of an
 #: 8-bit level of any channel, where interpolating each pixel cost three gathers and four (H, W) temporaries).
 _TABLE_STEPS = 64
+#: Colours of the hatching that marks unsolved pixels (light gray and white stripes: no colour of viridis).
 _HATCH = (np.array([0.80, 0.80, 0.80]), np.array([1.0, 1.0, 1.0]))
 #: Default robust colour limits, percentiles over the valid pixels.
 DEFAULT_PERCENTILES = (1.0, 99.0)
