@@ -264,7 +264,6 @@ def _cauchy_cost(residuals: Tensor, usable: Tensor, sigma: Tensor) -> Tensor:
     return residuals.div_(sigma).square_().log1p_().mul_(usable).sum(dim=1, keepdim=True)
 
 
-
 def _brightest_half(values: Tensor, usable: Tensor, half: Tensor) -> Tensor:
     """Half vector (N, 3) of each pixel's brightest usable reading: the normal if that reading is a highlight peak."""
     brightest = torch.where(usable > 0, values, torch.full_like(values, -math.inf)).argmax(dim=1)  # (N,)
