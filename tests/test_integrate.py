@@ -182,6 +182,32 @@ class TestCosineTransforms(BaseTester):
             expected = torch.from_numpy(doubled_grid_fc(p[b, 0].numpy(), q[b, 0].numpy(), 0.025))
             assert float((z[b, 0] - expected).abs().max() / expected.abs().max()) < 1e-12
 
+    @pytest.mark.parametrize("weights", ["bool", "float"])
+    def test_masked_mirror_fc_equals_doubled_grid(self, weights):
+        """A mask (or float weights m) replaces the gradients by m g + (1 - m) mean: the doubled grid on those
+        gradients, less the depth's masked mean. Fractional weights are weights, not an all-true mask."""
+        torch.manual_seed(2)
+        p, q = torch.randn(3, 1, 23, 31, dtype=torch.float64), torch.randn(3, 1, 23, 31, dtype=torch.float64)
+        if weights == "bool":
+            mask = torch.rand(3, 1, 23, 31) > 0.3
+            weight = mask.double()
+        else:
+            mask = weight = 0.05 + 0.95 * torch.rand(3, 1, 23, 31, dtype=torch.float64)
+        z = frankot_chellappa(p, q, pixel_pitch_mm=0.025, mask=mask)
+        for b in range(3):
+            w = weight[b, 0].numpy()
+            p0, q0 = (p[b, 0].numpy() * w).sum() / w.sum(), (q[b, 0].numpy() * w).sum() / w.sum()
+            filled_p, filled_q = p0 + w * (p[b, 0].numpy() - p0), q0 + w * (q[b, 0].numpy() - q0)
+            expected = doubled_grid_fc(filled_p, filled_q, 0.025)
+            expected = expected - (expected * w).sum() / w.sum()
+            assert float((z[b, 0].numpy() - expected).__abs__().max() / abs(expected).max()) < 1e-12
+
+    def test_masked_gradcheck_float_weights(self):
+        p = torch.rand(2, 1, 5, 6, dtype=torch.float64, requires_grad=True)
+        q = torch.rand(2, 1, 5, 6, dtype=torch.float64, requires_grad=True)
+        weights = (0.1 + torch.rand(2, 1, 5, 6, dtype=torch.float64)).requires_grad_()
+        self.gradcheck(lambda a, b, w: frankot_chellappa(a, b, 0.3, mask=w), (p, q, weights))
+
     def test_mirror_fc_float32_within_1e6(self):
         """Rig-sized float32 input: the N-point solve agrees with the doubled-grid one within 1e-6 relative."""
         torch.manual_seed(1)

@@ -136,6 +136,35 @@ class TestPhotometricStereo(BaseTester):
         with pytest.raises(InputError, match="above the card"):
             PhotometricStereo(lights, None)(torch.rand(1, 3, 4, 4), reference=torch.ones(3, 4, 4))
 
+    @pytest.mark.parametrize("integrator", ["auto", "masked"])
+    def test_batch_equals_items(self, device, dtype, integrator):
+        """A batch gives each item what it gets alone: no estimator or integrator couples the items."""
+        lights = ring_lights(8, 50.0, device=device, dtype=dtype)
+        images = torch.rand(3, 8, 24, 20, device=device, dtype=dtype) * 0.6 + 0.2
+        images[1, 2, :4, :5] = 1.0  # saturated: fewer observations there
+        reference = torch.rand(1, 8, 24, 20, device=device, dtype=dtype) * 0.4 + 0.5
+        dark = torch.rand(3, 1, 24, 20, device=device, dtype=dtype) * 0.01
+        mask = torch.rand(3, 1, 24, 20, device=device) > 0.1
+        model = PhotometricStereo(lights, 0.025, ReconstructionConfig(integrator=integrator))
+        batch = model(images, reference, dark, dark[:1], mask, 0.8, 0.99)
+        for i in range(3):
+            item = model(images[i : i + 1], reference, dark[i : i + 1], dark[:1], mask[i : i + 1], 0.8, 0.99)
+            self.assert_close(batch.albedo[i : i + 1], item.albedo)
+            self.assert_close(batch.normals[i : i + 1], item.normals)
+            assert torch.equal(batch.mask[i : i + 1], item.mask)
+            self.assert_close(batch.depth[i : i + 1], item.depth, rtol=1e-4, atol=1e-5)
+
+    def test_frame_of_another_batch_raise(self):
+        with pytest.raises(ShapeError, match=r"\(3, 8, 8, 8\)"):
+            PhotometricStereo(ring_lights(8, 55.0), None)(torch.rand(3, 8, 8, 8), dark=torch.rand(2, 1, 8, 8))
+
+    def test_gradcheck_batch(self):
+        """Gradients of a batch through flat-field, normals and the item-by-item Frankot–Chellappa."""
+        lights = ring_lights(8, 45.0, dtype=torch.float64)
+        model = PhotometricStereo(lights, pixel_pitch_mm=0.1)
+        images = (torch.rand(2, 8, 4, 5, dtype=torch.float64) * 0.5 + 0.5).requires_grad_()
+        self.gradcheck(lambda x: model(x).depth, (images,))
+
     def test_gradcheck_whole_pipeline(self):
         lights = ring_lights(8, 45.0, dtype=torch.float64)
         reference = torch.rand(1, 8, 4, 4, dtype=torch.float64) + 0.5

@@ -169,13 +169,14 @@ def frankot_chellappa(
             downward, so the derivative along a row index is :math:`-q`).
         pixel_pitch_mm: size of one pixel on the surface in mm (the step of x and y).
         boundary: ``"mirror"`` (default) or ``"periodic"``.
-        mask: optional pixels to trust, shape :math:`(B, 1, H, W)` (bool or float). The mean slope is taken
-            over the mask and the gradients outside it are replaced by that mean slope; the solve still runs
-            on the whole rectangle (use ``integrate(..., method="masked")`` for a solve on the mask alone).
+        mask: optional pixels to trust, shape :math:`(B, 1, H, W)` (bool, or float weights). The mean slope is
+            taken over the mask and the gradients outside it are replaced by that mean slope (float weights
+            :math:`w` blend: :math:`w g + (1 - w) \bar g`, with the weighted mean); the solve still runs on the
+            whole rectangle (use ``integrate(..., method="masked")`` for a solve on the mask alone).
 
     Returns:
         height toward the camera in mm, shape :math:`(B, 1, H, W)`, with zero mean over the mask (over every
-        pixel without a mask). Differentiable with respect to ``p`` and ``q``.
+        pixel without a mask). Differentiable with respect to ``p``, ``q`` and float weights.
 
     Raises:
         ShapeError: when ``p`` and ``q`` differ in shape, are not :math:`(B, 1, H, W)`, or the mask does not fit.
@@ -194,7 +195,7 @@ def frankot_chellappa(
     if boundary not in _FC_BOUNDARIES:
         raise InputError(f"boundary must be one of {', '.join(_FC_BOUNDARIES)}, got {boundary!r}")
     height, width = p.shape[-2:]
-    if mask is not None and all_true(mask):
+    if mask is not None and all_true(mask == 1):
         mask = None  # the same result without a pass over the mask per step
     if boundary == "mirror":
         return _frankot_chellappa_mirror(p, q, pitch, mask)
@@ -210,27 +211,46 @@ def frankot_chellappa(
 
 
 def _frankot_chellappa_mirror(p: Tensor, q: Tensor, pitch: float, mask: Tensor | None) -> Tensor:
-    """The ``boundary="mirror"`` branch of :func:`frankot_chellappa` (checked inputs, float mask or None)."""
+    """The ``boundary="mirror"`` branch of :func:`frankot_chellappa` (checked inputs, float mask or None).
+
+    On the CPU the batch is solved one item at a time: the ~25 passes of an item's transforms then stay in the
+    core's cache (a batch of 8 took 3.0 ms per 400^2 item so, against 3.9-4.4 ms at once, in separate runs on
+    this 2-core Xeon); on a GPU the whole batch runs at once.
+    """
+    if p.device.type == "cpu" and p.shape[0] > 1:
+        items = [_mirror_item(p[i : i + 1], q[i : i + 1], pitch, None if mask is None else mask[i : i + 1])
+                 for i in range(p.shape[0])]
+        return torch.cat(items)
+    return _mirror_item(p, q, pitch, mask)
+
+
+def _mirror_item(p: Tensor, q: Tensor, pitch: float, mask: Tensor | None) -> Tensor:
+    """:func:`_frankot_chellappa_mirror` on one batch (an item on the CPU)."""
     height, width = p.shape[-2:]
     plan = _mirror_plan(height, width, pitch, p.device, p.dtype)
     pq = torch.cat([p, q], dim=1)
     means = masked_mean(pq, mask)  # (B, 2, 1, 1): the mean slopes (p0, q0)
-    if mask is None:
-        # slopes in mm per pixel step along columns (u) and rows (v, downward: -q), with the DST signs; the mean
-        # slopes are taken out as coefficients below (p0 changes the row k_v = 0 only, q0 the column k_u = 0)
-        coefficients, nyquist = _fc_mirror(pq.mul_(plan.scale), plan)
-        # the mean-slope plane and the zero mean, as coefficients: the plane p0 u - q0 v lives on the row k_v = 0
-        # and the column k_u = 0 of the DCT, a constant on (0, 0); the IDCT has zero mean but the Nyquist row not
-        coefficients[..., 0:1, :] += means[:, 0:1] * plan.ramp_u_minus_mean
-        coefficients[..., :, 0:1] += means[:, 1:2] * plan.ramp_v
-        coefficients[..., 0:1, 0:1] -= nyquist @ plan.nyquist_mean
-        return idct2(coefficients).addcmul_(plan.alternating, nyquist)
-    # residual slopes in mm per pixel step along columns (u) and rows (v, downward: -q), with the DST signs
-    coefficients, nyquist = _fc_mirror((pq - means).mul_(plan.scale).mul_(mask), plan)
+    if mask is not None:
+        # the gradients outside the mask replaced by the mean slopes (weighted: m g + (1 - m) mean for a float
+        # mask): the field's mean is then the masked mean, and the solve below keeps it as for an unmasked field
+        pq = torch.lerp(means.expand_as(pq), pq, mask)
+    # slopes in mm per pixel step along columns (u) and rows (v, downward: -q), with the DST signs; the mean
+    # slopes are taken out as coefficients below (p0 changes the row k_v = 0 only, q0 the column k_u = 0)
+    coefficients, nyquist = _fc_mirror(pq.mul_(plan.scale), plan)
+    # the mean-slope plane and the zero mean, as coefficients: the plane p0 u - q0 v lives on the row k_v = 0
+    # and the column k_u = 0 of the DCT, a constant on (0, 0); the IDCT has zero mean but the Nyquist row not
+    coefficients[..., 0:1, :] += means[:, 0:1] * plan.ramp_u_minus_mean
+    coefficients[..., :, 0:1] += means[:, 1:2] * plan.ramp_v
+    coefficients[..., 0:1, 0:1] -= nyquist @ plan.nyquist_mean
     z = idct2(coefficients).addcmul_(plan.alternating, nyquist)
-    u, v = centred_grid(height, width, p)
-    z = z + (means[:, 0:1] * u - means[:, 1:2] * v) * pitch
-    return z - masked_mean(z, mask)
+    if mask is None:
+        return z
+    # zero mean over the mask: a dot product per item, with no masked copy of the depth (in place unless the
+    # weights need a gradient, whose product keeps this depth)
+    batch = z.shape[0]
+    mean = torch.bmm(z.reshape(batch, 1, -1), mask.reshape(batch, -1, 1)).view(batch, 1, 1, 1) / mask.sum(
+        dim=(-2, -1), keepdim=True)
+    return z - mean if mask.requires_grad else z.sub_(mean)
 
 
 class FrankotChellappa(nn.Module):
