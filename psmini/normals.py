@@ -35,8 +35,12 @@ def _unit_and_length(m: Tensor, solved: Tensor | None) -> tuple[Tensor, Tensor]:
     solved = nonzero if solved is None else solved & nonzero
     if all_true(solved):  # the usual case: no masked_fill, no where, one division
         return length, m / length
-    up = torch.tensor([0.0, 0.0, 1.0], device=m.device, dtype=m.dtype).view(1, 3, 1, 1)  # broadcast, not filled
-    return length.masked_fill(~solved, 0), torch.where(solved, m / length, up)
+    # an infinite length zeroes the unsolved pixels' normals in the division, and their n_z is then set to 1: two
+    # passes over one plane each instead of a where over the three (and a gradient of 0 there, as where's)
+    unsolved = ~solved
+    normals = m / length.masked_fill(unsolved, torch.inf)
+    normals[:, 2:3].masked_fill_(unsolved, 1.0)
+    return length.masked_fill(unsolved, 0), normals
 
 
 def _check_weights(weights: Tensor | None, shape: torch.Size) -> Tensor | None:
