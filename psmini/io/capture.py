@@ -234,23 +234,19 @@ def _container_bits(bit_depth: int) -> int:
 
 def _read_frames(folder: Path, names: list[str], bit_depth: int) -> np.ndarray:
     """Gray frames (K, H, W) scaled by 2**bit_depth - 1; values above that code raise."""
-    container = _container_bits(bit_depth)
     paths = [_existing(folder, name, "image") for name in names]
-    limit = (2**bit_depth - 0.5) / (2**container - 1)
-
-    def to_gray(index: int, image: np.ndarray) -> np.ndarray:
-        if bit_depth not in (8, 16) and float(image.max(initial=0.0)) > limit:
-            raise _fail(folder, f"{names[index]} holds values above {2**bit_depth - 1}, the largest "
-                f"{bit_depth}-bit code")
-        return rgb_to_gray(image)
-
+    largest = 2**bit_depth - 1
     try:
-        frames, _ = read_image_stack(paths, to_gray, expected_bit_depth=container)
+        # integers straight into the float stack, scaled once by the capture's own largest code
+        frames, _ = read_image_stack(paths, expected_bit_depth=_container_bits(bit_depth), max_value=largest)
     except DataFormatError as error:
         raise _fail(folder, str(error)) from error
-    if bit_depth not in (8, 16):
-        frames *= np.float32((2**container - 1) / (2**bit_depth - 1))
-    return frames
+    if bit_depth not in (8, 16):  # 10- or 12-bit codes in 16-bit files: nothing above the largest code
+        peaks = frames.reshape(len(names), -1).max(axis=1)
+        above = np.flatnonzero(peaks > (largest + 0.5) / largest)
+        if above.size:
+            raise _fail(folder, f"{names[above[0]]} holds values above {largest}, the largest {bit_depth}-bit code")
+    return rgb_to_gray(frames) if frames.ndim == 4 else frames
 
 
 def _read_plain(folder: Path, name: str, what: str, height: int, width: int, bit_depth: int | None) -> np.ndarray:

@@ -116,6 +116,32 @@ class TestStack:
         assert stack.shape == (3, 4, 5) and bits == 16
         np.testing.assert_allclose(stack[:, 0, 0], [0.0, 2000 / 65535, 6000 / 65535], rtol=1e-6)
 
+    @pytest.mark.parametrize("channels", [None, 3])
+    def test_max_value_scales_the_codes(self, tmp_path, channels):
+        """10-bit codes in 16-bit files read as code / 1023, with or without a transform, gray or RGB: equal to
+        each file's float image rescaled (within float32 rounding) and exact on the codes 0 and 1023."""
+        rng = np.random.default_rng(0)
+        shape = (6, 7) if channels is None else (6, 7, channels)
+        codes = [rng.integers(0, 1024, shape).astype(np.uint16) for _ in range(3)]
+        codes[1][0, 0] = 1023
+        paths = []
+        for i, code in enumerate(codes):
+            write_image(tmp_path / f"{i}.png", code)
+            paths.append(tmp_path / f"{i}.png")
+        stack, bits = read_image_stack(paths, max_value=1023)
+        expected = np.stack([read_image(path)[0] * (65535 / 1023) for path in paths])
+        assert bits == 16 and stack.dtype == np.float32 and stack.shape == (3, *shape)
+        np.testing.assert_allclose(stack, expected, rtol=1e-6, atol=1e-7)
+        assert stack[1, 0, 0].tolist() == ([1.0] * channels if channels else 1.0)
+        transformed, _ = read_image_stack(paths, lambda index, image: image, max_value=1023)
+        np.testing.assert_array_equal(transformed, stack)
+
+    @pytest.mark.parametrize("bad", [0, -3, 2.5, "1023"])
+    def test_bad_max_value(self, tmp_path, bad):
+        write_image(tmp_path / "a.png", np.zeros((4, 5), np.uint16))
+        with pytest.raises(InputError, match="max_value must be a positive integer"):
+            read_image_stack([tmp_path / "a.png"], max_value=bad)
+
     def test_size_mismatch_names_first_differing_file(self, tmp_path):
         write_image(tmp_path / "a.png", np.zeros((4, 5), np.uint16))
         write_image(tmp_path / "b.png", np.zeros((4, 5), np.uint16))
