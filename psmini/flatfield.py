@@ -154,26 +154,35 @@ def _forget(key: tuple, _: weakref.ref) -> None:
         _last_card.clear()
 
 
+def _data_of(x: Tensor) -> tuple[Tensor, tuple]:
+    """The tensor that owns ``x``'s data (its base, for a view) and where ``x`` lies in it: a view made afresh
+    in every call (``dark[:1]``) of unchanged data gives the same pair (a view shares its base's version)."""
+    base = x if x._base is None else x._base
+    return base, (id(base), x.storage_offset(), tuple(x.shape), x.stride(), x._version)
+
+
 def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tuple[Tensor, Tensor | None],
                 images: Tensor, card_albedo: float, min_reference: float,
                 saturation_level: float | None) -> tuple[Tensor, Tensor, bool]:
     """The card's scale ``card_albedo / (R - D_R)`` (0 where not trusted), where it is trusted, and whether it
     is everywhere: everything that depends on the card alone, computed at the card's size, not per sample.
 
-    The last card's terms are kept while the caller's reference (and dark) tensor objects (``originals``, before
-    any reshaping view) are alive and unmodified (same ``_version``) and need no gradient: a batch run passes one
-    card with every batch, and its ten passes over the card (a third of the flat-field's time at batch 4) are
-    then done once.
+    The last card's terms are kept while the caller's reference (and dark) data (``originals``, before any
+    reshaping view: the tensors that own their data, and where they lie in it) are alive and unmodified (same
+    ``_version``) and need no gradient: a batch run passes one card with every batch, and its ten passes over
+    the card (a third of the flat-field's time at batch 4) are then done once, also when the caller slices the
+    card's dark frame afresh in every call.
     """
     original, original_dark = originals
     cacheable = not reference.requires_grad and not (reference_dark is not None and reference_dark.requires_grad)
-    key = (id(original), original._version, None if original_dark is None else (id(original_dark),
-           original_dark._version), images.dtype, images.device, card_albedo, min_reference, saturation_level)
+    owner, where = _data_of(original)
+    owner_dark, where_dark = (None, None) if original_dark is None else _data_of(original_dark)
+    key = (where, where_dark, images.dtype, images.device, card_albedo, min_reference, saturation_level)
     if cacheable and _last_card:
         entry = _last_card[0]
-        if (entry.key == key and entry.reference() is original
-                and (original_dark is None or (entry.reference_dark is not None
-                                               and entry.reference_dark() is original_dark))):
+        if (entry.key == key and entry.reference() is owner
+                and (owner_dark is None or (entry.reference_dark is not None
+                                            and entry.reference_dark() is owner_dark))):
             return entry.terms
     converted = reference.to(images)
     card = converted if reference_dark is None else converted - reference_dark.to(images)
@@ -185,8 +194,8 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
     scale = card_albedo / torch.where(trusted, card, torch.inf)
     terms = (scale, trusted, bool(trusted.all()))
     if cacheable:
-        _last_card[:] = [_CardEntry(key, weakref.ref(original, partial(_forget, key)), None if original_dark is None
-                                    else weakref.ref(original_dark, partial(_forget, key)), terms)]
+        _last_card[:] = [_CardEntry(key, weakref.ref(owner, partial(_forget, key)), None if owner_dark is None
+                                    else weakref.ref(owner_dark, partial(_forget, key)), terms)]
     return terms
 
 

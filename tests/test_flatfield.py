@@ -100,6 +100,23 @@ class TestFlatField(BaseTester):
         del reference, dark
         assert not _last_card  # ... and dropped with it
 
+    def test_card_terms_kept_for_fresh_views_of_the_same_data(self, device, dtype):
+        """``darks[:1]`` sliced afresh in every call reuses the card's terms; a change through any view, or another
+        slice, does not."""
+        from psmini.flatfield import _last_card
+
+        images = torch.rand(2, 3, 4, 5, device=device, dtype=dtype) + 0.3
+        reference = torch.full((1, 3, 4, 5), 0.6, device=device, dtype=dtype)
+        darks = torch.stack([torch.full((1, 4, 5), value, device=device, dtype=dtype) for value in (0.1, 0.2)])
+        first = flatfield(images, reference, darks, darks[:1]).images
+        terms = _last_card[0].terms
+        self.assert_close(flatfield(images, reference, darks, darks[:1]).images, first)
+        assert _last_card[0].terms is terms  # the same data: not recomputed
+        other = flatfield(images, reference, darks, darks[1:]).images  # another slice: its own terms
+        self.assert_close(other, (images - darks).clamp_min(0) / 0.4)
+        darks[:1].fill_(0.3)  # a change through a view bumps the shared version
+        self.assert_close(flatfield(images, reference, darks, darks[:1]).images, (images - darks).clamp_min(0) / 0.3)
+
     def test_gradcheck_with_dark_and_saturation(self):
         """The in-place path (difference, clamp, scale, saturation fill on one new tensor) keeps its gradients."""
         torch.manual_seed(0)
