@@ -15,7 +15,9 @@ handled by the solvers, not skipped; the fraction of pixels with fewer is report
 depth error: RMSE after removing the mean offset (the dome of the distant-light methods shows here), in µm.
 
 Beside each case: the noise floor (per-pixel least squares at the TRUE surface with the TRUE LEDs on the same
-flat-fielded images, using exactly the lit, usable observations), the share of scored pixels whose near-light depth
+flat-fielded images, using exactly the lit, usable observations) and near_true's excess over it split in two (least
+squares at the true surface with near_true's selection of observations; at near_true's surface with the true
+selection), the share of scored pixels whose near-light depth
 (true LEDs, mean offset removed) is more than 0.1 mm off, the alternations run, and the seconds of near light and of
 the distant pipeline (flat-field, least squares, Frankot–Chellappa) in the same run. At the end, near light on a
 batch of 16 captures against 16 single calls (seconds per sample).
@@ -103,10 +105,11 @@ def evaluate_case(fabric, config, offset_mm, calibrated, card, device) -> dict[s
         "near_true": lambda: near(capture.lights),
         "near_calibrated": lambda: near(calibrated),
     }
-    results = {}
+    results, near_result = {}, None
     for method, run in runs.items():
         start = time.perf_counter()
         result = run()
+        near_result = result if method == "near_true" else near_result
         if device.type == "cuda":
             torch.cuda.synchronize()
         seconds = time.perf_counter() - start
@@ -124,8 +127,13 @@ def evaluate_case(fabric, config, offset_mm, calibrated, card, device) -> dict[s
     # the noise floor: least squares at the true surface with the true LEDs, on exactly the usable observations
     flat = flatfield(images, card.images[None], dark, card.dark[None], CARD_ALBEDO, saturation_level=1.0)
     vectors = near_light_vectors(capture.lights, truth_depth, pitch, card_height_mm=0.0)
-    _, floor_normals = albedo_normals(flat.images, vectors, weights=usable[None])
-    results["floor"] = {"angle_deg": float(angular_error_deg(floor_normals, truth_normals)[0, 0][region[0]].mean())}
+    scored = lambda normals: float(angular_error_deg(normals, truth_normals)[0, 0][region[0]].mean())  # noqa: E731
+    results["floor"] = {"angle_deg": scored(albedo_normals(flat.images, vectors, weights=usable[None])[1])}
+    # near_true's excess over the floor, split: its selection of observations at the true surface, and its depth
+    # (light vectors at its own surface) with the true selection
+    near_vectors = near_light_vectors(capture.lights, near_result.depth, pitch, card_height_mm=0.0)
+    results["split"] = {"selection": scored(albedo_normals(flat.images, vectors, weights=near_result.weights)[1]),
+                        "depth": scored(albedo_normals(flat.images, near_vectors, weights=usable[None])[1])}
     results["coverage"] = {"fewer_than_3": 1 - float(region.sum()) / float(cloth.sum())}
     return results
 
@@ -220,6 +228,8 @@ def main(argv: list[str] | None = None) -> int:
                             + [f"{case[m]['angle_deg']:.3f} / {case[m]['depth_rmse_um']:.0f} / {case[m]['dome_um']:.1f}"
                                for m in METHODS]
                             + [f"{case['floor']['angle_deg']:.3f}", f"{near_case['angle_deg'] - case['floor']['angle_deg']:+.3f}",
+                               f"{case['split']['selection'] - case['floor']['angle_deg']:+.3f} / "
+                               f"{case['split']['depth'] - case['floor']['angle_deg']:+.3f}",
                                f"{near_case['depth_rmse_um'] / far_case['depth_rmse_um']:.2f}",
                                f"{100 * near_case['off_0.1mm']:.2f}%",
                                f"{100 * case['coverage']['fewer_than_3']:.1f}%", f"{near_case['iterations']}",
@@ -230,7 +240,8 @@ def main(argv: list[str] | None = None) -> int:
             summary[key] = sum(c["angle_deg"] for c in collected[method]) / len(collected[method])
             worst[key] = (max(c["angle_deg"] for c in collected[method]), max(c["dome_um"] for c in collected[method]))
     header = (["fabric", "offset (mm)", "render"] + [f"{m}: ° / µm / dome µm" for m in METHODS]
-              + ["noise floor (°)", "near_true − floor (°)", "depth near / far_flatfield", "near > 0.1 mm off",
+              + ["noise floor (°)", "near_true − floor (°)", "of which selection / depth (°)",
+                 "depth near / far_flatfield", "near > 0.1 mm off",
                  "lit by < 3", "alternations", "near s", "far_flatfield s"])
     report = table(header, rows)
     means = table(["method", "mean error noise-free (°)", "worst case noise-free (°)", "worst dome noise-free (µm)",
@@ -243,7 +254,9 @@ def main(argv: list[str] | None = None) -> int:
     note = (f"{len(fabrics)} fabrics × offsets {offsets} mm, {size}×{size} px at {pitch:.4f} mm/px, on {device}. "
             f"Cells: mean angular error over cloth pixels with ≥ 3 usable LEDs (lit, unsaturated, card usable) / depth RMSE after removing "
             f"the mean offset / dome: RMS of that depth error low-passed at σ = 1 mm (normalised convolution over the "
-            f"same pixels), the low-frequency bend without the weave-scale integration error. Near light on a batch "
+            f"same pixels), the low-frequency bend without the weave-scale integration error. Of which selection / "
+            f"depth: the excess over the floor of least squares at the true surface with near_true's selection of "
+            f"observations, and at near_true's surface with the true selection. Near light on a batch "
             f"of 16 {size}² captures: {speed['batch']:.2f} s per sample, single calls {speed['single']:.2f} s per "
             f"sample (ratio {speed['batch'] / speed['single']:.2f}); distant pipeline {speed['far']:.3f} s per sample "
             f"(near / distant {speed['single'] / speed['far']:.0f}×). LEDs calibrated from noisy 8-bit cards at 0 and 1 mm in {fit['seconds']:.1f} s: "
