@@ -376,11 +376,15 @@ class TestStructure:
         assert not found.found and "two periods" in found.reason
 
     @pytest.mark.slow
+    @pytest.mark.parametrize("solver", ["distant", "near"])
     @pytest.mark.parametrize("name", STRUCTURED)
-    def test_reconstructed_captures(self, name):
-        """From the simulator's noisy 8-bit captures, reconstructed by the classical pipeline (distant lights with the
-        card; what these figures were measured with: near light, the default for LED captures, costs seconds per
-        capture on a CPU): within 2% and 1°, at 0, 0.5 and 1 mm above the card and five orientations."""
+    def test_reconstructed_captures(self, name, solver, request):
+        """From the simulator's noisy 8-bit captures, reconstructed by the default pipeline (near light, for LED
+        captures) and by the classical one (distant lights with the card): within 2% and 1°, at 0, 0.5 and 1 mm
+        above the card and five orientations. Near light loses the net's mesh (the step from its yarns down to
+        the card in its holes is flattened: docs/guides/fabric.md), a known failure kept visible here."""
+        if name == "net" and solver == "near":  # strict: a fix shows up as a failure to update this
+            request.applymarker(pytest.mark.xfail(strict=True, reason="near light flattens the net's hole step"))
         from data_synth import make_fabric
         from data_synth.rig import RigConfig, render_capture, render_card
         from psmini.config import ReconstructionConfig
@@ -396,7 +400,7 @@ class TestStructure:
                 sample = Sample(name=name, images=capture.images, lights=capture.lights, dark=capture.dark,
                                 reference=card.images, reference_dark=card.dark, card_albedo=0.8,
                                 pixel_pitch_mm=PITCH, saturation_level=1.0)
-                rec = reconstruct_for_description(sample, ReconstructionConfig(solver="distant"))
+                rec = reconstruct_for_description(sample, ReconstructionConfig(solver=solver))
                 density, angle = structure_errors(fabric_structure(rec.depth, PITCH, rec.mask)[0],
                                                   truth_systems(fabric))
                 assert density < 0.02 and angle < 1.0, (lift, orientation, density, angle)

@@ -371,3 +371,38 @@ def test_package_is_callable():
     p = torch.zeros(1, 1, 6, 6)
     assert psmini.integrate(p, p).shape == p.shape
     assert psmini.integrate.integrate is integrate
+
+
+class TestUndoEdgeAveraging(BaseTester):
+    """The trapezoidal rule of the masked least-squares integrator scales a relief of angular frequency w per
+    pixel by a = (w/2) / tan(w/2); the correction on the rectangle restores it (uniform weights: exactly)."""
+
+    @pytest.mark.parametrize("period_px", [2.4, 3.0, 5.0, 12.0])
+    def test_restores_a_fine_relief(self, period_px):
+        from psmini.integrate.least_squares import _undo_edge_averaging
+
+        height, width, pitch = 8, 96, 0.025
+        k = round(2 * width / period_px)  # a DCT-II basis function along u: even about both edges
+        w = math.pi * k / width
+        u = torch.arange(width, dtype=torch.float64) + 0.5
+        z = (0.01 * torch.cos(w * u)).expand(1, 1, height, width)
+        p = (-0.01 * w * torch.sin(w * u) / pitch).expand(1, 1, height, width)  # exact slopes, mm per mm
+        q = torch.zeros_like(p)
+        solved = integrate(p, q, "masked", pixel_pitch_mm=pitch, mask=torch.ones_like(p, dtype=torch.bool),
+                           tol=1e-13, maxiter=5000)
+        flattened = float((solved - solved.mean()).abs().max() / z.abs().max())
+        assert flattened == pytest.approx((w / 2) / math.tan(w / 2), rel=1e-6)  # the rule's response
+        self.assert_close(_undo_edge_averaging(solved - solved.mean()), z, rtol=1e-6, atol=1e-9)
+
+    def test_cap_and_mean(self):
+        from psmini.integrate.least_squares import _MAX_SHARPENING, _undo_edge_averaging
+
+        u = torch.arange(10, dtype=torch.float64) + 0.5
+        finest = torch.cos(math.pi * 9 * u / 10).expand(1, 1, 6, 10)  # response 0.03: the gain stops at the cap
+        out = _undo_edge_averaging(0.5 + finest)
+        self.assert_close(out, 0.5 + _MAX_SHARPENING * finest)  # and the mean is kept
+
+    def test_gradcheck(self):
+        from psmini.integrate.least_squares import _undo_edge_averaging
+
+        self.gradcheck(_undo_edge_averaging, (torch.rand(2, 1, 5, 7, dtype=torch.float64, requires_grad=True),))

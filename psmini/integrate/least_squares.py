@@ -13,6 +13,8 @@ because near-grazing pixels at the outline carry real, steep depth changes.
 
 from __future__ import annotations
 
+import functools
+import math
 
 import torch
 from torch import Tensor, nn
@@ -20,6 +22,7 @@ from torch import Tensor, nn
 from psmini._checks import check_finite
 from psmini.errors import InputError, ShapeError
 from psmini.integrate._common import check_gradients
+from psmini.integrate._dct import dct2, idct2
 from psmini.integrate.poisson import solve_weighted_poisson
 
 
@@ -55,6 +58,45 @@ def _edge_system(
     tu = (a_u * gu[..., :, :-1] + b_u * gu[..., :, 1:]) / wu.clamp_min(tiny)
     tv = (a_v * gv[..., :-1, :] + b_v * gv[..., 1:, :]) / wv.clamp_min(tiny)
     return wu, wv, tu, tv
+
+
+# The largest gain of :func:`_undo_edge_averaging`: the trapezoidal rule's response falls to a quarter at a period
+# of 2.3 pixels and to 0 at the Nyquist frequency, where no gain recovers it.
+_MAX_SHARPENING = 4.0
+
+
+@functools.lru_cache(maxsize=8)
+def _edge_averaging_gain(height: int, width: int, device: torch.device, dtype: torch.dtype) -> Tensor:
+    """The DCT-domain gain ``1 / a(w_u, w_v)`` of :func:`_undo_edge_averaging`, capped, ``(H, W)``."""
+    wv = (math.pi * torch.arange(height, dtype=torch.float64) / height).view(height, 1)
+    wu = (math.pi * torch.arange(width, dtype=torch.float64) / width).view(1, width)
+    laplacian = 4 * torch.sin(wu / 2).square() + 4 * torch.sin(wv / 2).square()
+    response = (wu * torch.sin(wu) + wv * torch.sin(wv)) / laplacian.clamp_min(torch.finfo(torch.float64).tiny)
+    response[0, 0] = 1.0  # the mean is kept
+    return (1 / response.clamp_min(1 / _MAX_SHARPENING)).to(device=device, dtype=dtype)
+
+
+def _undo_edge_averaging(z: Tensor) -> Tensor:
+    r"""Restore the fine relief that the trapezoidal rule of the edge equations flattens, on the full rectangle.
+
+    An edge's target is the mean of its two pixels' slopes, so for slopes :math:`g = \partial z` of a surface
+    :math:`e^{i \omega \cdot x}` the least-squares solution with uniform weights comes back scaled by
+    :math:`a = (\omega_u \sin\omega_u + \omega_v \sin\omega_v) / (4 \sin^2\frac{\omega_u}{2} +
+    4 \sin^2\frac{\omega_v}{2})` (:math:`\tfrac{\omega/2}{\tan(\omega/2)}` along one axis: 0.95 at a period of
+    8 pixels, 0.35 at 2.4 pixels, the threads of a fine silk at 25 µm per pixel, whose spectral peak then falls
+    below its weave repeat's). This divides the height's mirrored spectrum (DCT-II, the Neumann problem's basis)
+    by :math:`a`, capped at a gain of :data:`_MAX_SHARPENING`: exact where the weights are uniform, an
+    approximation where they vary (steep walls). Frankot–Chellappa, spectral, has no such loss; this brings the
+    weighted integration to it at the weave scale.
+
+    Args:
+        z: heights :math:`(B, 1, H, W)` from the edge equations of :func:`masked_least_squares` on the whole
+            rectangle (any unit).
+
+    Returns:
+        the corrected heights, same shape, dtype and mean. Differentiable.
+    """
+    return idct2(dct2(z) * _edge_averaging_gain(z.shape[-2], z.shape[-1], z.device, z.dtype))
 
 
 def masked_least_squares_grid(
