@@ -246,7 +246,7 @@ def _read_frames(folder: Path, names: list[str], bit_depth: int) -> np.ndarray:
         above = np.flatnonzero(peaks > (largest + 0.5) / largest)
         if above.size:
             raise _fail(folder, f"{names[above[0]]} holds values above {largest}, the largest {bit_depth}-bit code")
-    return rgb_to_gray(frames) if frames.ndim == 4 else frames
+    return rgb_to_gray(frames) if frames.ndim == 4 else frames  # (an RGB capture is stacked in colour first)
 
 
 def _read_plain(folder: Path, name: str, what: str, height: int, width: int, bit_depth: int | None) -> np.ndarray:

@@ -187,8 +187,8 @@ def read_image_stack(
     Args:
         paths: the image files, K of them.
         transform: optional ``f(index, image) -> array`` applied to each ``float32`` image (as returned by
-            :func:`read_image`, or divided by ``max_value``) before stacking, e.g. a per-image colour correction and gray conversion;
-            it keeps memory at one image's worth per file.
+            :func:`read_image`, or divided by ``max_value``) before stacking, e.g. a per-image colour correction
+            and gray conversion; it keeps memory at one image's worth per file.
         expected_bit_depth: when given (8 or 16), files of another depth raise.
         max_value: the code that reads as 1 (default: the files' largest, 255 or 65535), e.g. 1023 for 10-bit
             codes in 16-bit files. Without a transform, each file's integers are converted as they are copied into
