@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from psmini.io import write_image
 
@@ -43,9 +44,23 @@ def test_truncated_png_gives_psmini_error_only(tmp_path):
     assert "WARN" not in run.stderr and "grfmt_png" not in run.stderr, run.stderr
 
 
+def _opencv_logs_truncated_png(folder: Path) -> bool:
+    """Whether this OpenCV logs anything at all when it decodes a truncated PNG (5.0 warns; 5.1 is silent)."""
+    probe = ("import cv2, numpy as np; "
+             f"cv2.imdecode(np.fromfile({str(folder / 'obj' / '002.png')!r}, np.uint8), cv2.IMREAD_UNCHANGED)")
+    env = {**os.environ, "OPENCV_LOG_LEVEL": "WARNING"}
+    run = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=env, timeout=60)
+    return bool(run.stderr.strip())
+
+
 def test_opencv_still_speaks_when_asked(tmp_path):
-    """The check above is not vacuous: with OpenCV's level left at its default, its warning does appear."""
+    """The check above is not vacuous: with OpenCV's level left at its default, its warning does appear (where
+    this OpenCV logs truncated PNGs at all)."""
     _diligent_with_truncated_image(tmp_path / "obj")
+    if not _opencv_logs_truncated_png(tmp_path):
+        import cv2
+
+        pytest.skip(f"OpenCV {cv2.__version__} logs nothing for a truncated PNG: the quiet test holds trivially")
     run = _psmini("reconstruct", str(tmp_path / "obj"), "--out", str(tmp_path / "out"),
                   env_extra={"OPENCV_LOG_LEVEL": "WARNING"})
     assert run.returncode == 1 and "WARN" in run.stderr and "002.png" in run.stderr
