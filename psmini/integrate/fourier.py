@@ -243,14 +243,7 @@ def _mirror_item(p: Tensor, q: Tensor, pitch: float, mask: Tensor | None) -> Ten
     coefficients[..., :, 0:1] += means[:, 1:2] * plan.ramp_v
     coefficients[..., 0:1, 0:1] -= nyquist @ plan.nyquist_mean
     z = idct2(coefficients).addcmul_(plan.alternating, nyquist)
-    if mask is None:
-        return z
-    # zero mean over the mask: a dot product per item, with no masked copy of the depth (in place unless the
-    # weights need a gradient, whose product keeps this depth)
-    batch = z.shape[0]
-    mean = torch.bmm(z.reshape(batch, 1, -1), mask.reshape(batch, -1, 1)).view(batch, 1, 1, 1) / mask.sum(
-        dim=(-2, -1), keepdim=True)
-    return z - mean if mask.requires_grad else z.sub_(mean)
+    return z if mask is None else z - masked_mean(z, mask)  # zero mean over the mask
 
 
 class FrankotChellappa(nn.Module):
