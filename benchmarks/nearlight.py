@@ -109,7 +109,8 @@ def evaluate_case(fabric, config, offset_mm, calibrated, card, device) -> dict[s
     for method, run in runs.items():
         start = time.perf_counter()
         result = run()
-        near_result = result if method == "near_true" else near_result
+        if method == "near_true":
+            near_result = result
         if device.type == "cuda":
             torch.cuda.synchronize()
         seconds = time.perf_counter() - start
