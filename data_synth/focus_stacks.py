@@ -95,7 +95,8 @@ def shape_height(shape: str, size: int, depth_mm: float = 1.0) -> Tensor:
     if shape == "cone":
         return depth_mm * (1 - r / math.sqrt(2))
     radius = 1.5  # sphere of radius 1.5 (grid units) centred below the grid: a cap over the square
-    cap = (radius**2 - r.square()).clamp_min(0).sqrt() - math.sqrt(radius**2 - 2.0)
+    # the corners (x² + y² = 2) are the cap's rim: rounding of the square root squared put them at -9e-16 mm
+    cap = ((radius**2 - (x.square() + y.square())).sqrt() - math.sqrt(radius**2 - 2.0)).clamp_min(0)
     return depth_mm * cap / cap.max()
 
 
