@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -147,6 +148,17 @@ def run_child(impl: str, device: str, batch: int, size: int, repeat: int) -> dic
             "stages": {name: seconds / batch for name, seconds in stages.items()}}
 
 
+def child_env(impl: str) -> dict[str, str]:
+    """The child's environment: NumPy's BLAS on one thread (like for like with torch's one thread: with two, its
+    CPU time counted both cores, 55 against 25-30 ms per sample), without this workplace's OPENBLAS_CORETYPE and
+    OPENBLAS_L2_SIZE, which are there for older OpenBLAS builds and slow a current one."""
+    env = dict(os.environ)
+    if impl == "numpy":
+        env = {k: v for k, v in env.items() if k not in ("OPENBLAS_CORETYPE", "OPENBLAS_L2_SIZE")}
+        env["OPENBLAS_NUM_THREADS"] = "1"
+    return env
+
+
 def check_agreement(batch: int, size: int, dtype: torch.dtype = torch.float64) -> tuple[float, float]:
     """Largest depth difference (mm) and that difference over the largest |depth|, torch in ``dtype`` vs NumPy
     (float64, the doubled-grid solver) on the same input."""
@@ -219,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
     for impl, device, count in runs:
         command = [sys.executable, __file__, "--child", impl, "--device", device, "--batch", str(args.batch),
                    "--size", str(args.size), "--repeat", str(args.repeat), "--threads", str(count)]
-        output = subprocess.run(command, capture_output=True, text=True, check=True).stdout
+        output = subprocess.run(command, capture_output=True, text=True, check=True, env=child_env(impl)).stdout
         figures[(impl, device, count)] = json.loads(output.strip().splitlines()[-1])
     base_wall, base_cpu = figures[("numpy", "cpu", 1)]["s_per_sample"], figures[("numpy", "cpu", 1)]["cpu_per_sample"]
     rows = []

@@ -46,6 +46,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from psmini._checks import check_finite, check_mask, check_positive, check_shape
+from psmini._chunks import batch_part, chunks
 from psmini.errors import InputError, ShapeError
 from psmini.geometry import pixel_grid_mm
 from psmini.integrate import METHODS as INTEGRATORS
@@ -98,9 +99,6 @@ _GRAZING_SIGMAS = 3.0
 _GRAZING_LOW = 1.0
 # Residuals within this many noise levels are never outliers.
 _OUTLIER_SIGMAS = 6.0
-# On the CPU a batch is solved in chunks of at most this many observations (one 8 × 400 × 400 capture): a larger
-# working set leaves the caches, and a batch of 16 such captures ran 1.4 times slower per sample than single calls.
-_CPU_CHUNK = 8 * 400 * 400
 # Pixels next to an unsolved one get this confidence in the integration (see solve_near_light).
 _EDGE_CONFIDENCE = 0.01
 # Images at least this large (and of even size) run their first alternations at half resolution.
@@ -252,6 +250,18 @@ class NearLightResult(Reconstruction):
     iterations: int = 0
     changes_deg: tuple[float, ...] = ()
     converged: bool = False
+
+    @classmethod
+    def concatenate(cls, parts: list[NearLightResult]) -> NearLightResult:
+        """One result from those of consecutive chunks of a batch: tensors concatenated, the alternations' counts
+        and changes the largest over the chunks, converged when every chunk converged."""
+        tensors = {name: torch.cat([getattr(part, name) for part in parts])
+                   for name in ("albedo", "normals", "p", "q", "depth", "mask", "weights", "offset_mm")}
+        longest = max(len(part.changes_deg) for part in parts)
+        changes = tuple(max(part.changes_deg[i] for part in parts if i < len(part.changes_deg))
+                        for i in range(longest))
+        return cls(**tensors, iterations=max(part.iterations for part in parts), changes_deg=changes,
+                   converged=all(part.converged for part in parts))
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -953,23 +963,9 @@ def solve_near_light(
     mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
     valid = _check_valid(valid, intensities)
     options = _check_options(options)
-    chunk = sizes["B"] if intensities.device.type != "cpu" else max(1, _CPU_CHUNK // intensities[0].numel())
-    if chunk >= sizes["B"]:
-        return _solve(intensities, valid, mask, light_model, pixel_pitch_mm, card_height_mm, options)
-    parts = [_solve(intensities[i : i + chunk], valid[i : i + chunk], None if mask is None else mask[i : i + chunk],
-                    light_model, pixel_pitch_mm, card_height_mm, options) for i in range(0, sizes["B"], chunk)]
-    return _concatenate(parts)
-
-
-def _concatenate(parts: list[NearLightResult]) -> NearLightResult:
-    """One result from those of consecutive chunks of a batch: tensors concatenated, the alternations' counts and
-    changes the largest over the chunks, converged when every chunk converged."""
-    tensors = {name: torch.cat([getattr(part, name) for part in parts])
-               for name in ("albedo", "normals", "p", "q", "depth", "mask", "weights", "offset_mm")}
-    longest = max(len(part.changes_deg) for part in parts)
-    changes = tuple(max(part.changes_deg[i] for part in parts if i < len(part.changes_deg)) for i in range(longest))
-    return NearLightResult(**tensors, iterations=max(part.iterations for part in parts), changes_deg=changes,
-                           converged=all(part.converged for part in parts))
+    parts = [_solve(intensities[part], valid[part], batch_part(mask, intensities, part, "mask"), light_model,
+                    pixel_pitch_mm, card_height_mm, options) for part in chunks(intensities)]
+    return parts[0] if len(parts) == 1 else NearLightResult.concatenate(parts)
 
 
 def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, light_model: nn.Module, pitch: float,

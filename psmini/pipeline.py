@@ -13,13 +13,14 @@ import torch
 from torch import Tensor, nn
 
 from psmini._checks import all_true, check_mask, check_positive, check_shape, check_tensor
+from psmini._chunks import batch_part, chunks
 from psmini.config import ReconstructionConfig
 from psmini.errors import InputError
 from psmini.flatfield import flatfield
 from psmini.integrate import METHODS as INTEGRATION_METHODS
 from psmini.integrate import integrate
 from psmini.lights import DirectionalLights, LightModel, check_spans_3d
-from psmini.nearlight import solve_near_light
+from psmini.nearlight import NearLightResult, solve_near_light
 from psmini.nonlambertian import nonlambertian_normals
 from psmini.normals import albedo_normals, normals_to_gradients
 from psmini.robust import ROBUST_METHODS, robust_normals
@@ -161,8 +162,28 @@ class PhotometricStereo(nn.Module):
         config = self.config
         sizes = check_shape(images, ["B", "K", "H", "W"], "images")
         mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
-        flat = flatfield(images, reference, dark, reference_dark, card_albedo, config.min_reference, saturation_level)
+        frames = {"images": images, "reference": reference, "dark": dark, "reference_dark": reference_dark,
+                  "mask": mask}
+        # the flat-fielded images, the solver's largest temporaries, one capture at a time on the CPU (see
+        # psmini._chunks); only what a solver returns is concatenated
+        parts = [self._solve_normals(*(batch_part(x, images, part, name) for name, x in frames.items()),
+                                     card_albedo, saturation_level, card_height_mm) for part in chunks(images)]
+        if self.solver == "near":
+            return parts[0] if len(parts) == 1 else NearLightResult.concatenate(parts)
+        albedo, normals = (torch.cat(tensors) for tensors in zip(*parts)) if len(parts) > 1 else parts[0]
+        solved = albedo > 0
+        p, q = normals_to_gradients(normals)  # 0 where not solved: the normal there is (0, 0, 1)
         integrator = config.integrator_for(self.solver, mask is not None)
+        depth = integrate(p, q, integrator, self.pixel_pitch_mm or 1.0, solved, **config.integrator_options)
+        return Reconstruction(albedo, normals, p, q, depth, solved)
+
+    def _solve_normals(self, images: Tensor, reference: Tensor | None, dark: Tensor | None,
+                       reference_dark: Tensor | None, mask: Tensor | None, card_albedo: float,
+                       saturation_level: float | None, card_height_mm: float) -> NearLightResult | tuple[Tensor, Tensor]:
+        """Flat-field and solve one chunk of the batch: the whole near-light result, or the distant solver's albedo
+        and normals."""
+        config = self.config
+        flat = flatfield(images, reference, dark, reference_dark, card_albedo, config.min_reference, saturation_level)
         if self.solver == "near":
             card_height = card_height_mm if reference is not None else None
             return solve_near_light(flat.images, self.lights, self.pixel_pitch_mm, card_height, flat.valid, mask,
@@ -171,11 +192,7 @@ class PhotometricStereo(nn.Module):
         all_valid = flat.all_valid if flat.all_valid is not None else all_true(flat.valid)
         weights = None if all_valid else flat.valid
         estimator = "lstsq" if config.estimator == "auto" else config.estimator
-        albedo, normals = NORMAL_ESTIMATORS[estimator](flat.images, matrix, mask, weights, config.estimator_options)
-        solved = albedo > 0
-        p, q = normals_to_gradients(normals)  # 0 where not solved: the normal there is (0, 0, 1)
-        depth = integrate(p, q, integrator, self.pixel_pitch_mm or 1.0, solved, **config.integrator_options)
-        return Reconstruction(albedo, normals, p, q, depth, solved)
+        return NORMAL_ESTIMATORS[estimator](flat.images, matrix, mask, weights, config.estimator_options)
 
 
 def reconstruct(sample, config: ReconstructionConfig | None = None) -> Reconstruction:

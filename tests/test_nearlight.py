@@ -7,6 +7,7 @@ from psmini import InputError, LEDLights, PointLights, ShapeError, ring_lights
 from psmini.geometry import depth_to_points
 from psmini.integrate import integrate
 from psmini.flatfield import flatfield
+from psmini import _chunks
 from psmini.nearlight import (
     NearLightOptions,
     RefineOptions,
@@ -227,7 +228,7 @@ class TestSolveNearLight(BaseTester):
         b = _capture(size=32, offset_mm=0.8, dtype=torch.float64)
         flat = _flat(torch.cat([a[3], b[3], a[3]]), a[4])
         whole = solve_near_light(flat.images, a[0], PITCH, 0.0, flat.valid)
-        monkeypatch.setattr(nearlight, "_CPU_CHUNK", 2 * flat.images[0].numel())  # chunks of 2 and 1
+        monkeypatch.setattr(_chunks, "CPU_CHUNK_ELEMENTS", 2 * flat.images[0].numel())  # chunks of 2 and 1
         chunked = solve_near_light(flat.images, a[0], PITCH, 0.0, flat.valid)
         for name in ("depth", "normals", "albedo", "offset_mm"):
             self.assert_close(getattr(chunked, name), getattr(whole, name), rtol=0, atol=1e-9)

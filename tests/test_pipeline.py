@@ -3,6 +3,7 @@ import math
 import pytest
 import torch
 
+from psmini import _chunks
 from psmini import CalibrationError, DirectionalLights, InputError, LEDLights, ShapeError, ring_lights
 from psmini.flatfield import flatfield
 from psmini.integrate import frankot_chellappa
@@ -136,9 +137,13 @@ class TestPhotometricStereo(BaseTester):
         with pytest.raises(InputError, match="above the card"):
             PhotometricStereo(lights, None)(torch.rand(1, 3, 4, 4), reference=torch.ones(3, 4, 4))
 
+    @pytest.mark.parametrize("chunked", [False, True], ids=["whole", "chunked"])
     @pytest.mark.parametrize("integrator", ["auto", "masked"])
-    def test_batch_equals_items(self, device, dtype, integrator):
-        """A batch gives each item what it gets alone: no estimator or integrator couples the items."""
+    def test_batch_equals_items(self, device, dtype, integrator, chunked, monkeypatch):
+        """A batch gives each item what it gets alone: no estimator or integrator couples the items, and solving a
+        CPU batch in chunks (of two items and one, here) changes nothing."""
+        if chunked:
+            monkeypatch.setattr(_chunks, "CPU_CHUNK_ELEMENTS", 2 * 8 * 24 * 20)
         lights = ring_lights(8, 50.0, device=device, dtype=dtype)
         images = torch.rand(3, 8, 24, 20, device=device, dtype=dtype) * 0.6 + 0.2
         images[1, 2, :4, :5] = 1.0  # saturated: fewer observations there
@@ -154,9 +159,24 @@ class TestPhotometricStereo(BaseTester):
             assert torch.equal(batch.mask[i : i + 1], item.mask)
             self.assert_close(batch.depth[i : i + 1], item.depth, rtol=1e-4, atol=1e-5)
 
-    def test_frame_of_another_batch_raise(self):
+    @pytest.mark.parametrize("chunked", [False, True], ids=["whole", "chunked"])
+    def test_frame_of_another_batch_raise(self, chunked, monkeypatch):
+        if chunked:
+            monkeypatch.setattr(_chunks, "CPU_CHUNK_ELEMENTS", 8 * 8 * 8)
         with pytest.raises(ShapeError, match=r"\(3, 8, 8, 8\)"):
             PhotometricStereo(ring_lights(8, 55.0), None)(torch.rand(3, 8, 8, 8), dark=torch.rand(2, 1, 8, 8))
+
+    def test_near_light_batch_in_chunks_equals_whole(self, monkeypatch):
+        """The near solver through the pipeline, a CPU batch of three in chunks of one: each item as in the whole."""
+        ring = ring_lights(8, 58.0, dtype=torch.float64)
+        model = PhotometricStereo(LEDLights(ring * 18.6, -ring), 0.025)
+        images = torch.rand(3, 8, 16, 16, dtype=torch.float64) * 0.5 + 0.3
+        whole = model(images, torch.full((8, 16, 16), 0.6, dtype=torch.float64), card_albedo=0.8)
+        monkeypatch.setattr(_chunks, "CPU_CHUNK_ELEMENTS", 8 * 16 * 16)
+        chunked = model(images, torch.full((8, 16, 16), 0.6, dtype=torch.float64), card_albedo=0.8)
+        for name in ("albedo", "normals", "depth", "offset_mm"):
+            self.assert_close(getattr(chunked, name), getattr(whole, name), rtol=0, atol=1e-9)
+        assert torch.equal(chunked.weights, whole.weights) and chunked.iterations == whole.iterations
 
     def test_gradcheck_batch(self):
         """Gradients of a batch through flat-field, normals and the item-by-item Frankot–Chellappa."""
