@@ -100,21 +100,29 @@ def best_times(func, repeat: int, device: str = "cpu") -> tuple[float, float]:
 
 
 def torch_stages(model, tensors: dict, repeat: int) -> dict[str, float]:
-    """CPU seconds of each stage of the distant pipeline on its own (best of ``repeat``), for the whole batch."""
+    """CPU seconds of each stage of the distant pipeline on its own (best of ``repeat``), for the whole batch;
+    flat-field and normals capture by capture, as the pipeline runs them on the CPU (``psmini._chunks``)."""
+    from psmini._chunks import chunks
     from psmini.flatfield import flatfield
     from psmini.integrate import integrate
     from psmini.normals import albedo_normals, normals_to_gradients
     from psmini.pipeline import distant_light_matrix
 
     images, reference, dark = tensors["images"], tensors["reference"], tensors["dark"]
-    flat = flatfield(images, reference, dark, dark[:1], CARD_ALBEDO)
+    parts = chunks(images)
+    flat = [flatfield(images[part], reference, dark[part], dark[:1], CARD_ALBEDO).images for part in parts]
     matrix = distant_light_matrix(model.lights, True, images)
-    albedo, normals = albedo_normals(flat.images, matrix)
+    albedo, normals = (torch.cat(x) for x in zip(*(albedo_normals(images, matrix) for images in flat)))
     p, q = normals_to_gradients(normals)
     solved = albedo > 0
+
+    def flatfield_chunks():  # each chunk's images dropped before the next, as in the pipeline
+        for part in parts:
+            flatfield(images[part], reference, dark[part], dark[:1], CARD_ALBEDO)
+
     stages = {
-        "flat-field": lambda: flatfield(images, reference, dark, dark[:1], CARD_ALBEDO),
-        "normals": lambda: albedo_normals(flat.images, matrix),
+        "flat-field": flatfield_chunks,
+        "normals": lambda: [albedo_normals(images, matrix) for images in flat],
         "gradients": lambda: normals_to_gradients(normals),
         "Frankot–Chellappa": lambda: integrate(p, q, method="fc", pixel_pitch_mm=PITCH_MM, mask=solved),
     }
