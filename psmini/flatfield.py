@@ -121,20 +121,21 @@ def flatfield(
     signal = images.clamp_min(0) if dark is None else (images - dark.to(images)).clamp_min_(0)
     # one read of the images decides whether anything is saturated: when nothing is (the usual capture), the
     # bool map, its masked fill and the per-observation valid map are skipped, and the card alone decides
-    saturated = None
+    # (the unsaturated map multiplies: a float product by a bool map took half a masked_fill_'s 1.6 ms on a capture)
+    unsaturated = None
     if saturation_level is not None and bool(images.detach().amax() >= saturation_level):
-        saturated = images >= saturation_level
+        unsaturated = images < saturation_level
     if reference is None:
-        if saturated is None:
+        if unsaturated is None:
             return FlatFieldResult(signal, torch.ones_like(images, dtype=torch.bool), True)
-        return FlatFieldResult(signal.masked_fill_(saturated, 0), ~saturated)
+        return FlatFieldResult(signal.mul_(unsaturated), unsaturated)
 
     scale, trusted, all_trusted = _card_terms(reference, reference_dark, card_tensors, images, card_albedo,
                                               min_reference, saturation_level)
     ratio = signal.mul_(scale)
     valid = trusted.expand(shape)
-    if saturated is not None:
-        return FlatFieldResult(ratio.masked_fill_(saturated, 0), valid & ~saturated)
+    if unsaturated is not None:
+        return FlatFieldResult(ratio.mul_(unsaturated), valid & unsaturated)
     return FlatFieldResult(ratio, valid, all_trusted)
 
 
