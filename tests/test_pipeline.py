@@ -185,6 +185,15 @@ class TestPhotometricStereo(BaseTester):
         images = (torch.rand(2, 8, 4, 5, dtype=torch.float64) * 0.5 + 0.5).requires_grad_()
         self.gradcheck(lambda x: model(x).depth, (images,))
 
+    def test_gradcheck_batch_in_chunks(self, monkeypatch):
+        """Gradients through the CPU chunks (flat-field and normals one item at a time, then concatenated)."""
+        monkeypatch.setattr(_chunks, "CPU_CHUNK_ELEMENTS", 8 * 4 * 5)
+        lights = ring_lights(8, 45.0, dtype=torch.float64)
+        model = PhotometricStereo(lights, pixel_pitch_mm=0.1)
+        reference = torch.rand(1, 8, 4, 5, dtype=torch.float64) + 0.5
+        images = (torch.rand(2, 8, 4, 5, dtype=torch.float64) * 0.5 + 0.5).requires_grad_()
+        self.gradcheck(lambda x: model(x, reference, card_albedo=0.8).depth, (images,))
+
     def test_gradcheck_whole_pipeline(self):
         lights = ring_lights(8, 45.0, dtype=torch.float64)
         reference = torch.rand(1, 8, 4, 4, dtype=torch.float64) + 0.5
