@@ -112,7 +112,7 @@ def torch_stages(model, tensors: dict, repeat: int) -> dict[str, float]:
     parts = chunks(images)
     flat = [flatfield(images[part], reference, dark[part], dark[:1], CARD_ALBEDO).images for part in parts]
     matrix = distant_light_matrix(model.lights, True, images)
-    albedo, normals = (torch.cat(x) for x in zip(*(albedo_normals(images, matrix) for images in flat)))
+    albedo, normals = (torch.cat(x) for x in zip(*(albedo_normals(chunk, matrix) for chunk in flat)))
     p, q = normals_to_gradients(normals)
     solved = albedo > 0
 
@@ -122,7 +122,7 @@ def torch_stages(model, tensors: dict, repeat: int) -> dict[str, float]:
 
     stages = {
         "flat-field": flatfield_chunks,
-        "normals": lambda: [albedo_normals(images, matrix) for images in flat],
+        "normals": lambda: [albedo_normals(chunk, matrix) for chunk in flat],
         "gradients": lambda: normals_to_gradients(normals),
         "Frankot–Chellappa": lambda: integrate(p, q, method="fc", pixel_pitch_mm=PITCH_MM, mask=solved),
     }

@@ -3,9 +3,9 @@
 On the CPU every new tensor of more than 32 MB (glibc's largest ``mmap`` threshold: an (8, 8, 400, 400) float32
 batch is 41 MB) is fresh memory from the kernel, page-faulted and zeroed on first touch: the dark subtraction of
 such a batch measured 32 ms (4 ms per capture) where the same arithmetic on one capture's 5 MB at a time took
-0.7-1.4 ms per capture in the same profile, and near light on a batch of 16 captures ran 1.4 times slower per sample than single
-calls (its working set leaves the caches). Solving a CPU batch capture by capture keeps every temporary in the
-heap and in the caches; devices, whose allocators cache, take the whole batch at once.
+0.7-1.4 ms per capture in the same profile, and near light on a batch of 16 captures ran 1.4 times slower per
+sample than single calls (its working set leaves the caches). Solving a CPU batch capture by capture keeps every
+temporary in the heap and in the caches; devices, whose allocators cache, take the whole batch at once.
 """
 
 from __future__ import annotations

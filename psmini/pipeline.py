@@ -179,7 +179,8 @@ class PhotometricStereo(nn.Module):
 
     def _solve_normals(self, images: Tensor, reference: Tensor | None, dark: Tensor | None,
                        reference_dark: Tensor | None, mask: Tensor | None, card_albedo: float,
-                       saturation_level: float | None, card_height_mm: float) -> NearLightResult | tuple[Tensor, Tensor]:
+                       saturation_level: float | None,
+                       card_height_mm: float) -> NearLightResult | tuple[Tensor, Tensor]:
         """Flat-field and solve one chunk of the batch: the whole near-light result, or the distant solver's albedo
         and normals."""
         config = self.config

@@ -36,7 +36,8 @@ class TestChunks:
         assert batch_part(None, images, slice(1, 3), "mask") is None
 
     def test_batch_part_of_another_batch_raise(self):
-        with pytest.raises(ShapeError, match=r"dark must broadcast to the images' shape \(4, 8, 5, 5\).*\(3, 1, 5, 5\)"):
+        expected = r"dark must broadcast to the images' shape \(4, 8, 5, 5\).*\(3, 1, 5, 5\)"
+        with pytest.raises(ShapeError, match=expected):
             batch_part(torch.empty(3, 1, 5, 5), torch.empty(4, 8, 5, 5), slice(0, 1), "dark")
 
     def test_constant_is_read_at_call_time(self, monkeypatch):
