@@ -37,11 +37,17 @@ class FlatFieldResult:
             bright enough there.
         all_valid: whether every observation is valid when that is known from the card alone, without a pass
             over ``valid`` (no saturation level given); ``None`` otherwise (use ``bool(valid.all())``).
+        gain: the factor each dark-subtracted reading was multiplied by, ``card_albedo / (reference -
+            reference_dark)`` (0 where the card is not trusted), broadcastable to :math:`(B, K, H, W)`; ``None``
+            without a reference. The flat-fielded noise scales with it: where an LED lights the card six times
+            more dimly, the division amplifies the camera's read noise six times (the near-light solver's noise
+            model uses it).
     """
 
     images: Tensor
     valid: Tensor
     all_valid: bool | None = None
+    gain: Tensor | None = None
 
 
 def _check_frame(frame: Tensor | None, batch: int, count: int, height: int, width: int, name: str) -> Tensor | None:
@@ -91,7 +97,8 @@ def flatfield(
             the reference); ``None`` disables the check.
 
     Returns:
-        :class:`FlatFieldResult` with ``images`` :math:`(B, K, H, W)` and ``valid`` :math:`(B, K, H, W)`.
+        :class:`FlatFieldResult` with ``images`` :math:`(B, K, H, W)`, ``valid`` :math:`(B, K, H, W)` and the
+        card's ``gain``.
 
     Raises:
         ShapeError: when a frame does not broadcast to the images' shape.
@@ -103,6 +110,8 @@ def flatfield(
         >>> result = flatfield(images, card, card_albedo=0.8)
         >>> torch.allclose(result.images, images / 0.5 * 0.8)
         True
+        >>> round(float(result.gain.max()), 6)   # 0.8 / 0.5: the factor applied to each reading (and to its noise)
+        1.6
     """
     sizes = check_shape(images, ["B", "K", "H", "W"], "images")
     check_finite(images, "images")
@@ -135,8 +144,8 @@ def flatfield(
     ratio = signal.mul_(scale)
     valid = trusted.expand(shape)
     if unsaturated is not None:
-        return FlatFieldResult(ratio.mul_(unsaturated), valid & unsaturated)
-    return FlatFieldResult(ratio, valid, all_trusted)
+        return FlatFieldResult(ratio.mul_(unsaturated), valid & unsaturated, gain=scale)
+    return FlatFieldResult(ratio, valid, all_trusted, scale)
 
 
 class _CardEntry(NamedTuple):

@@ -24,8 +24,10 @@ Near light is a stage of the pipeline (:func:`solve_near_light`): it takes image
 Its options travel as one frozen :class:`NearLightOptions`.
 
 Two departures from plain least squares keep textiles within the Lambertian model's reach. Metallic threads add a
-specular lobe that only brightens: each pixel's brightest observation is tested against the fit of the others (a
-leave-one-out residual, from the hat matrix) before it can pull the fit, one observation per alternation. Crevices
+specular lobe that only brightens, and a yarn's cast shadow only darkens: each pixel's brightest and darkest
+observations are tested against the fit of the others (leave-one-out residuals, from the hat matrix), and the one
+farther from it in noise levels leaves when beyond its threshold, one observation per update; the noise model
+follows the flat-field's gain, which amplifies the camera's noise where an LED lights the card dimly. Crevices
 lit by fewer than three LEDs stay unsolved; the pixels on their rims, whose normals see the crevice's wall, get
 little weight in the integration (the many crevices of a knit would otherwise add up to a dome), and the unsolved
 pixels themselves are filled smoothly from their rims, so they can never stand out as depth spikes.
@@ -92,6 +94,10 @@ _FIRST_HIGHLIGHT_SIGMAS = 8.0
 # A pixel is tested for a highlight only with at least this many observations: the fit of the others then stays
 # overdetermined (an exactly determined fit of three turns noise into false highlights where light is scarce).
 _HIGHLIGHT_MIN_OBS = 5
+# The read noise is estimated from observations in attached shadows, those beyond this many of its noise levels
+# left out (they are lit), in at most this many rounds.
+_NOISE_CLIP_SIGMAS = 4.0
+_NOISE_CLIP_ROUNDS = 10
 # Observations within this many zero-signal noise levels of zero are shadows, not light.
 _SHADOW_SIGMAS = 3.5
 # Observations near zero within this many noise levels of a prediction near zero are used (grazing light).
@@ -153,8 +159,9 @@ class NearLightOptions:
         highlight_fraction: excess of an observation over the fit of the others, relative to the pixel's scale,
             above which the brightest is a highlight (or four noise levels when larger); ``None`` keeps every
             observation (purely Lambertian cloth).
-        outlier_fraction: residual, relative to the pixel's scale, above which an observation is an outlier (cast
-            shadows missed by the shadow test).
+        outlier_fraction: shortfall of the darkest observation below the fit of the others, relative to the
+            pixel's scale, above which it is a cast shadow missed by the shadow test (or six noise levels when
+            larger).
         integrator: the final integration: ``"masked"`` (the default: unconfident slopes filled from their
             surroundings, then weighted least squares on the mask, slopes weighted by their inverse variance, by
             conjugate gradients warm-started from the fill's depth; without a mask, the finest relief that the
@@ -445,28 +452,53 @@ def _median(values: Tensor, usable: Tensor) -> Tensor:
     return torch.stack(medians).view(-1, 1, 1, 1)
 
 
+def _noise_scales(gain: Tensor | None, images: Tensor) -> Tensor | float:
+    """The flat-field's ``gain`` (B|1, K|1, H, W) relative to its median over the trusted card of each of its items,
+    (B|1, K, H, W) (1 where the gain is 0: observations that are not valid anyway); 1.0 without a gain."""
+    if gain is None:
+        return 1.0
+    gain = gain.to(images).expand(gain.shape[0], *images.shape[1:])
+    trusted = gain > 0
+    median = _median(gain, trusted).clamp_min(torch.finfo(gain.dtype).tiny)
+    return torch.where(trusted, gain / median, torch.ones_like(gain))
+
+
 def _noise_model(images: Tensor, pred: Tensor, used: Tensor, valid: Tensor, albedo: Tensor, scale: Tensor,
-                 mask: Tensor | None) -> tuple[Tensor, Tensor]:
-    r"""The images' noise as :math:`\sigma_k^2 = \sigma_0^2 + g\,\max(\hat I_k, 0)` (read noise and quantisation, then
-    shot noise, which grows with the signal), each (B, 1, 1, 1), in the images' units.
+                 mask: Tensor | None, noise_scale: Tensor | float = 1.0) -> tuple[Tensor, Tensor]:
+    r"""The images' noise as :math:`\sigma_k^2 = s_k^2 \sigma_0^2 + s_k\,g\,\max(\hat I_k, 0)` (read noise and
+    quantisation, then shot noise, which grows with the signal), :math:`\sigma_0^2` and :math:`g` each
+    (B, 1, 1, 1), in the images' units; :math:`s_k` is the observation's ``noise_scale`` (:func:`_noise_scales`):
+    flat-fielding multiplied the raw reading, and its noise, by the card's gain, so a raw noise
+    :math:`a + b\,I_{raw}` becomes :math:`s^2 a + s\,b\,I` (on the rig's card the gain varies six times across the
+    field under one LED, and a noise model without it underestimates the noise three times where the card is dim,
+    taking good observations for highlights there).
 
     :math:`\sigma_0` comes from the observations that the fit puts well inside an attached shadow: they read noise
     alone, clipped at zero by the dark subtraction, whose 75th percentile is :math:`0.674\,\sigma_0`. :math:`g`
     is the median over pixels with at least five observations of (residual variance per degree of freedom minus
-    :math:`\sigma_0^2`) over the mean prediction.
+    the read noise) over the mean of :math:`s_k \hat I_k`.
     """
     usable = albedo > 0
     if mask is not None:
         usable = usable & mask.bool()
     # (and that read little next to the pixel's brightest: a fit bent by a glint puts lit observations there too)
     dark = valid & usable & (pred < -0.1 * scale) & (images < 0.1 * images.amax(dim=1, keepdim=True))
-    # noise clipped at zero: its 75th percentile is 0.674 sigma0 (robust to fits that a glint bent)
-    count = dark.sum(dim=(1, 2, 3), keepdim=True)
-    floor_sq = 2 * (images.square() * dark).sum(dim=(1, 2, 3), keepdim=True) / count.clamp_min(1)
+    # noise clipped at zero: twice the mean square is sigma0^2 (quantisation included: at 8 bits most of these
+    # read 0, and a percentile would too); lit observations among them (a fit bent by a glint predicts them dark)
+    # are clipped away, 4 sigma0 at a time, until none is left (a noise-free lurex otherwise read 0.014 of noise)
+    squares = (images / noise_scale).square()
+    floor_sq = 2 * (squares * dark).sum(dim=(1, 2, 3), keepdim=True) / dark.sum(dim=(1, 2, 3), keepdim=True).clamp_min(1)
+    for _ in range(_NOISE_CLIP_ROUNDS):
+        kept = dark & (squares <= _NOISE_CLIP_SIGMAS**2 * floor_sq)
+        if bool((kept == dark).all()):
+            break
+        dark = kept
+        floor_sq = 2 * (squares * dark).sum(dim=(1, 2, 3), keepdim=True) / dark.sum(dim=(1, 2, 3), keepdim=True).clamp_min(1)
     n = used.sum(dim=1, keepdim=True)
     variance = ((images - pred).square() * used).sum(dim=1, keepdim=True) / (n - 3).clamp_min(1)
-    level = ((pred.clamp_min(0) * used).sum(dim=1, keepdim=True) / n.clamp_min(1)).clamp_min(1e-12)
-    gain = _median((variance - floor_sq) / level, usable & (n >= _HIGHLIGHT_MIN_OBS)).clamp_min(0)
+    read = floor_sq * (used * noise_scale**2).sum(dim=1, keepdim=True) / n.clamp_min(1)
+    level = ((pred.clamp_min(0) * noise_scale * used).sum(dim=1, keepdim=True) / n.clamp_min(1)).clamp_min(1e-12)
+    gain = _median((variance - read) / level, usable & (n >= _HIGHLIGHT_MIN_OBS)).clamp_min(0)
     return floor_sq, gain
 
 
@@ -474,24 +506,48 @@ class _Rejection:
     r"""Which observations a pixel's fit uses: decided once, then updated once per alternation.
 
     Shadows: observations darker than the shadow level (``shadow_fraction`` of the pixel's brightest, raised to
-    three noise levels, at most :data:`_SHADOW_CAP`). Highlights: per update, the brightest observation relative to
-    its light (:math:`I_k / |L_k|`) is dropped when the fit of the others misses it by more than the larger of
-    ``highlight_fraction`` and four noise levels times :math:`1/\sqrt{1 - h_k}` (relative to the pixel's scale;
-    :math:`r_k / (1 - h_k)` is the leave-one-out residual from the full fit, :math:`h_k` the hat matrix's diagonal,
-    Cook and Weisberg, "Residuals and influence in regression", 1982); a specular lobe only adds light, so only
-    positive excesses count, and only pixels with :data:`_HIGHLIGHT_MIN_OBS` observations are tested. Attached
-    shadows (:math:`n \cdot L_k \le 0.02\,|L_k|`) and outliers (residual above ``outlier_fraction`` of the scale)
-    leave the fit; each update starts from all candidates, so an early drop can be undone, and a pixel keeps its
-    previous observations rather than fall below three.
+    3.5 read-noise levels once the noise model is known, :meth:`settle_noise`, before any residual is judged).
+    Highlights: per update, the brightest observation relative to its light (:math:`I_k / |L_k|`) is dropped when
+    the fit of the others misses it by more than the larger of ``highlight_fraction`` and four noise levels times
+    :math:`1/\sqrt{1 - h_k}` (relative to the pixel's scale; :math:`r_k / (1 - h_k)` is the leave-one-out residual
+    from the full fit, :math:`h_k` the hat matrix's diagonal, Cook and Weisberg, "Residuals and influence in
+    regression", 1982); a specular lobe only adds light, so only positive excesses count, and only pixels with
+    :data:`_HIGHLIGHT_MIN_OBS` observations are tested. Cast shadows: the darkest observation is dropped when the
+    fit of the others predicts it brighter by more than the larger of ``outlier_fraction`` and six noise levels.
+    Of the two suspects only the one with the larger studentised residual (in noise levels) may leave in one
+    update: each bends the fit toward itself, so that the other looks like an outlier too. Attached shadows
+    (:math:`n \cdot L_k \le 0.02\,|L_k|`) leave the fit; each update starts from all candidates, so an early drop
+    of a shadow can be undone, and a pixel keeps its previous observations rather than fall below three. The noise
+    of each observation scales with the flat-field's gain (:func:`_noise_model`).
     """
 
-    def __init__(self, intensities: Tensor, valid: Tensor, options: NearLightOptions) -> None:
+    def __init__(self, intensities: Tensor, valid: Tensor, options: NearLightOptions,
+                 gain: Tensor | None = None) -> None:
         self.intensities, self.valid, self.options = intensities, valid, options
+        self.noise_scale = _noise_scales(gain, intensities)
         self.candidates = _candidates(intensities, valid, options.shadow_fraction)
         self.highlights = torch.zeros_like(valid)
         self.shadows = torch.zeros_like(valid)
         self.noise: tuple[Tensor, Tensor] | None = None
         self.relative_noise: Tensor | None = None
+
+    def settle_noise(self, field: tuple[Tensor, Tensor, Tensor, Tensor], fit: tuple[Tensor, Tensor, tuple],
+                     albedo: Tensor, used: Tensor, mask: Tensor | None) -> Tensor:
+        """The noise model from the ``fit`` made with ``used`` (once), the candidates above its shadow level, and
+        ``used`` without the observations below it (unchanged where fewer than three would remain). Run before the
+        full updates judge any residual: a shadowed observation that reads noise, kept in a fit, bends it as
+        much as a glint does, and the brightest observation of such a pixel would be taken for a highlight."""
+        if self.noise is None:
+            lx, ly, lz, length = field
+            pred = _predict(fit[0], lx, ly, lz)
+            scale = albedo * length.mean(dim=1, keepdim=True)
+            self.noise = _noise_model(self.intensities, pred, used, self.valid, albedo, scale, mask,
+                                      self.noise_scale)
+            shadow = self.noise[0].sqrt() * _SHADOW_SIGMAS * self.noise_scale
+            self.candidates = _candidates(self.intensities, self.valid & (self.intensities > shadow),
+                                          self.options.shadow_fraction)
+        settled = used & self.candidates
+        return torch.where(settled.sum(dim=1, keepdim=True) >= 3, settled, used)
 
     def update(self, field: tuple[Tensor, Tensor, Tensor, Tensor], fit: tuple[Tensor, Tensor, tuple],
                albedo: Tensor, used: Tensor, mask: Tensor | None, highlights_only: bool = False) -> Tensor:
@@ -523,42 +579,49 @@ class _Rejection:
                                                                      ).clamp_min(1e-12)
                 self.relative_noise = _median(residual, (n >= 4) & (albedo_others > 0)).nan_to_num(0.0, posinf=0.0)
             # shot noise grows with the signal: scaled by the square root of the prediction over the pixel's mean
-            level = (positive * weight).sum(dim=1, keepdim=True) / count.clamp_min(1)
-            sigma = self.relative_noise * scale * (positive / level.clamp_min(1e-12)).sqrt()
+            shot = positive * self.noise_scale
+            level = (shot * weight).sum(dim=1, keepdim=True) / count.clamp_min(1)
+            sigma = self.relative_noise * scale * (shot / level.clamp_min(1e-12)).sqrt()
         else:
-            if self.noise is None:  # first full update: the noise model, and shadows relative to it
-                self.noise = _noise_model(images, pred, used, self.valid, albedo, scale, mask)
-                shadow = self.noise[0].sqrt() * _SHADOW_SIGMAS
-                self.candidates = _candidates(images, self.valid & (images > shadow), options.shadow_fraction)
+            s = self.noise_scale
+            if self.noise is None:
+                self.settle_noise(field, fit, albedo, used, mask)
             floor_sq, gain = self.noise
-            sigma = (floor_sq + gain * positive).sqrt()
+            sigma = (floor_sq * s**2 + gain * positive * s).sqrt()
         leverage = _leverage(lx, ly, lz, matrix)
         # residuals of each observation against the fit of the others: r / (1 - h) for the observations in the
         # fit (leave-one-out, from the hat matrix), r itself for the others; and their spread in noise levels
         kept = 1 + weight * ((1 - leverage).clamp_min(1e-6) - 1)
         spread = (1 + leverage + weight * (1 / kept - 1 - leverage)).sqrt()
         left_out = (images - pred) / kept
-        # the selection's ranks: unused observations pushed out of reach
+        # the two suspects, the brightest and the darkest observation relative to its light (unused observations
+        # pushed out of reach; amax: argmax is slow), and how far each lies from the fit of the others in noise
+        # levels: only the farther of the two may leave in this update, when beyond its threshold. A cast shadow
+        # kept in the fit bends it below the lit observations as a glint bends it above the others: judged alone,
+        # the brightest of a pixel whose fit a shadow pulled down looks like a highlight (1% of a matte jute's
+        # pixels lost a good observation so, and their normals erred by 7 degrees), and the darkest of a glinting
+        # pixel like a cast shadow. One deletion at a time, the largest studentised residual first (Cook and
+        # Weisberg).
         beyond = (1 - weight) * torch.finfo(images.dtype).max
+        ranked = relative - beyond
+        brightest = used & (ranked == ranked.amax(dim=1, keepdim=True))
+        ranked = relative + beyond
+        darkest = used & (ranked == ranked.amin(dim=1, keepdim=True))
+        studentised = left_out / (sigma * spread).clamp_min(torch.finfo(images.dtype).tiny)
+        above = (studentised * brightest).amax(dim=1, keepdim=True)
+        below = (-studentised * darkest).amax(dim=1, keepdim=True)
         if options.highlight_fraction is not None:
-            ranked = relative - beyond
-            suspect = used & (ranked == ranked.amax(dim=1, keepdim=True))  # the brightest (amax: argmax is slow)
             sigmas = _FIRST_HIGHLIGHT_SIGMAS if highlights_only else _HIGHLIGHT_SIGMAS
             threshold = torch.maximum(sigma * sigmas * spread, options.highlight_fraction * scale)
-            testable = (count >= _HIGHLIGHT_MIN_OBS) & (albedo > 0)
-            glint = suspect & testable & (left_out > threshold)
-            self.highlights = self.highlights | glint
-            glinting = glint.any(dim=1, keepdim=True)  # a glint bends the fit: no shadow test there this time
-        else:
-            glinting = torch.zeros_like(albedo, dtype=torch.bool)
+            testable = (count >= _HIGHLIGHT_MIN_OBS) & (albedo > 0) & (above >= below)
+            self.highlights = self.highlights | (brightest & testable & (left_out > threshold))
         if highlights_only:
             return used & ~self.highlights
-        # cast shadows only darken: the darkest observation relative to its light leaves when the fit of the others
-        # predicts it far brighter (with four observations the others still determine the normal)
-        ranked = relative + beyond
-        suspect = used & (ranked == ranked.amin(dim=1, keepdim=True))
+        # cast shadows only darken: the darkest observation leaves when the fit of the others predicts it far
+        # brighter (with four observations the others still determine the normal)
         threshold = torch.maximum(options.outlier_fraction * scale, _OUTLIER_SIGMAS * sigma * spread)
-        self.shadows = self.shadows | (suspect & ~glinting & (count >= 4) & (albedo > 0) & (left_out < -threshold))
+        testable = (count >= 4) & (albedo > 0) & (below > above)
+        self.shadows = self.shadows | (darkest & testable & (left_out < -threshold))
         lit = pred > _GRAZING_COSINE * albedo * length
         bright = self.candidates & lit
         # grazing light: an observation near zero that the fit of the others also puts near zero (but above it) is
@@ -577,13 +640,19 @@ def _select(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], 
             albedo: Tensor, normals: Tensor, mask: Tensor | None, updates: int,
             highlight_rounds: int | None = None) -> tuple[Tensor, tuple, Tensor, Tensor]:
     """Highlight rounds (at most ``highlight_rounds``, K - 3 by default, each dropping at most one observation per
-    pixel), then ``updates`` full updates of the selection, re-solving after each change; returns the selection
-    and its fit."""
+    pixel), the noise model and the shadows below its level (:meth:`_Rejection.settle_noise`), then ``updates``
+    full updates of the selection, re-solving after each change; returns the selection and its fit."""
     highlight_rounds = (images.shape[1] - 3) if highlight_rounds is None else highlight_rounds
     searching = rejection.options.highlight_fraction is not None
     for highlights_only in [True] * highlight_rounds + [False] * updates:
         if highlights_only and not searching:
             continue
+        if not highlights_only and rejection.noise is None:
+            settled = rejection.settle_noise(vectors, fit, albedo, used, mask)
+            if not bool((settled == used).all()):
+                used = settled
+                fit = _fit(images, *vectors[:3], used)
+                albedo, normals = _split(*fit[:2], mask)
         new = rejection.update(vectors, fit, albedo, used, mask, highlights_only)
         if bool((new == used).all()):
             if highlights_only:  # no glint left: on to the full updates
@@ -603,13 +672,15 @@ def robust_near_light_normals(
     mask: Tensor | None = None,
     options: NearLightOptions | None = None,
     rounds: int = 4,
+    gain: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     r"""Per-pixel least squares with per-pixel lights, dropping shadowed, specular and outlying observations.
 
     The rejection of :func:`solve_near_light` at fixed light vectors: shadows are left out from the start, then
-    ``rounds`` updates each drop at most one highlight per pixel (the brightest relative to its light, when the
-    fit of the others misses it by more than ``options.highlight_fraction`` of the pixel's scale or four noise
-    levels), attached shadows (:math:`n \cdot L_k \le 0.02\,|L_k|`) and outliers, and re-solve. Pixels with fewer
+    ``rounds`` updates each drop at most one highlight or cast shadow per pixel (the brightest or the darkest
+    relative to its light, whichever lies farther from the fit of the others in noise levels, when beyond its
+    threshold: ``options.highlight_fraction`` of the pixel's scale or four noise levels above, ``outlier_fraction``
+    or six below), attached shadows (:math:`n \cdot L_k \le 0.02\,|L_k|`), and re-solve. Pixels with fewer
     than three non-zero observations are left unsolved (albedo 0, normal (0, 0, 1)) with no weights.
 
     Args:
@@ -619,13 +690,15 @@ def robust_near_light_normals(
         mask: pixels to solve, shape :math:`(B, 1, H, W)`.
         options: :class:`NearLightOptions` (its fractions); defaults when omitted.
         rounds: updates of the weights after the first solve.
+        gain: the flat-field's gain, :math:`(B|1, K|1, H, W)`, which scales each observation's noise (see
+            :func:`solve_near_light`); ``None``: the same noise everywhere.
 
     Returns:
         albedo :math:`(B, 1, H, W)`, unit normals :math:`(B, 3, H, W)` and the weights used :math:`(B, K, H, W)`.
 
     Raises:
         ShapeError: when the shapes do not match.
-        InputError: for NaN input or ``rounds < 0``.
+        InputError: for NaN input, a negative gain or ``rounds < 0``.
 
     Example:
         >>> vectors = torch.tensor([[1.0, 0, 1], [-1.0, 0, 1], [0, 1.0, 1], [0, -1.0, 1]])[None, :, :, None, None]
@@ -646,10 +719,11 @@ def robust_near_light_normals(
         raise InputError(f"rounds must be an integer >= 0, got {rounds!r}")
     mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
     valid = _check_valid(valid, intensities)
+    gain = _check_gain(gain, intensities)
     options = _check_options(options)
     lx, ly, lz = light_vectors.expand(sizes["B"], -1, -1, -1, -1).unbind(dim=2)
     field = (lx, ly, lz, (lx.square() + ly.square() + lz.square()).sqrt())
-    rejection = _Rejection(intensities, valid, options)
+    rejection = _Rejection(intensities, valid, options, gain)
     used = rejection.candidates
     fit = _fit(intensities, lx, ly, lz, used)
     albedo, normals = _split(*fit[:2], mask)
@@ -892,6 +966,22 @@ def _check_valid(valid: Tensor | None, intensities: Tensor) -> Tensor:
     return valid.bool().expand_as(intensities)
 
 
+def _check_gain(gain: Tensor | None, intensities: Tensor) -> Tensor | None:
+    if gain is None:
+        return None
+    batch, count, height, width = intensities.shape
+    if not (isinstance(gain, Tensor) and gain.ndim == 4 and gain.shape[0] in (1, batch)
+            and gain.shape[1] in (1, count) and tuple(gain.shape[2:]) == (height, width)):
+        got = tuple(gain.shape) if isinstance(gain, Tensor) else type(gain).__name__
+        raise ShapeError(f"gain must broadcast to the intensities' shape {tuple(intensities.shape)} as "
+                         f"(1|{batch}, 1|{count}, {height}, {width}), got {got}")
+    check_finite(gain, "gain")
+    if bool((gain < 0).any()):
+        raise InputError(f"gain must be >= 0 (the flat-field's factor per reading), got a minimum of "
+                         f"{float(gain.min()):.3g}")
+    return gain.detach()
+
+
 def solve_near_light(
     intensities: Tensor,
     light_model: nn.Module,
@@ -900,6 +990,7 @@ def solve_near_light(
     valid: Tensor | None = None,
     mask: Tensor | None = None,
     options: NearLightOptions | None = None,
+    gain: Tensor | None = None,
 ) -> NearLightResult:
     r"""The near-light stage: flat-fielded images → albedo, normals, absolute depth, by alternation.
 
@@ -907,8 +998,8 @@ def solve_near_light(
     current depth (one fused pass from parts computed once), solves the per-pixel weighted least squares, and
     integrates the slopes weighted by their inverse variance; the result is placed at the height that explains the
     images best (a scan in the first alternation, parabolic Newton steps later). The selection of observations
-    (shadows by a noise model :math:`\sigma^2 = \sigma_0^2 + g I`, highlights and cast shadows by leave-one-out
-    residuals, grazing light kept) is decided once, in one alternation, and then kept. The first alternations run
+    (shadows by a noise model :math:`\sigma^2 = s^2 \sigma_0^2 + s\,g I`, :math:`s` the flat-field's ``gain``,
+    highlights and cast shadows by leave-one-out residuals, the farther of the two first, grazing light kept) is decided once, in one alternation, and then kept. The first alternations run
     on 2 × 2-averaged images; at full resolution the alternations stop when ``options.change_percentile`` of the
     solved pixels' normals moved less than ``options.tolerance_deg`` since the previous one, and the last normals
     are integrated by ``options.integrator`` (warm-started; see :class:`NearLightOptions`). The images are not
@@ -931,6 +1022,11 @@ def solve_near_light(
             untrusted card); all when omitted.
         mask: pixels to solve and integrate, :math:`(B, 1, H, W)`; all when omitted.
         options: :class:`NearLightOptions`; defaults when omitted.
+        gain: the flat-field's gain (:attr:`psmini.flatfield.FlatFieldResult.gain`), :math:`(B|1, K|1, H, W)`: the
+            factor each raw reading was multiplied by. The noise model scales each observation's noise by it
+            (read noise with its square, shot noise with itself): on the rig's card the gain varies sixfold across
+            the field, and without it the noise is underestimated where the card is dim and good observations are
+            taken for highlights. ``None``: the same noise for every observation (raw images).
 
     Returns:
         :class:`NearLightResult`; ``depth`` is the absolute height above the card plane's origin, mm (unsolved
@@ -938,8 +1034,9 @@ def solve_near_light(
         alternations run.
 
     Raises:
-        ShapeError: when the shapes do not match (K of the images vs the light model, mask, valid).
-        InputError: for NaN input, a light model without positions, bad options or a light below the card.
+        ShapeError: when the shapes do not match (K of the images vs the light model, mask, valid, gain).
+        InputError: for NaN input, a negative gain, a light model without positions, bad options or a light below
+            the card.
 
     Example:
         >>> from psmini.lights import LEDLights, ring_lights
@@ -962,14 +1059,16 @@ def solve_near_light(
         raise InputError(f"card_height_mm must be a finite number or None, got {card_height_mm!r}")
     mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
     valid = _check_valid(valid, intensities)
+    gain = _check_gain(gain, intensities)
     options = _check_options(options)
     parts = [_solve(intensities[part], valid[part], batch_part(mask, intensities, part, "mask"), light_model,
-                    pixel_pitch_mm, card_height_mm, options) for part in chunks(intensities)]
+                    pixel_pitch_mm, card_height_mm, options, batch_part(gain, intensities, part, "gain"))
+             for part in chunks(intensities)]
     return parts[0] if len(parts) == 1 else NearLightResult.concatenate(parts)
 
 
 def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, light_model: nn.Module, pitch: float,
-           card_height: float | None, options: NearLightOptions) -> NearLightResult:
+           card_height: float | None, options: NearLightOptions, gain: Tensor | None = None) -> NearLightResult:
     """:func:`solve_near_light` without its guards: alternations at half resolution, then at full resolution.
 
     The light field varies slowly with the height (about a degree per millimetre), so the alternations that move
@@ -989,10 +1088,11 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, light_model: nn.M
             small_domain = torch.ones_like(small_mask if small_mask is not None else small_valid[:, :1]) \
                 if small_mask is None else small_mask
             coarse = _State(depth=F.avg_pool2d(state.depth, 2), offset=start)
+            small_gain = None if gain is None else F.avg_pool2d(gain.to(images), 2)
             _alternate(F.avg_pool2d(images, 2), small_valid, small_mask, small_domain, light_model, 2 * pitch,
                        card_height, options, coarse, scan=options.search_mm,
                        tolerance=_COARSE_TOLERANCE_FACTOR * options.tolerance_deg, final=False,
-                       first_level=True, s=_OFFSET_STRIDE // 2)
+                       first_level=True, s=_OFFSET_STRIDE // 2, gain=small_gain)
             size = (height, width)
             state = _State(depth=F.interpolate(coarse.depth, size=size, mode="bilinear", align_corners=False),
                            offset=coarse.offset, changes=coarse.changes, iterations=coarse.iterations,
@@ -1001,7 +1101,7 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, light_model: nn.M
         else:
             scan, first = options.search_mm, True
         field = _alternate(images, valid, mask, domain, light_model, pitch, card_height, options, state, scan=scan,
-                           tolerance=options.tolerance_deg, final=True, first_level=first)
+                           tolerance=options.tolerance_deg, final=True, first_level=first, gain=gain)
     # the last solve, at the final depth, carries the gradients (intensities, light model's parameters); without
     # them, a converged iteration's last fit is that solve already
     learnable = any(parameter.requires_grad for parameter in light_model.parameters())
@@ -1037,7 +1137,7 @@ class _State:
 def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tensor, light_model: nn.Module,
                pitch: float, card_height: float | None, options: NearLightOptions, state: _State,
                scan: tuple[float, float], tolerance: float, final: bool,
-               first_level: bool, s: int = _OFFSET_STRIDE) -> _LightField:
+               first_level: bool, s: int = _OFFSET_STRIDE, gain: Tensor | None = None) -> _LightField:
     """Alternations at one resolution, updating ``state`` in place; returns the level's light field.
 
     Each alternation: light vectors at the current depth, normals (with the selection of observations updated in
@@ -1055,7 +1155,7 @@ def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tenso
     batch, _, height, width = images.shape
     field = _LightField(light_model, height, width, pitch, card_height, images)
     coarse = _LightField(light_model, height, width, pitch, card_height, images, s)
-    rejection = _Rejection(images, valid, options)
+    rejection = _Rejection(images, valid, options, gain)
     used = rejection.candidates
     state.converged = False
     active = torch.arange(batch, device=images.device)  # the items still alternating

@@ -188,7 +188,7 @@ class PhotometricStereo(nn.Module):
         if self.solver == "near":
             card_height = card_height_mm if reference is not None else None
             return solve_near_light(flat.images, self.lights, self.pixel_pitch_mm, card_height, flat.valid, mask,
-                                    config.near_options(mask is not None))
+                                    config.near_options(mask is not None), flat.gain)
         matrix = distant_light_matrix(self.lights, reference is not None, images)
         all_valid = flat.all_valid if flat.all_valid is not None else all_true(flat.valid)
         weights = None if all_valid else flat.valid

@@ -19,6 +19,25 @@ class TestFlatField(BaseTester):
         self.assert_close(result.images, 0.6 * shading)
         assert bool(result.valid.all())
 
+    def test_gain_is_the_factor_applied_to_each_reading(self, device, dtype):
+        """The gain multiplies the dark-subtracted reading into the flat-fielded one (and its noise with it): the
+        card's albedo over its signal, 0 where the card is not trusted; none without a card."""
+        torch.manual_seed(0)
+        reference = torch.rand(8, 6, 6, device=device, dtype=dtype) + 0.3
+        reference[2, 1, 1] = 0.001  # untrusted
+        dark = torch.full((1, 1, 6, 6), 0.05, device=device, dtype=dtype)
+        images = torch.rand(2, 8, 6, 6, device=device, dtype=dtype) * 0.5 + 0.1
+        result = flatfield(images, reference, dark, dark, card_albedo=0.8, min_reference=0.05)
+        expected = 0.8 / (reference - 0.05)
+        expected[2, 1, 1] = 0.0
+        self.assert_close(result.gain.expand(1, 8, 6, 6)[0], expected)
+        self.assert_close(result.images, (images - dark).clamp_min(0) * result.gain)
+        images[0, 0, 0, 0] = 2.5  # saturated: the other path, the same gain
+        saturated = flatfield(images, reference, dark, dark, card_albedo=0.8, min_reference=0.05, saturation_level=2.0)
+        assert not bool(saturated.valid[0, 0, 0, 0])
+        self.assert_close(saturated.gain, result.gain)
+        assert flatfield(images, dark=dark).gain is None
+
     def test_dark_reference_untrusted(self, device, dtype):
         reference = torch.ones(8, 4, 4, device=device, dtype=dtype)
         reference[3, 0, 0] = 0.01

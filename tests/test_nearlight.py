@@ -14,6 +14,7 @@ from psmini.nearlight import (
     _adjugate,
     _confidence,
     _integrate,
+    _noise_model,
     estimate_height_offset,
     near_light_vectors,
     refine_depth,
@@ -131,6 +132,67 @@ class TestRobustNormals(BaseTester):
         _, _, without = robust_near_light_normals(noisy, vectors, options=NearLightOptions(highlight_fraction=None))
         _, _, weights = robust_near_light_normals(noisy, vectors)
         assert float((without & ~weights).sum()) < 0.002 * float(without.sum())
+
+    def test_gain_scales_the_noise(self, device):
+        """Flat-fielding by a card that two LEDs light six times more dimly multiplies the camera's noise under
+        them sixfold: with the gain the noise model follows it and keeps their good observations, which a noise
+        level common to every observation takes for highlights and shadows."""
+        leds, height, normals, images, _ = _capture(device=device, dtype=torch.float64)
+        gain = torch.ones(1, 8, 1, 1, dtype=torch.float64, device=device)
+        gain[:, :2] = 6.0
+        gen = torch.Generator().manual_seed(1)
+        noise = torch.randn(images.shape, generator=gen, dtype=images.dtype).to(device)
+        noisy = (images + 0.004 * gain * noise).clamp_min(0)
+        gain = gain.expand(1, 8, 48, 48)
+        vectors = near_light_vectors(leds, height, PITCH)
+        options = NearLightOptions(highlight_fraction=1e-6)  # the noise alone sets the threshold
+        _, _, plain = robust_near_light_normals(noisy, vectors, options=options)
+        _, with_gain, weights = robust_near_light_normals(noisy, vectors, options=options, gain=gain)
+        lost = lambda w: float((~w).sum()) / w.numel()  # noqa: E731  (every observation is lit and valid)
+        assert lost(weights) < 0.002 and lost(plain) > 3 * lost(weights)
+        assert float(angular_error_deg(with_gain, normals).mean()) < 1.0
+
+    def test_cast_shadow_does_not_make_a_highlight(self, device):
+        """A cast shadow of one LED over a noisy matte patch: the fit that keeps it is pulled below the lit
+        observations, and its brightest observation would look like a highlight. The shadowed observation, the
+        farther beyond its threshold, leaves instead; the brightest stays."""
+        leds, height, normals, images, _ = _capture(device=device, dtype=torch.float64)
+        gen = torch.Generator().manual_seed(0)
+        noisy = images + 0.01 * images.mean() * torch.randn(images.shape, generator=gen, dtype=images.dtype).to(device)
+        noisy[:, 3, 8:40, 8:40] = 0.02 * noisy[:, 3, 8:40, 8:40]  # LED 3 shadowed by a neighbouring yarn
+        vectors = near_light_vectors(leds, height, PITCH)
+        _, estimate, weights = robust_near_light_normals(noisy, vectors)
+        patch = weights[:, :, 8:40, 8:40]
+        assert not bool(patch[:, 3].any())
+        others = torch.cat([patch[:, :3], patch[:, 4:]], dim=1)
+        assert float(others.float().mean()) > 0.995
+        assert float(angular_error_deg(estimate, normals)[..., 8:40, 8:40].max()) < 1.0
+
+    def test_read_noise_ignores_lit_observations_among_the_dark(self):
+        """The read noise comes from observations that the fit puts in attached shadow; lit ones among them (2%
+        here, reading 0.06, as a glint-bent fit predicts) are clipped away: the estimate stays within 10% of the
+        true sigma0^2 where their mean square would make it six times larger."""
+        gen = torch.Generator().manual_seed(0)
+        images = (0.005 * torch.randn(1, 8, 64, 64, generator=gen, dtype=torch.float64)).clamp_min(0)
+        images[:, 1:][torch.rand(1, 7, 64, 64, generator=gen, dtype=torch.float64) < 0.02] = 0.06
+        images[:, 0] = 1.0
+        pred = torch.full_like(images, -1.0)
+        pred[:, 0] = 1.0
+        ones = torch.ones(1, 1, 64, 64, dtype=torch.float64)
+        valid = torch.ones_like(images, dtype=torch.bool)
+        floor_sq, _ = _noise_model(images, pred, valid, valid, ones, ones, None)
+        assert abs(float(floor_sq) / 0.005**2 - 1) < 0.1
+
+    def test_bad_gain_raise(self):
+        images, vectors = torch.rand(1, 4, 2, 2) + 0.5, torch.rand(1, 4, 3, 2, 2)
+        with pytest.raises(ShapeError, match="gain must broadcast"):
+            robust_near_light_normals(images, vectors, gain=torch.ones(1, 3, 2, 2))
+        with pytest.raises(InputError, match="gain must be >= 0"):
+            robust_near_light_normals(images, vectors, gain=-torch.ones(1, 4, 2, 2))
+        with pytest.raises(InputError, match="gain"):
+            robust_near_light_normals(images, vectors, gain=torch.full((1, 1, 2, 2), float("nan")))
+        with pytest.raises(ShapeError, match="gain must broadcast"):
+            solve_near_light(torch.rand(1, 8, 2, 2) + 0.5, _rig(), PITCH, 0.0, gain=torch.ones(2, 8, 2))
 
     def test_bad_options_raise(self):
         with pytest.raises(InputError, match="outlier_fraction"):
