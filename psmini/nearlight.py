@@ -463,6 +463,11 @@ def _noise_scales(gain: Tensor | None, images: Tensor) -> Tensor | float:
     return torch.where(trusted, gain / median, torch.ones_like(gain))
 
 
+def _twice_mean(values: Tensor, chosen: Tensor) -> Tensor:
+    """Twice the mean of ``values`` over the ``chosen`` entries of each batch item, (B, 1, 1, 1) (0 where none)."""
+    return 2 * (values * chosen).sum(dim=(1, 2, 3), keepdim=True) / chosen.sum(dim=(1, 2, 3), keepdim=True).clamp_min(1)
+
+
 def _noise_model(images: Tensor, pred: Tensor, used: Tensor, valid: Tensor, albedo: Tensor, scale: Tensor,
                  mask: Tensor | None, noise_scale: Tensor | float = 1.0) -> tuple[Tensor, Tensor]:
     r"""The images' noise as :math:`\sigma_k^2 = s_k^2 \sigma_0^2 + s_k\,g\,\max(\hat I_k, 0)` (read noise and
@@ -487,13 +492,13 @@ def _noise_model(images: Tensor, pred: Tensor, used: Tensor, valid: Tensor, albe
     # read 0, and a percentile would too); lit observations among them (a fit bent by a glint predicts them dark)
     # are clipped away, 4 sigma0 at a time, until none is left (a noise-free lurex otherwise read 0.014 of noise)
     squares = (images / noise_scale).square()
-    floor_sq = 2 * (squares * dark).sum(dim=(1, 2, 3), keepdim=True) / dark.sum(dim=(1, 2, 3), keepdim=True).clamp_min(1)
+    floor_sq = _twice_mean(squares, dark)
     for _ in range(_NOISE_CLIP_ROUNDS):
         kept = dark & (squares <= _NOISE_CLIP_SIGMAS**2 * floor_sq)
         if bool((kept == dark).all()):
             break
         dark = kept
-        floor_sq = 2 * (squares * dark).sum(dim=(1, 2, 3), keepdim=True) / dark.sum(dim=(1, 2, 3), keepdim=True).clamp_min(1)
+        floor_sq = _twice_mean(squares, dark)
     n = used.sum(dim=1, keepdim=True)
     variance = ((images - pred).square() * used).sum(dim=1, keepdim=True) / (n - 3).clamp_min(1)
     read = floor_sq * (used * noise_scale**2).sum(dim=1, keepdim=True) / n.clamp_min(1)
@@ -999,11 +1004,12 @@ def solve_near_light(
     integrates the slopes weighted by their inverse variance; the result is placed at the height that explains the
     images best (a scan in the first alternation, parabolic Newton steps later). The selection of observations
     (shadows by a noise model :math:`\sigma^2 = s^2 \sigma_0^2 + s\,g I`, :math:`s` the flat-field's ``gain``,
-    highlights and cast shadows by leave-one-out residuals, the farther of the two first, grazing light kept) is decided once, in one alternation, and then kept. The first alternations run
-    on 2 × 2-averaged images; at full resolution the alternations stop when ``options.change_percentile`` of the
-    solved pixels' normals moved less than ``options.tolerance_deg`` since the previous one, and the last normals
-    are integrated by ``options.integrator`` (warm-started; see :class:`NearLightOptions`). The images are not
-    flat-fielded here: that is the pipeline's first stage (:func:`psmini.flatfield.flatfield`).
+    highlights and cast shadows by leave-one-out residuals, the farther of the two first, grazing light kept) is
+    decided once, in one alternation, and then kept. The first alternations run on 2 × 2-averaged images; at full
+    resolution the alternations stop when ``options.change_percentile`` of the solved pixels' normals moved less
+    than ``options.tolerance_deg`` since the previous one, and the last normals are integrated by
+    ``options.integrator`` (warm-started; see :class:`NearLightOptions`). The images are not flat-fielded here: that
+    is the pipeline's first stage (:func:`psmini.flatfield.flatfield`).
 
     Differentiable with respect to the intensities and the light model's parameters through the last
     alternation's solve (the offset search and the observations' selection are not differentiated). On the CPU a
