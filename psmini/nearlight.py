@@ -50,6 +50,7 @@ from torch import Tensor, nn
 from psmini._checks import check_finite, check_mask, check_positive, check_shape
 from psmini._chunks import batch_part, chunks
 from psmini.errors import InputError, ShapeError
+from psmini.flatfield import _check_frame
 from psmini.geometry import pixel_grid_mm
 from psmini.integrate import METHODS as INTEGRATORS
 from psmini.integrate import dct_poisson, integrate
@@ -972,15 +973,10 @@ def _check_valid(valid: Tensor | None, intensities: Tensor) -> Tensor:
 
 
 def _check_gain(gain: Tensor | None, intensities: Tensor) -> Tensor | None:
+    """The flat-field's gain checked as the flat-field checks its frames (broadcastable, finite), and >= 0."""
+    gain = _check_frame(gain, *intensities.shape, "gain")
     if gain is None:
         return None
-    batch, count, height, width = intensities.shape
-    if not (isinstance(gain, Tensor) and gain.ndim == 4 and gain.shape[0] in (1, batch)
-            and gain.shape[1] in (1, count) and tuple(gain.shape[2:]) == (height, width)):
-        got = tuple(gain.shape) if isinstance(gain, Tensor) else type(gain).__name__
-        raise ShapeError(f"gain must broadcast to the intensities' shape {tuple(intensities.shape)} as "
-                         f"(1|{batch}, 1|{count}, {height}, {width}), got {got}")
-    check_finite(gain, "gain")
     if bool((gain < 0).any()):
         raise InputError(f"gain must be >= 0 (the flat-field's factor per reading), got a minimum of "
                          f"{float(gain.min()):.3g}")
