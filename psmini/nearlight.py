@@ -1088,7 +1088,9 @@ def solve_near_light(
     Starting from the plane at ``options.initial_height_mm``, each alternation evaluates the light vectors at the
     current depth (one fused pass from parts computed once), solves the per-pixel weighted least squares, and
     integrates the slopes weighted by their inverse variance; the result is placed at the height that explains the
-    images best (a scan in the first alternation, parabolic Newton steps later). The selection of observations
+    images best (a scan in the first alternation, parabolic Newton steps later) and, at full resolution, tilted by
+    the plane the images ask for where it stands clear of their noise (``options.estimate_tilt``: the steps that
+    integration loses, which add up on a purl). The selection of observations
     (shadows by a noise model :math:`\sigma^2 = s^2 \sigma_0^2 + s\,g I`, :math:`s` the flat-field's ``gain``,
     highlights and cast shadows by leave-one-out residuals, the farther of the two first, grazing light kept) is
     decided once, in one alternation, and then kept. The first alternations run on 2 × 2-averaged images; at full
