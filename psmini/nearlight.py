@@ -137,7 +137,7 @@ _SLOPE_NOISE = 0.02
 _THREE_OBSERVATIONS_CONFIDENCE = 0.1
 # Side (pixels) of the window from which unconfident slopes are filled.
 _FILL_SIZE = 9
-# Step (mm) of the central differences of each pixel's residual in its height, for the tilt's Newton step.
+# Step (mm) of the forward difference of each pixel's residuals in its height, for the tilt's Gauss-Newton step.
 _TILT_STEP_MM = 0.02
 # The tilt's standard error is read from the spread of its estimates on _TILT_PHASES² interleaved pixel lattices
 # (every _TILT_PHASES-th pixel in each direction from each phase): their noise is independent.
@@ -165,8 +165,9 @@ class NearLightOptions:
         estimate_tilt: find the plane of the height from the images as well (the same cue as the offset):
             integration cannot see a step, and where a surface steps down the same way again and again (a purl's
             courses, a knit's loops) the lost steps add up to a tilt, 20 µm/mm on the benchmark's purl. A slope
-            is kept only where it stands three standard errors clear of zero (``_tilt_step``); otherwise, and
-            without ``estimate_tilt``, the integrated plane stays.
+            is kept only where it stands three standard errors clear of zero (the error read from the spread of the
+            estimate over interleaved lattices of pixels); otherwise, and without ``estimate_tilt``, the integrated
+            plane stays.
         initial_height_mm: starting height of the cloth above the card plane's origin, mm (kept as the mean
             height without ``estimate_offset``).
         search_mm: interval of height offsets scanned in the first alternation, mm, around ``initial_height_mm``.
