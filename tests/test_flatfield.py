@@ -166,6 +166,21 @@ class TestFlatField(BaseTester):
         self.assert_close(result.images, expected)
         assert torch.equal(result.valid, ok)
 
+    @pytest.mark.parametrize("with_card", [True, False])
+    def test_saturation_in_a_strided_stack(self, device, dtype, with_card):
+        """A transposed (non-contiguous) stack, saturated in one batch item only, gives the element-wise
+        formula's images and valid map, and the contiguous stack's."""
+        torch.manual_seed(2)
+        images = torch.rand(2, 5, 9, 7, device=device, dtype=dtype).transpose(-1, -2)  # (2, 5, 7, 9), strided
+        images[0] = images[0].clamp_max(0.9)  # item 0 unsaturated: the positions come from item 1 alone
+        reference = 0.3 + torch.rand(5, 7, 9, device=device, dtype=dtype) * 0.5 if with_card else None
+        result = flatfield(images, reference, saturation_level=0.95)
+        ok = images < 0.95
+        expected = images.clamp_min(0) if reference is None else images * (1.0 / reference)
+        self.assert_close(result.images, torch.where(ok, expected, torch.zeros_like(images)))
+        assert torch.equal(result.valid, ok) and int((~ok[1]).sum()) > 0
+        assert torch.equal(flatfield(images.contiguous(), reference, saturation_level=0.95).images, result.images)
+
     def test_all_valid_known_from_the_card(self):
         images = torch.rand(2, 4, 5, 5)
         card = torch.full((4, 5, 5), 0.5)

@@ -197,6 +197,18 @@ class TestPartiallyWeightedSolve(BaseTester):
         self.assert_close(normals, expected_normals)
         assert float(albedo[0, 0, 2, 3]) == 0.0
 
+    def test_strided_stack_equals_contiguous(self, device):
+        # the partial pixels' observations are gathered by position in the row-major stack: a transposed view
+        # (and its transposed weights) must give the contiguous stack's numbers
+        torch.manual_seed(2)
+        lights = ring_lights(8, 55.0, dtype=torch.float64).to(device)
+        intensities = torch.rand(2, 8, 9, 11, dtype=torch.float64, device=device).transpose(-1, -2)
+        weights = (torch.rand(2, 8, 9, 11, device=device) > 0.15).transpose(-1, -2)
+        albedo, normals = albedo_normals(intensities, lights, None, weights)
+        expected = albedo_normals(intensities.contiguous(), lights, None, weights.contiguous())
+        self.assert_close(albedo, expected[0])
+        self.assert_close(normals, expected[1])
+
     def test_per_sample_lights_equal_full_weighted_solve(self, device):
         # lights (B, K, 3) that differ per sample take the gathered branch, one matrix for all the shared one
         from psmini.normals import _unit_and_length, _weighted_solve
