@@ -149,7 +149,10 @@ class TestIsoAnalytic(BaseTester):
         assert float(p["Str"][0]) < 0.2
 
     def test_gradcheck(self):
-        z = (torch.rand(1, 1, 12, 12, dtype=torch.float64) * 0.01).requires_grad_()
+        # seeded: Sa = mean |z| has a kink where a levelled height is 0, and an unseeded draw put one within the
+        # finite difference's step of it about once in 40 runs (a failure of the check, not of the gradient)
+        gen = torch.Generator().manual_seed(0)
+        z = (torch.rand(1, 1, 12, 12, dtype=torch.float64, generator=gen) * 0.01).requires_grad_()
 
         def heights(h):
             p = iso25178(h, PITCH, options=SurfaceOptions(form_degree=1, s_cutoff_mm=0.06))
