@@ -47,6 +47,7 @@ from benchmarks.pipeline_speed import numpy_frankot_chellappa  # noqa: E402
 from psmini.batch import reconstruct_dataset  # noqa: E402
 from psmini.config import ReconstructionConfig  # noqa: E402
 from psmini.io import load_sample, save_depth  # noqa: E402
+from psmini.io._png import available as png_fast_path  # noqa: E402
 from psmini.pipeline import PhotometricStereo, distant_light_matrix  # noqa: E402
 
 FABRICS = ("jute", "twill", "cotton", "silk")
@@ -336,7 +337,8 @@ def main(argv: list[str] | None = None) -> int:
     note = (f"{n} capture folders of 8 LEDs × {args.size}×{args.size} (10-bit PNGs, {args.distinct} distinct "
             f"renders hard-linked, one card), distant lights, depth written by both (npy + png + json, NaN where "
             f"unsolved; psmini adds its outputs.json resume marker and writes each folder atomically), no "
-            f"ground-truth scoring. psmini on CPU: batch size {args.batch_size}, {args.workers} worker processes "
+            f"ground-truth scoring. PNGs decoded by OpenCV in the NumPy loop, by psmini.io's reader in psmini "
+            f"({'its ISA-L fast path for OpenCV-written PNGs' if png_fast_path() else 'OpenCV: isal not installed'}). psmini on CPU: batch size {args.batch_size}, {args.workers} worker processes "
             f"each decoding, solving and writing whole batches with {max(1, threads // max(args.workers, 1))} "
             f"torch thread(s), or everything in one process on 1 thread; NumPy single process. Compute alone: "
             f"psmini on one in-memory batch of {args.batch_size} on CPU"

@@ -9,7 +9,7 @@ import pytest
 
 from psmini.errors import DataFormatError
 from psmini.io import _png
-from psmini.io.images import read_image_raw
+from psmini.io.images import read_image_raw, write_image
 
 pytestmark = pytest.mark.skipif(not _png.available(), reason="isal (ISA-L) is not installed: no fast PNG path")
 
@@ -138,3 +138,26 @@ def test_without_isal_opencv_decodes(rng, tmp_path, monkeypatch):
     monkeypatch.setattr(_png, "_ISAL", None)
     assert _png.decode_png((tmp_path / "a.png").read_bytes()) is None
     np.testing.assert_array_equal(read_image_raw(tmp_path / "a.png")[0], pixels)
+    assert _png.encode_png(pixels) is None
+    write_image(tmp_path / "b.png", pixels)  # OpenCV's encoder
+    np.testing.assert_array_equal(read_image_raw(tmp_path / "b.png")[0], pixels)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+@pytest.mark.parametrize("channels", [1, 3, 4])
+@pytest.mark.parametrize("size", [(1, 1), (5, 1), (1, 6), (41, 29)])
+def test_encoder_files_read_back(rng, tmp_path, dtype, channels, size):
+    shape = size if channels == 1 else (*size, channels)
+    pixels = rng.integers(0, np.iinfo(dtype).max + 1, shape, dtype=np.int64).astype(dtype)
+    write_image(tmp_path / "a.png", pixels)
+    data = (tmp_path / "a.png").read_bytes()
+    assert data == _png.encode_png(pixels)
+    np.testing.assert_array_equal(opencv(data), pixels)  # OpenCV (libpng) reads it
+    np.testing.assert_array_equal(_png.decode_png(data), pixels)  # and the fast path takes it
+
+
+def test_encoder_leaves_other_arrays_to_opencv():
+    assert _png.encode_png(np.zeros((4, 4, 1), np.uint8)) is None
+    assert _png.encode_png(np.zeros((4, 4, 2), np.uint8)) is None
+    assert _png.encode_png(np.zeros((4, 4), np.float32)) is None
+    assert _png.encode_png(np.zeros((0, 4), np.uint8)) is None
