@@ -74,7 +74,7 @@ def test_opencv_default_files(rng, dtype, channels, size):
 def test_none_and_up_rows(rng, filters):
     pixels = rng.integers(0, 65536, (12, 9, 3), dtype=np.int64).astype(np.uint16)
     rows = {"none": [0] * 12, "up": [2] * 12, "runs": [1, 1, 1, 2, 2, 2, 2, 2, 0, 0, 2, 1]}[filters]
-    data = encode(pixels, rows, extra=((b"pHYs", struct.pack(">IIB", 40000, 40000, 1)), (b"tEXt", b"a\x00b")))
+    data = encode(pixels, rows)
     np.testing.assert_array_equal(opencv(data), pixels)  # the test's writer is a valid PNG writer
     np.testing.assert_array_equal(_png.decode_png(data), pixels)
 
@@ -90,6 +90,11 @@ def test_adaptive_filters_are_left_to_opencv(rng, tmp_path):
     np.testing.assert_array_equal(read_image_raw(tmp_path / "a.png")[0], pixels)
 
 
+def _with_idat(shape: tuple[int, int], bits: int, colour: int, idat: bytes) -> bytes:
+    header = struct.pack(">IIBBBBB", shape[1], shape[0], bits, colour, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", header) + _chunk(b"IDAT", idat) + _chunk(b"IEND", b"")
+
+
 def _idat(data: bytes) -> list[bytes]:
     position, parts = 8, []
     while position < len(data):
@@ -100,13 +105,26 @@ def _idat(data: bytes) -> list[bytes]:
     return parts
 
 
-@pytest.mark.parametrize("case", ["transparency", "gamma", "interlaced", "bit depth 4", "no IEND"])
+@pytest.mark.parametrize("case", ["transparency", "gamma", "time", "interlaced", "bit depth 4", "no IEND", "runs",
+                                  "late Paeth", "extra data"])
 def test_files_it_does_not_take(rng, case):
     pixels = rng.integers(0, 256, (5, 6), dtype=np.int64).astype(np.uint8)
     if case == "transparency":
         data = encode(pixels, [1] * 5, extra=((b"tRNS", b"\x00\x07"),))
     elif case == "gamma":
         data = encode(pixels, [1] * 5, extra=((b"gAMA", struct.pack(">I", 45455)),))
+    elif case == "time":  # MATLAB's imwrite adds tIME (DiLiGenT): another encoder's file, given up at once
+        data = encode(pixels, [1] * 5, extra=((b"tIME", struct.pack(">HBBBBB", 2016, 1, 1, 0, 0, 0)),))
+    elif case == "runs":  # None, Sub and Up only, but alternating row by row as an adaptive encoder does
+        data = encode(rng.integers(0, 256, (20, 6), dtype=np.int64).astype(np.uint8), [0, 1, 2] * 6 + [0, 1])
+    elif case == "late Paeth":  # the first rows pass; a Paeth row (type 4) far down the image is found
+        tall = rng.integers(0, 256, (200, 6), dtype=np.int64).astype(np.uint8)
+        raw = bytearray(zlib.decompress(b"".join(_idat(encode(tall, [1] * 200)))))
+        raw[150 * 7] = 4  # row 150's filter byte (rows of 1 + 6 bytes)
+        data = _with_idat(tall.shape, 8, 0, zlib.compress(bytes(raw)))
+        assert cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) is not None  # a valid PNG
+    elif case == "extra data":  # a stream holding more rows than the header's height
+        data = _with_idat((5, 6), 8, 0, zlib.compress(bytes([1] + [0] * 6) * 6))
     elif case == "interlaced":
         data = encode(pixels, [1] * 5, interlace=1)
     elif case == "bit depth 4":
