@@ -521,7 +521,6 @@ def _write(out_dir: Path, result: Reconstruction, sample, outputs: tuple[str, ..
     from psmini.io import save_albedo_png, save_depth, save_normal_png, save_ply, write_outputs
     from psmini.io._atomic import atomic_folder
 
-    _remove_stale_temporaries(out_dir)
     pitch = sample.pixel_pitch_mm
     if outputs == OUTPUT_KINDS:
         write_outputs(out_dir, result.to("cpu"), pixel_pitch_mm=pitch, metadata=metadata, overwrite=True)
@@ -548,14 +547,24 @@ def _write(out_dir: Path, result: Reconstruction, sample, outputs: tuple[str, ..
         (target / _MARKER).write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n", encoding="utf-8")
 
 
-def _remove_stale_temporaries(out_dir: Path) -> None:
-    """Remove ``.NAME.tmp-*`` folders that a killed run left beside ``out_dir`` (the atomic writer's temporaries)."""
-    if not out_dir.parent.is_dir():
-        return
-    for stale in out_dir.parent.glob(f".{out_dir.name}.tmp-*"):
-        if re.fullmatch(rf"\.{re.escape(out_dir.name)}\.tmp-[0-9a-f]{{8}}", stale.name):
-            logger.info("removing %s, left by an interrupted run", stale)
-            shutil.rmtree(stale, ignore_errors=True)
+def _remove_stale_temporaries(out_dirs: Sequence[Path]) -> None:
+    """Remove the ``.NAME.tmp-XXXXXXXX`` folders that a killed run left beside the output folders ``out_dirs``
+    (the atomic writer's temporaries): once per run, each parent folder listed once (listing the parent for every
+    sample cost 1.8 ms a sample beside 2,000 outputs, quadratic in the dataset's size)."""
+    names_by_parent: dict[Path, set[str]] = {}
+    for out_dir in out_dirs:
+        names_by_parent.setdefault(out_dir.parent, set()).add(out_dir.name)
+    stale_name = re.compile(r"\.(.+)\.tmp-[0-9a-f]{8}")
+    for parent, names in names_by_parent.items():
+        try:
+            entries = list(os.scandir(parent))
+        except OSError:  # no such folder yet: nothing was left there
+            continue
+        for entry in entries:
+            match = stale_name.fullmatch(entry.name)
+            if match and match.group(1) in names and entry.is_dir(follow_symlinks=False):
+                logger.info("removing %s, left by an interrupted run", entry.path)
+                shutil.rmtree(entry.path, ignore_errors=True)
 
 
 def _previous_record(out: Path, rel: str) -> BatchRecord:
@@ -693,6 +702,7 @@ def reconstruct_dataset(
         else:
             todo.append(folder)
     logger.info("%d samples under %s: %d finished earlier, %d to do", len(folders), root, len(records), len(todo))
+    _remove_stale_temporaries([out / _relative(root, folder) for folder in todo])
     settings = _Settings(config, kinds, score)
     if not todo:
         stream: Iterator[BatchRecord] = iter(())

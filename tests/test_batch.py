@@ -128,6 +128,15 @@ class TestReconstructDataset:
         for name in GOOD:
             assert np.isfinite(np.load(tmp_path / "out" / name / "depth.npy")).any()
 
+    def test_only_the_samples_temporaries_are_removed(self, tree, tmp_path):
+        # a temporary beside a sample still to do goes; a look-alike of no sample of the run, and a file, stay
+        lot = tmp_path / "out" / "lotA"
+        (lot / ".jute.tmp-0123abcd").mkdir(parents=True)
+        (lot / ".mine.tmp-0123abcd").mkdir()
+        (lot / ".twill.tmp-89abcdef").write_text("not a folder")
+        reconstruct_dataset(tree, tmp_path / "out", DISTANT, outputs="depth", score=False)
+        assert sorted(p.name for p in lot.glob(".*")) == [".mine.tmp-0123abcd", ".twill.tmp-89abcdef"]
+
     def test_selected_outputs_only(self, tree, tmp_path):
         summary = reconstruct_dataset(tree, tmp_path / "out", DISTANT, outputs="depth,normals", score=False)
         assert all(row["mean_angular_error_deg"] == "" for row in summary["samples"])
