@@ -32,7 +32,7 @@ _MAX_RUNS = 8  # rows filtered alike, undone in one vectorised step each; more r
 _FIRST_ROWS = 16  # the fewest rows inflated at a time (an eighth of the image for larger ones)
 
 
-def _zlib():
+def _isal_zlib():
     try:
         from isal import isal_zlib
     except ImportError:  # not installed: without ISA-L the decode is no faster than OpenCV's
@@ -40,7 +40,7 @@ def _zlib():
     return isal_zlib
 
 
-_ISAL = _zlib()
+_ISAL = _isal_zlib()
 
 
 def available() -> bool:
@@ -99,7 +99,7 @@ def _header(view: memoryview) -> tuple[int, int, int, int, bytes] | None:
         elif kind == b"IEND":
             ended = True
             break
-        else:  # OpenCV writes no other chunk (MATLAB's tIME, Pillow's pHYs: adaptive encoders, OpenCV's files)
+        else:  # OpenCV writes no other chunk: MATLAB's tIME, a palette, tRNS or gAMA say another encoder
             return None
         position = end + 4
     if header is None or not ended or not parts:
@@ -107,9 +107,11 @@ def _header(view: memoryview) -> tuple[int, int, int, int, bytes] | None:
     width, height, bits, colour, compression, filtering, interlace = header
     if bits not in (8, 16) or colour not in _CHANNELS or (compression, filtering, interlace) != (0, 0, 0):
         return None
-    if width == 0 or height == 0:
+    idat = b"".join(parts)
+    # deflate expands at most ~1032-fold: a header promising more than that (a corrupt one) is not allocated
+    if width == 0 or height == 0 or height * (1 + width * _CHANNELS[colour] * bits // 8) > 1100 * len(idat) + 4096:
         return None
-    return width, height, bits, _CHANNELS[colour], b"".join(parts)
+    return width, height, bits, _CHANNELS[colour], idat
 
 
 def _inflate(idat: bytes, height: int, row_bytes: int) -> np.ndarray | None:

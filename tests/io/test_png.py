@@ -106,7 +106,7 @@ def _idat(data: bytes) -> list[bytes]:
 
 
 @pytest.mark.parametrize("case", ["transparency", "gamma", "time", "interlaced", "bit depth 4", "no IEND", "runs",
-                                  "late Paeth", "extra data"])
+                                  "late Paeth", "extra data", "huge header"])
 def test_files_it_does_not_take(rng, case):
     pixels = rng.integers(0, 256, (5, 6), dtype=np.int64).astype(np.uint8)
     if case == "transparency":
@@ -125,6 +125,8 @@ def test_files_it_does_not_take(rng, case):
         assert cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) is not None  # a valid PNG
     elif case == "extra data":  # a stream holding more rows than the header's height
         data = _with_idat((5, 6), 8, 0, zlib.compress(bytes([1] + [0] * 6) * 6))
+    elif case == "huge header":  # a header (CRC intact) promising 60000 x 60000: never allocated
+        data = _with_idat((60000, 60000), 8, 0, zlib.compress(bytes(7 * 5)))
     elif case == "interlaced":
         data = encode(pixels, [1] * 5, interlace=1)
     elif case == "bit depth 4":
