@@ -971,15 +971,19 @@ def _confidence(fit: tuple[Tensor, Tensor, Tensor], matrix: tuple, used: Tensor,
 
     The inverse of the slope's variance, relative to its median over the solved pixels: a pixel's normal varies
     as :math:`\sigma^2 \operatorname{tr}(G^{-1}) / \rho^2` (:math:`G` its normal matrix) and its slope
-    :math:`-n_x / n_z` as that over :math:`n_z^4`, so steep walls seen by few grazing lights (a knit's loops) get
-    little weight where they would otherwise add up to millimetres of tilt. Pixels fitted to exactly three
-    observations (no check of their fit) get a tenth; pixels next to an unsolved one (a crevice lit by fewer than
-    three LEDs) :data:`_EDGE_CONFIDENCE`, since their normal sees the crevice's wall; unsolved pixels 0.
+    :math:`-n_x / n_z` as that over :math:`n_z^4` (none for :math:`n_z \le 0`), so steep walls seen by few grazing
+    lights (a knit's loops) get little weight where they would otherwise add up to millimetres of tilt. Pixels
+    fitted to exactly three observations (no check of their fit) get a tenth; pixels next to an unsolved one (a
+    crevice lit by fewer than three LEDs) :data:`_EDGE_CONFIDENCE`, since their normal sees the crevice's wall;
+    unsolved pixels 0.
     """
     albedo, normals, solved = fit
     (c00, _, _, c11, _, c22), det = matrix
     variance = (c00 + c11 + c22) / det  # tr(G^-1)
-    inverse = albedo.square() * normals[:, 2:3].pow(4) / variance.clamp_min(torch.finfo(albedo.dtype).tiny)
+    # a normal facing away from the camera (n_z <= 0: an ill-posed fit, often with an albedo several times the
+    # cloth's) has no usable slope: normals_to_gradients caps it at 1/min_nz, and an even power of n_z would
+    # give that cap the weight of a well-seen facet (a knit's isolated 1-mm spikes beside unsolved crevices)
+    inverse = albedo.square() * normals[:, 2:3].clamp_min(0).pow(4) / variance.clamp_min(torch.finfo(albedo.dtype).tiny)
     inverse = torch.where(solved, inverse, torch.zeros_like(inverse)).nan_to_num(0.0, posinf=0.0)
     confidence = (inverse / _median(inverse, solved).clamp_min(torch.finfo(albedo.dtype).tiny)).clamp(0, 1)
     confidence = confidence * torch.where(used.sum(dim=1, keepdim=True) >= 4, 1.0, _THREE_OBSERVATIONS_CONFIDENCE)

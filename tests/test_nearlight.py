@@ -336,6 +336,24 @@ class TestSolveNearLight(BaseTester):
         assert not bool(result.mask[..., 20:23, 20:23].any())
         assert float((result.depth - height)[..., 18:25, 18:25].abs().max()) < 0.05
 
+    def test_a_fit_facing_away_is_no_spike(self):
+        """A pixel whose three usable observations fit a normal facing away from the camera (n_z < 0, an albedo six
+        times the cloth's: what a knit's crevices give), beside an unsolved one: its capped slope (1/min_nz) gets
+        no confidence, so the depth around it stays on the surface (it stood 0.4 mm off, its unsolved neighbour
+        2.1 mm, while the even power of n_z in the confidence weighted it as a well-seen facet)."""
+        leds, height, normals, images, card = _capture(offset_mm=0.5, dtype=torch.float64)
+        flat = _flat(images, card)
+        row, col = 24, 24
+        lights = near_light_vectors(leds, height, PITCH, 0.0)[0, :, :, row, col]  # (K, 3), flat-fielded
+        reading = lights @ torch.tensor([0.0, 3.0, -2.0], dtype=torch.float64)  # rho n with n_z = -0.55
+        assert int((reading > 0).sum()) == 3
+        doctored = flat.images.clone()
+        doctored[0, :, row, col] = reading.clamp_min(0)
+        doctored[0, :, row + 1, col : col + 2] = 0.0  # a crevice no LED reaches
+        result = solve_near_light(doctored, leds, PITCH, 0.0, flat.valid)
+        assert bool(result.mask[0, 0, row, col]) and float(result.normals[0, 2, row, col]) < 0
+        assert float((result.depth - height)[..., row - 3 : row + 4, col - 3 : col + 4].abs().max()) < 0.05
+
     def test_lost_steps_are_found_as_a_tilt(self):
         """Courses that rise gently and drop by a cliff (a purl's rows of loops): the cliffs' steep slopes have
         little confidence, so integration loses every drop and the drops add up to a tilt across the field. The
@@ -411,6 +429,18 @@ class TestSolveNearLight(BaseTester):
         assert noisy.sum() == 1 and bool(noisy[0, 0, 2, 2])  # without a noise model only the unsolved pixel
         assert float(conf[0, 0, 5, 5]) == 1.0 and float(conf[0, 0, 2, 2]) == 0.0
         assert float(conf[0, 0, 2, 3]) == pytest.approx(0.01)
+
+    def test_confidence_of_a_normal_facing_away(self):
+        """n_z <= 0 has no usable slope: confidence 0 and noisy (filled), where the mirrored normal keeps its own."""
+        vectors = torch.tensor([[1.0, 0, 1], [-1.0, 0, 1], [0, 1.0, 1], [0, -1.0, 1]])[None, :, :, None, None]
+        lx, ly, lz = vectors.expand(1, 4, 3, 1, 2).unbind(2)
+        normals = torch.tensor([[0.0, 0.6], [0.0, 0.6], [0.8, -0.8]]).view(1, 3, 1, 2)  # n_z = +0.8 and -0.8
+        used = torch.ones(1, 4, 1, 2, dtype=torch.bool)
+        solved = torch.ones(1, 1, 1, 2, dtype=torch.bool)
+        conf, noisy = _confidence((torch.ones(1, 1, 1, 2), normals, solved), _adjugate(lx, ly, lz, used), used,
+                                  torch.ones_like(solved), torch.tensor(1e-6).view(1, 1, 1, 1))
+        assert float(conf[0, 0, 0, 0]) > 0.5 and float(conf[0, 0, 0, 1]) == 0.0
+        assert not bool(noisy[0, 0, 0, 0]) and bool(noisy[0, 0, 0, 1])
 
     def test_iterations_reported_and_capped(self):
         leds, _, _, images, card = _capture(size=24)
