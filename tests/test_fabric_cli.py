@@ -153,3 +153,13 @@ def test_batch_describe_feature_table(tmp_path, capsys):
     assert main(["batch", str(root), "--out", str(tmp_path / "o2"), "--outputs", "normals", "--describe"]) == 1
     assert "must include depth" in capsys.readouterr().err
     assert not (tmp_path / "o2").exists()
+
+
+def test_table_wraps_directions_into_0_180():
+    """A direction a hair below 180 deg (the sub-bin refinement of a vertical peak) is printed as 0.00, in range."""
+    from psmini.commands.describe import _table
+
+    entry = {"structure_found": True, "threads_per_cm": [38.47, 31.26], "thread_angles_deg": [179.998, 90.004],
+             "weave_repeat": 1, "float_length": 0, "crimp_um": 0.0, "wales_per_cm": None, "openness": 0.1,
+             "iso25178": {"Sq": 12.7}, "iso25178_units": {"Sq": "um"}}
+    assert "yarn directions    0.00, 90.00 deg" in _table("knit", entry)

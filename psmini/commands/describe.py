@@ -194,7 +194,7 @@ def _figure(target: Path, height, mask, pitch: float, entry: dict) -> None:
         t = math.radians(a)
         right.plot([cx - length * math.cos(t), cx + length * math.cos(t)],
                    [cy - length * math.sin(t), cy + length * math.sin(t)], color=colour, lw=2,
-                   label=f"{d:.1f} threads/cm at {a:.1f} deg")
+                   label=f"{d:.1f} threads/cm at {_direction(a, 1)} deg")
     if density:
         right.legend(loc="lower right", fontsize=8)
     right.set_title("levelled height, yarn directions")
@@ -205,11 +205,16 @@ def _figure(target: Path, height, mask, pitch: float, entry: dict) -> None:
     plt.close(fig)
 
 
+def _direction(angle_deg: float, digits: int) -> str:
+    """A yarn direction in [0, 180) with ``digits`` decimals: 179.996 is 0.00, not 180.00."""
+    return f"{round(angle_deg, digits) % 180.0:.{digits}f}"
+
+
 def _table(name: str, entry: dict) -> str:
     lines = [f"{name}:"]
     if entry["structure_found"]:
         density = ", ".join(f"{d:.2f}" for d in entry["threads_per_cm"])
-        angles = ", ".join(f"{a:.2f}" for a in entry["thread_angles_deg"])
+        angles = ", ".join(_direction(a, 2) for a in entry["thread_angles_deg"])
         lines += [f"  threads per cm     {density}", f"  yarn directions    {angles} deg",
                   f"  weave repeat       {entry['weave_repeat']} (float {entry['float_length']})",
                   f"  crimp              {entry['crimp_um']:.1f} um"]
