@@ -982,8 +982,9 @@ def _confidence(fit: tuple[Tensor, Tensor, Tensor], matrix: tuple, used: Tensor,
     variance = (c00 + c11 + c22) / det  # tr(G^-1)
     # a normal facing away from the camera (n_z <= 0: an ill-posed fit, often with an albedo several times the
     # cloth's) has no usable slope: normals_to_gradients caps it at 1/min_nz, and an even power of n_z would
-    # give that cap the weight of a well-seen facet (a knit's isolated 1-mm spikes beside unsolved crevices)
-    inverse = albedo.square() * normals[:, 2:3].clamp_min(0).pow(4) / variance.clamp_min(torch.finfo(albedo.dtype).tiny)
+    # give that cap the weight of a well-seen facet (a knit's isolated 1-2 mm spikes beside unsolved crevices)
+    facing = normals[:, 2:3].clamp_min(0)
+    inverse = albedo.square() * facing.pow(4) / variance.clamp_min(torch.finfo(albedo.dtype).tiny)
     inverse = torch.where(solved, inverse, torch.zeros_like(inverse)).nan_to_num(0.0, posinf=0.0)
     confidence = (inverse / _median(inverse, solved).clamp_min(torch.finfo(albedo.dtype).tiny)).clamp(0, 1)
     confidence = confidence * torch.where(used.sum(dim=1, keepdim=True) >= 4, 1.0, _THREE_OBSERVATIONS_CONFIDENCE)

@@ -522,7 +522,7 @@ class TestSimulatedKnit:
         error = (result.depth - truth)[result.mask]
         error = error - error.median()
         assert int((error.abs() > 0.3).sum()) == 0, float(error.abs().max())
-        assert describe(result.depth, 0.025, result.mask)[0]["iso25178"]["Sku"] < 10
+        assert describe(result.depth, sample.pixel_pitch_mm, result.mask)[0]["iso25178"]["Sku"] < 10
 
 
 class TestRefineDepth(BaseTester):
