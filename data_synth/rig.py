@@ -25,6 +25,7 @@ The dark frame (all LEDs off) carries ambient light, black level and noise.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,7 +36,7 @@ import torch
 from torch import Tensor, nn
 
 from data_synth.fabrics import CARD_ALBEDO, FABRICS, Fabric, make_fabric
-from psmini.errors import InputError
+from psmini.errors import DataFormatError, InputError
 from psmini.geometry import depth_to_points, pixel_grid_mm
 from psmini.lights import DirectionalLights, LEDLights
 from psmini.render import cast_shadows, normals_from_height, render
@@ -529,6 +530,25 @@ def _check_fabric(fabric: Fabric, config: RigConfig) -> None:
         )
 
 
+def _reusable_card_seed(card_dir: Path, rig: dict[str, Any], overwrite: bool) -> int | None:
+    """The noise seed of the card already in ``card_dir`` when :func:`write_synthetic_capture` wrote it for the same
+    ``rig``; ``None`` when there is none, or with ``overwrite`` (a new one is written)."""
+    from psmini.io.capture import read_manifest
+
+    if overwrite or not card_dir.exists():
+        return None
+    metadata = read_manifest(card_dir).get("metadata") or {}
+    theirs = {key: metadata.get(key) for key in rig}
+    if theirs != rig:
+        differing = sorted(key for key in rig["rig"] if (theirs["rig"] or {}).get(key) != rig["rig"][key]) \
+            if isinstance(theirs["rig"], dict) else ["rig"]
+        if theirs["light_model"] != rig["light_model"]:
+            differing.insert(0, "light_model")
+        raise DataFormatError(f"{card_dir} holds a card for another rig (differing: {', '.join(differing)}); "
+                              "synthesise into another folder, or pass overwrite=True (--overwrite) to replace it")
+    return int(metadata["seed"])
+
+
 def write_synthetic_capture(
     out_dir: str | Path,
     fabric_name: str,
@@ -548,6 +568,11 @@ def write_synthetic_capture(
     albedo, mask (True on cloth), and the true light model) and ``out_dir/card/`` (the card, albedo
     :data:`~data_synth.fabrics.CARD_ALBEDO`), referenced from the sample's manifest as ``../card``.
 
+    Several fabrics share one folder as captures of one rig session share one card: a card that an earlier call
+    wrote into ``out_dir`` for the same rig (size, noise, light model and every :class:`RigConfig` field) is kept
+    and referenced (its noise then comes from that call's seed, which the sample's metadata records as
+    ``card_seed``); a card for another rig is an error, not silently reused.
+
     Args:
         out_dir: parent folder (created if needed).
         fabric_name: a key of :data:`data_synth.FABRICS`.
@@ -566,7 +591,8 @@ def write_synthetic_capture(
 
     Raises:
         InputError: for an unknown fabric or light model, bad parameters.
-        DataFormatError: when a folder exists (without ``overwrite``) or cannot be written.
+        DataFormatError: when the sample folder exists, or ``out_dir/card`` holds a card for another rig
+            (without ``overwrite``), or a folder cannot be written.
 
     Example:
         >>> sample_dir, card_dir = write_synthetic_capture("synthetic", "jute", size=64)  # doctest: +SKIP
@@ -583,21 +609,28 @@ def write_synthetic_capture(
         config = config.replace(vignetting=0.0, ambient=0.0)
         lights = distant_lights(config)
     fabric = make_fabric(fabric_name, size=size, pixel_pitch_mm=config.pixel_pitch_mm, seed=seed, **fabric_params)
-    capture = render_capture(fabric, config, seed, height_offset_mm, lights=lights)
-    card = render_card(config, CARD_ALBEDO, seed + 1, lights=lights)
     out_dir = Path(out_dir)
+    sample_dir = out_dir / fabric_name
+    if sample_dir.exists() and not overwrite:  # before anything is rendered or written
+        raise DataFormatError(f"{sample_dir} already exists; pass overwrite=True (--overwrite) to replace it")
+    # as the manifest will hold it (JSON: tuples come back as lists), to compare with a card already there
+    rig = json.loads(json.dumps({"light_model": light_model, "rig": dataclasses.asdict(config)}))
+    card_dir, card_seed = out_dir / "card", _reusable_card_seed(out_dir / "card", rig, overwrite)
+    capture = render_capture(fabric, config, seed, height_offset_mm, lights=lights)
     out_dir.mkdir(parents=True, exist_ok=True)
     camera = {"model": "orthographic", "simulated": True, "bit_depth": config.bit_depth,
               "exposure": config.exposure, "vignetting": config.vignetting}
-    card_dir = write_capture(out_dir / "card", card.images, card.lights, pixel_pitch_mm=config.pixel_pitch_mm,
-                             kind="flatfield", bit_depth=config.bit_depth, dark=card.dark, card_albedo=CARD_ALBEDO,
-                             camera=camera, metadata={"synthetic": True, "seed": seed + 1}, overwrite=overwrite)
+    if card_seed is None:
+        card_seed = seed + 1
+        card = render_card(config, CARD_ALBEDO, card_seed, lights=lights)
+        write_capture(card_dir, card.images, card.lights, pixel_pitch_mm=config.pixel_pitch_mm, kind="flatfield",
+                      bit_depth=config.bit_depth, dark=card.dark, card_albedo=CARD_ALBEDO, camera=camera,
+                      metadata={"synthetic": True, "seed": card_seed, **rig}, overwrite=overwrite)
     gt = {"normals": capture.normals, "depth": capture.depth_mm, "albedo": capture.albedo, "mask": capture.mask,
           "lights": capture.lights}
     metadata = {"synthetic": True, "fabric": fabric.name, "fabric_params": fabric.params, "seed": seed,
-                "light_model": light_model, "height_offset_mm": height_offset_mm,
-                "rig": dataclasses.asdict(config)}
-    sample_dir = write_capture(out_dir / fabric_name, capture.images, capture.lights,
+                "height_offset_mm": height_offset_mm, "card_seed": card_seed, **rig}
+    sample_dir = write_capture(sample_dir, capture.images, capture.lights,
                                pixel_pitch_mm=config.pixel_pitch_mm, kind="sample", bit_depth=config.bit_depth,
                                dark=capture.dark, flatfield={"path": "../card", "albedo": CARD_ALBEDO}, gt=gt,
                                camera=camera, metadata=metadata, overwrite=overwrite)

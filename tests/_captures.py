@@ -18,7 +18,7 @@ GOOD = ["lotA/jute", "lotA/twill", "lotB/cotton"]
 def write_capture_tree(root: Path, size: int) -> Path:
     """Two calibrations (lotA: two fabrics under one card, lotB: one) and a capture with a truncated image."""
     for seed, fabric in enumerate(["jute", "twill"]):
-        write_synthetic_capture(root / "lotA", fabric, size=size, seed=seed, overwrite=True)
+        write_synthetic_capture(root / "lotA", fabric, size=size, seed=seed)  # one card, kept
     write_synthetic_capture(root / "lotB", "cotton", size=size, seed=5)
     write_synthetic_capture(root / "lotC", "jute", size=size, seed=7)
     (root / "lotC" / "jute").rename(root / "lotC" / "broken")

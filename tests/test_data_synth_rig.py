@@ -171,6 +171,29 @@ def test_write_synthetic_capture_round_trip(tmp_path):
     assert type(load_sample(sample_dir).lights).__name__ == "DirectionalLights"
 
 
+def test_synthetic_captures_share_one_card(tmp_path):
+    """A second fabric in the same folder keeps the card of the same rig (as one session's captures share one) and
+    records its seed; a card of another rig refuses before anything is written; overwrite replaces it."""
+    from psmini.io import load_sample
+
+    write_synthetic_capture(tmp_path, "jute", size=32, seed=4)
+    card = (tmp_path / "card" / "led_00.png").read_bytes()
+    write_synthetic_capture(tmp_path, "twill", size=32, seed=9)
+    assert (tmp_path / "card" / "led_00.png").read_bytes() == card
+    assert load_sample(tmp_path / "twill").meta["metadata"]["card_seed"] == 5  # the jute's card (seed 4 + 1)
+    alone, _ = write_synthetic_capture(tmp_path / "alone", "twill", size=32, seed=9)
+    assert load_sample(alone).meta["metadata"]["card_seed"] == 10
+    with pytest.raises(DataFormatError, match="another rig.*size"):
+        write_synthetic_capture(tmp_path, "silk", size=48)
+    with pytest.raises(DataFormatError, match="another rig.*light_model"):
+        write_synthetic_capture(tmp_path, "silk", size=32, light_model="directional")
+    assert not (tmp_path / "silk").exists()
+    with pytest.raises(DataFormatError, match="twill already exists.*--overwrite"):
+        write_synthetic_capture(tmp_path, "twill", size=32)
+    write_synthetic_capture(tmp_path, "silk", size=48, overwrite=True)
+    assert load_sample(tmp_path / "silk").reference.shape[-1] == 48
+
+
 def test_errors():
     with pytest.raises(InputError, match="led_count"):
         RigConfig(led_count=2)

@@ -21,7 +21,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="synthesise a fabric capture and its flat-field card",
         description="Render a procedural fabric as the rig sees it (8 LEDs on a 31.6 mm ring 10 mm above the card, "
         "orthographic macro camera, vignetting, noise, quantisation) and write DIR/FABRIC (the sample, with gt/) "
-        "and DIR/card (the matte card under each LED, for flat-fielding).",
+        "and DIR/card (the matte card under each LED, for flat-fielding; a card already in DIR from an earlier "
+        "synth of the same rig is kept, so several fabrics share one folder as one rig session's captures do).",
     )
     parser.add_argument("fabric", choices=_fabric_names(), metavar="FABRIC", help=f"one of {', '.join(_fabric_names())}")
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="parent folder of the two captures")
@@ -40,6 +41,7 @@ def run(args: argparse.Namespace) -> int:
     from data_synth.rig import write_synthetic_capture
 
     start = time.perf_counter()
+    card_kept = (args.out / "card").exists() and not args.overwrite  # (write_synthetic_capture checks its rig)
     sample_dir, card_dir = write_synthetic_capture(
         args.out, args.fabric, seed=args.seed, size=args.size, noise=args.noise, light_model=args.light_model,
         overwrite=args.overwrite,
@@ -48,7 +50,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"synthesised {args.fabric} ({args.size}x{args.size}, {args.light_model} lights, "
           f"noise {'on' if args.noise else 'off'}, seed {args.seed}) in {elapsed:.1f} s")
     print(f"  wrote {sample_dir} (sample with gt/)")
-    print(f"  wrote {card_dir} (flat-field card)")
+    print(f"  kept {card_dir} (the flat-field card already there, of the same rig)" if card_kept
+          else f"  wrote {card_dir} (flat-field card)")
     if args.json:
         emit_json({"fabric": args.fabric, "sample": str(sample_dir), "card": str(card_dir), "time_s": elapsed})
     return 0

@@ -67,4 +67,4 @@ def _refuse_existing(destination: Path, overwrite: bool) -> None:
     if destination.exists() and not destination.is_dir():
         raise DataFormatError(f"{destination} exists and is not a folder")
     if destination.exists() and not overwrite:
-        raise DataFormatError(f"{destination} already exists; pass overwrite=True to replace it")
+        raise DataFormatError(f"{destination} already exists; pass overwrite=True (--overwrite) to replace it")

@@ -360,7 +360,7 @@ def write_with_card(folder: str | Path, session: CaptureSession, sample: Acquisi
         raise RigError(f"expected a 'sample' and a 'flatfield' acquisition, got {sample.kind!r} and {card.kind!r}")
     folder = Path(folder)
     if folder.exists() and not overwrite:
-        raise DataFormatError(f"{folder} already exists; pass overwrite=True to replace it")
+        raise DataFormatError(f"{folder} already exists; pass overwrite=True (--overwrite) to replace it")
     folder.parent.mkdir(parents=True, exist_ok=True)
     staging = folder.parent / f".{folder.name}.staging-{secrets.token_hex(4)}"
     staging.mkdir()

@@ -25,6 +25,10 @@ def test_synth_directional_and_errors(tmp_path, capsys):
     assert json.loads((tmp_path / "silk" / "capture.json").read_text())["lights"]["model"] == "directional"
     assert main(["synth", "silk", "--out", str(tmp_path), "--size", "32"]) == 1  # exists, no --overwrite
     assert "exists" in capsys.readouterr().err
+    assert main(["synth", "satin", "--out", str(tmp_path), "--size", "32", "--light-model", "directional"]) == 0
+    assert "kept" in capsys.readouterr().out  # the card of the same rig, shared
+    assert main(["synth", "satin", "--out", str(tmp_path), "--size", "32", "--overwrite"]) == 0  # another rig
+    assert "wrote" in capsys.readouterr().out.splitlines()[-1]
     with pytest.raises(SystemExit):
         main(["synth", "denim", "--out", str(tmp_path)])
 
