@@ -54,7 +54,6 @@ from psmini.flatfield import _check_frame
 from psmini.geometry import pixel_grid_mm
 from psmini.integrate import METHODS as INTEGRATORS
 from psmini.integrate import dct_poisson, integrate
-from psmini.integrate._dct import dct2, idct2
 from psmini.integrate.least_squares import _edge_system, _undo_edge_averaging
 from psmini.integrate.poisson import solve_weighted_poisson
 from psmini.lights import LEDLights, PointLights
@@ -134,17 +133,6 @@ _FILL_BELOW = 0.1
 # ... and their standard deviation (from the images' noise model) exceeds this, in slope units (about a degree):
 # exact slopes (noise-free renders) are never replaced, however few lights determine them.
 _SLOPE_NOISE = 0.02
-# A noisy, unconfident slope is kept all the same (its departure from the filled slope, less the mean departure of
-# such slopes around it, :func:`_keep_walls`) when its standard deviation is at most this share of its size (in
-# quadrature with _SLOPE_NOISE): a net's wall between a yarn and the card in a hole, a slope of 4 +- 0.5 over two
-# pixels, is the 0.15 mm step itself, which the fill flattens (on noisy 8-bit captures of the simulator's net the
-# hole's level came out 0.04 mm below the yarns' for 0.19 mm).
-_DETERMINED_SHARE = 0.15
-# Standard deviation (mm) of the Gaussian over which the kept slopes' mean departure is taken and removed: above a
-# yarn repeat of the rig's fabrics (1.1 mm, a net's mesh) and a tenth of the field. Steep slopes seen by grazing
-# lights share a bias (kept whole, a knit's loops warped its depth by 30 um over the field): a hole's two walls,
-# one down and one up, keep their step; what the walls of a region have in common does not bend it.
-_WALL_MEAN_MM = 1.0
 # Pixels fitted to exactly three observations get this share of their confidence (nothing checks their fit).
 _THREE_OBSERVATIONS_CONFIDENCE = 0.1
 # Side (pixels) of the window from which unconfident slopes are filled.
@@ -976,13 +964,10 @@ def _tilt_step(field: _LightField, images: Tensor, used: Tensor, depth: Tensor, 
 
 
 def _confidence(fit: tuple[Tensor, Tensor, Tensor], matrix: tuple, used: Tensor, domain: Tensor,
-                noise_sq: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    r"""Per-pixel confidence of the slopes in the integration, (B, 1, H, W), in [0, 1]; where the slopes are
+                noise_sq: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    r"""Per-pixel confidence of the slopes in the integration, (B, 1, H, W), in [0, 1], and where the slopes are
     noisy: their standard deviation, from the images' noise variance ``noise_sq`` (B, 1, 1, 1), above
-    :data:`_SLOPE_NOISE` (none without ``noise_sq``: then every slope is taken as it is); and which of the noisy
-    ones are steep walls whose slope is nevertheless determined: a standard deviation at most
-    :data:`_DETERMINED_SHARE` of the slope's size (in quadrature with :data:`_SLOPE_NOISE`), solved, not beside an
-    unsolved pixel (a crevice's rim, which sees its wall) and not facing away (for :func:`_keep_walls`).
+    :data:`_SLOPE_NOISE` (none without ``noise_sq``: then every slope is taken as it is).
 
     The inverse of the slope's variance, relative to its median over the solved pixels: a pixel's normal varies
     as :math:`\sigma^2 \operatorname{tr}(G^{-1}) / \rho^2` (:math:`G` its normal matrix) and its slope
@@ -1007,15 +992,8 @@ def _confidence(fit: tuple[Tensor, Tensor, Tensor], matrix: tuple, used: Tensor,
     padded = F.pad(gap, (1, 1, 1, 1), value=0.0)  # the image border is no gap
     beside = (padded[..., 1:-1, :-2] + padded[..., 1:-1, 2:] + padded[..., :-2, 1:-1] + padded[..., 2:, 1:-1]) > 0
     confidence = torch.where(beside, confidence.clamp(max=_EDGE_CONFIDENCE), confidence)
-    if noise_sq is None:
-        noisy, steep = ~solved, torch.zeros_like(solved)
-    else:
-        noisy = ~solved | (noise_sq > _SLOPE_NOISE**2 * inverse)
-        slope_sq = normals[:, :2].square().sum(dim=1, keepdim=True) / facing.square().clamp_min(
-            torch.finfo(albedo.dtype).tiny)
-        determined = noise_sq <= (_SLOPE_NOISE**2 + _DETERMINED_SHARE**2 * slope_sq) * inverse
-        steep = noisy & determined & solved & (facing > 0) & ~beside
-    return torch.where(solved, confidence, torch.zeros_like(confidence)), noisy, steep
+    noisy = ~solved if noise_sq is None else ~solved | (noise_sq > _SLOPE_NOISE**2 * inverse)
+    return torch.where(solved, confidence, torch.zeros_like(confidence)), noisy
 
 
 def _box(x: Tensor) -> Tensor:
@@ -1032,40 +1010,14 @@ def _fill(p: Tensor, q: Tensor, confidence: Tensor) -> tuple[Tensor, Tensor]:
     return tuple(confidence * g + (1 - confidence) * _box(g * confidence) / den for g in (p, q))
 
 
-def _gaussian(x: Tensor, sigma_px: float) -> Tensor:
-    r"""Gaussian smoothing of ``x`` (B, C, H, W) over the last two dimensions with mirrored borders: a product in
-    the cosine-transform domain (the DCT-II diagonalises convolutions of the half-sample mirrored image), the
-    transfer :math:`\exp(-2\pi^2\sigma^2 f^2)` at the frequencies :math:`k / 2N` cycles per pixel."""
-    h, w = x.shape[-2:]
-    fy = torch.arange(h, device=x.device, dtype=x.dtype).view(h, 1) / (2 * h)
-    fx = torch.arange(w, device=x.device, dtype=x.dtype).view(1, w) / (2 * w)
-    return idct2(dct2(x) * torch.exp(-2 * math.pi**2 * sigma_px**2 * (fy.square() + fx.square())))
-
-
-def _keep_walls(slopes: tuple[Tensor, Tensor], filled: tuple[Tensor, Tensor], kept: Tensor,
-                pitch: float) -> tuple[Tensor, Tensor]:
-    """The ``filled`` slopes, and at the ``kept`` pixels (steep walls: :func:`_confidence`) their departure from
-    the fill less its mean over the kept pixels around them (a Gaussian of :data:`_WALL_MEAN_MM`, normalised
-    convolution): a wall keeps its own step, and the bias that grazing lights give every wall of a region (its
-    mean) stays out. Other pixels' slopes are the filled ones."""
-    share = kept.to(slopes[0].dtype)
-    departures = torch.cat([share] + [(g - f) * share for g, f in zip(slopes, filled)], dim=1)
-    smooth = _gaussian(departures, _WALL_MEAN_MM / pitch)
-    total = smooth[:, :1].clamp_min(torch.finfo(share.dtype).tiny)
-    return tuple(f + torch.where(kept, (g - f) - mean / total, torch.zeros_like(g))
-                 for g, f, mean in zip(slopes, filled, smooth[:, 1:].split(1, dim=1)))
-
-
 def _integrate(p: Tensor, q: Tensor, confidence: Tensor, domain: Tensor, method: str, pitch: float,
-               previous: Tensor | None, mask_given: bool, noisy: Tensor | None = None,
-               steep: Tensor | None = None) -> Tensor:
+               previous: Tensor | None, mask_given: bool, noisy: Tensor | None = None) -> Tensor:
     """Height (zero mean over the domain) from the slopes, weighted by ``confidence`` (:func:`_confidence`).
 
     ``"fill"``: unconfident slopes replaced by their confident surroundings (:func:`_fill`), then a Neumann (DCT)
     solve on the rectangle (fast; the rest of the rectangle is a membrane when a mask is given). ``"masked"``:
     the slopes, those both ``noisy`` (:func:`_confidence`; all when ``None``) and below :data:`_FILL_BELOW`
-    confidence replaced by the filled ones (``steep`` walls among them keeping their departure from the fill, less
-    its local mean: :func:`_keep_walls`), weighted by their confidence (at least :data:`_CONFIDENCE_FLOOR`), by
+    confidence replaced by the filled ones, weighted by their confidence (at least :data:`_CONFIDENCE_FLOOR`), by
     least squares on the domain (edges carry the weighted mean of their two pixels' slopes): multigrid-
     preconditioned conjugate gradients warm-started from ``previous`` (mm; the fill's depth when ``None``), to
     :data:`_FINAL_CG_TOLERANCE`. The weights keep the steep, noisy walls of a knit's loops from tilting their
@@ -1081,9 +1033,7 @@ def _integrate(p: Tensor, q: Tensor, confidence: Tensor, domain: Tensor, method:
             return start
         previous = start
     weak = confidence < _FILL_BELOW if noisy is None else noisy & (confidence < _FILL_BELOW)  # noisy and unconfident
-    replaced = (torch.where(weak, filled[0], p), torch.where(weak, filled[1], q))
-    p, q = replaced if steep is None or not bool((weak & steep).any()) else \
-        _keep_walls((p, q), replaced, weak & steep, pitch)
+    p, q = torch.where(weak, filled[0], p), torch.where(weak, filled[1], q)
     half = torch.full_like(p, 0.5)
     wu, wv, tu, tv = _edge_system(p, -q, confidence.clamp_min(_CONFIDENCE_FLOOR), half, half)
     start = previous / pitch
@@ -1359,10 +1309,10 @@ def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tenso
         p, q = normals_to_gradients(normals)
         noise_sq = None if rejection.noise is None else \
             take(rejection.noise[0] + rejection.noise[1] * level)
-        confidence, noisy, steep = _confidence((albedo, normals, solved), fit[2], sub_used, sub_domain, noise_sq)
+        confidence, noisy = _confidence((albedo, normals, solved), fit[2], sub_used, sub_domain, noise_sq)
         # warm start from the last depth at this level (the coarse level's lacks the weave: the fill's is closer)
         warm = take(state.relative) if iteration > 0 else None
-        relative = _integrate(p, q, confidence, sub_domain, method, pitch, warm, mask is not None, noisy, steep)
+        relative = _integrate(p, q, confidence, sub_domain, method, pitch, warm, mask is not None, noisy)
         tilt = (tilt_field, take(state.tilt)) if tilt_field is not None else None
         placed = _place(sub_images, sub_used & solved, relative, sub_domain, coarse, take(state.offset), tilt,
                         scan if iteration == 0 else None, options, s)

@@ -381,11 +381,15 @@ class TestStructure:
     @pytest.mark.slow
     @pytest.mark.parametrize("solver", ["distant", "near"])
     @pytest.mark.parametrize("name", STRUCTURED)
-    def test_reconstructed_captures(self, name, solver):
+    def test_reconstructed_captures(self, name, solver, request):
         """From the simulator's noisy 8-bit captures, reconstructed by the default pipeline (near light, for LED
         captures) and by the classical one (distant lights with the card): within 2% and 1°, at 0, 0.5 and 1 mm
         above the card and five orientations (every pair for the classical pipeline; for near light, at about a
-        second per capture on a CPU, each orientation at one of the lifts in turn)."""
+        second per capture on a CPU, each orientation at one of the lifts in turn). Near light loses the net's
+        mesh (the step from its yarns down to the card in its holes is flattened: docs/guides/fabric.md), a known
+        failure kept visible here."""
+        if name == "net" and solver == "near":  # strict: a fix shows up as a failure to update this
+            request.applymarker(pytest.mark.xfail(strict=True, reason="near light flattens the net's hole step"))
         from data_synth import make_fabric
         from data_synth.rig import RigConfig, render_capture, render_card
         from psmini.config import ReconstructionConfig
