@@ -369,6 +369,9 @@ def render_capture(
     """
     config = config or RigConfig()
     _check_fabric(fabric, config)
+    if not (isinstance(height_offset_mm, (int, float)) and math.isfinite(height_offset_mm) and height_offset_mm >= 0):
+        raise InputError(f"height_offset_mm (the cloth's lift above the card) must be a finite number >= 0 mm, got "
+                         f"{height_offset_mm!r}")
     lights = lights if lights is not None else rig_lights(config, device=device, dtype=dtype)
     radiance, normals, height, lit, _ = _shade(fabric, lights, config, height_offset_mm, device, dtype)
     signal = radiance * _vignette(config, radiance) + config.ambient

@@ -209,6 +209,8 @@ def test_errors():
         render_sphere(radius_mm=-1.0)
     with pytest.raises(InputError, match="position"):
         focus_stack(make_fabric("silk", size=32), [], config=RigConfig(size=32))
+    with pytest.raises(InputError, match="lift"):
+        render_capture(make_fabric("silk", size=32), RigConfig(size=32), height_offset_mm=float("nan"))
     with pytest.raises(InputError, match="light_model"):
         write_synthetic_capture("unused", "jute", light_model="spot")
     with pytest.raises(InputError, match="unknown fabric"):

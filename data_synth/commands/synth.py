@@ -32,23 +32,32 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="add shot and read noise (default: on; quantisation always applies)")
     parser.add_argument("--light-model", choices=["rig", "directional"], default="rig",
                         help="rig: near LEDs (default); directional: ideal distant lights along the LED directions")
+    parser.add_argument("--lift", type=float, default=0.0, metavar="MM",
+                        help="the cloth's height above the card, mm (default: 0, lying on it; near light's case)")
+    parser.add_argument("--orientation", type=float, default=None, metavar="DEG",
+                        help="direction of the yarns, degrees counter-clockwise from x (default: the fabric's own)")
+    parser.add_argument("--bit-depth", type=int, choices=[8, 10, 12, 16], default=10,
+                        help="the camera's quantisation, bits (default: 10; the benchmarks' noisy captures use 8)")
     parser.add_argument("--overwrite", action="store_true", help="replace existing captures")
     add_json_flag(parser)
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from data_synth.rig import write_synthetic_capture
+    from data_synth.rig import RigConfig, write_synthetic_capture
 
     start = time.perf_counter()
     card_kept = (args.out / "card").exists() and not args.overwrite  # (write_synthetic_capture checks its rig)
+    fabric_params = {} if args.orientation is None else {"orientation_deg": args.orientation}
     sample_dir, card_dir = write_synthetic_capture(
         args.out, args.fabric, seed=args.seed, size=args.size, noise=args.noise, light_model=args.light_model,
-        overwrite=args.overwrite,
+        config=RigConfig(bit_depth=args.bit_depth), height_offset_mm=args.lift, overwrite=args.overwrite,
+        **fabric_params,
     )
     elapsed = time.perf_counter() - start
     print(f"synthesised {args.fabric} ({args.size}x{args.size}, {args.light_model} lights, "
-          f"noise {'on' if args.noise else 'off'}, seed {args.seed}) in {elapsed:.1f} s")
+          f"noise {'on' if args.noise else 'off'}, {args.bit_depth}-bit, {args.lift:g} mm above the card, "
+          f"seed {args.seed}) in {elapsed:.1f} s")
     print(f"  wrote {sample_dir} (sample with gt/)")
     print(f"  kept {card_dir} (the flat-field card already there, of the same rig)" if card_kept
           else f"  wrote {card_dir} (flat-field card)")

@@ -2,6 +2,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from psmini.cli import main
 
@@ -31,6 +32,24 @@ def test_synth_directional_and_errors(tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out.splitlines()[-1]
     with pytest.raises(SystemExit):
         main(["synth", "denim", "--out", str(tmp_path)])
+
+
+def test_synth_lift_orientation_and_bit_depth(tmp_path, capsys):
+    """The capture as the benchmarks render it (8 bits, the cloth lifted, the yarns turned): in the manifest and
+    the ground truth; a negative lift is refused before anything is written."""
+    args = ["synth", "net", "--out", str(tmp_path), "--size", "48", "--lift", "0.5", "--orientation", "30",
+            "--bit-depth", "8", "--seed", "2"]
+    assert main(args) == 0 and "8-bit, 0.5 mm above the card" in capsys.readouterr().out
+    manifest = json.loads((tmp_path / "net" / "capture.json").read_text())
+    assert manifest["bit_depth"] == 8 and manifest["metadata"]["height_offset_mm"] == 0.5
+    assert manifest["metadata"]["fabric_params"]["orientation_deg"] == 30.0
+    from data_synth import make_fabric
+    from psmini.io import load_sample
+
+    truth = make_fabric("net", size=48, seed=2, orientation_deg=30.0).height_mm[0]
+    assert torch.allclose(load_sample(tmp_path / "net").depth_gt, truth + 0.5)
+    assert main(["synth", "knit", "--out", str(tmp_path / "low"), "--size", "32", "--lift", "-0.2"]) == 1
+    assert "lift above the card" in capsys.readouterr().err and not (tmp_path / "low" / "knit").exists()
 
 
 @pytest.mark.slow
