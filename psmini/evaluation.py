@@ -52,8 +52,10 @@ def score_reconstruction(result: Reconstruction, sample) -> dict[str, float | in
 
     Returns:
         dict with ``name``, ``pixels`` (scored), ``unsolved_pixels`` and ``unsolved_share`` (of the scored ones),
-        ``mean_angular_error_deg``, ``median_angular_error_deg`` and, when the sample has ground-truth depth,
-        ``depth_rmse_mm`` and ``depth_mae_mm`` (after removing the mean offset).
+        ``mean_angular_error_deg``, ``median_angular_error_deg``; for near light, ``noise_floor_pixels`` (scored
+        pixels of :attr:`~psmini.nearlight.NearLightResult.at_noise_floor`) and ``noise_floor_error_deg`` (their
+        mean error; NaN when none); and, when the sample has ground-truth depth, ``depth_rmse_mm`` and
+        ``depth_mae_mm`` (after removing the mean offset).
 
     Example:
         >>> from psmini.io import Sample
@@ -78,6 +80,12 @@ def score_reconstruction(result: Reconstruction, sample) -> dict[str, float | in
         "mean_angular_error_deg": float(mean_angular_error(result.normals, normals_gt, mask)[0]),
         "median_angular_error_deg": float(median_angular_error(result.normals, normals_gt, mask)[0]),
     }
+    at_floor = getattr(result, "at_noise_floor", None)
+    if at_floor is not None:  # near light: solved pixels fitted to a reading at the noise floor, and their error
+        at_floor = mask & at_floor.to(device)
+        scores["noise_floor_pixels"] = int(at_floor.sum())
+        scores["noise_floor_error_deg"] = float(mean_angular_error(result.normals, normals_gt, at_floor)[0]) \
+            if bool(at_floor.any()) else float("nan")
     if sample.depth_gt is not None:
         errors = depth_error(result.depth, sample.depth_gt.to(device=device, dtype=dtype).unsqueeze(0), mask)
         scores["depth_rmse_mm"] = float(errors["rmse"][0])

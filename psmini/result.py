@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import torch
 from torch import Tensor
@@ -63,5 +63,7 @@ class Reconstruction:
                               exaggeration=exaggeration, max_size=max_size)
 
     def to(self, device: torch.device | str) -> Reconstruction:
-        """A copy with every field on ``device``."""
-        return Reconstruction(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
+        """A copy of the same type with every tensor field on ``device`` (the others, such as a near-light result's
+        iteration count, as they are)."""
+        return replace(self, **{f.name: getattr(self, f.name).to(device) for f in fields(self)
+                                if isinstance(getattr(self, f.name), Tensor)})

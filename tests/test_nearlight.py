@@ -11,6 +11,7 @@ from psmini.flatfield import flatfield
 from psmini import _chunks
 from psmini.nearlight import (
     NearLightOptions,
+    NearLightResult,
     RefineOptions,
     _adjugate,
     _confidence,
@@ -523,6 +524,50 @@ class TestSimulatedKnit:
         error = error - error.median()
         assert int((error.abs() > 0.3).sum()) == 0, float(error.abs().max())
         assert describe(result.depth, sample.pixel_pitch_mm, result.mask)[0]["iso25178"]["Sku"] < 10
+
+
+class TestNoiseFloorFits:
+    def test_flags_the_fits_to_a_shadow(self, tmp_path):
+        """`psmini synth net` (200 px, noisy 10-bit): the solved pixels fitted to three observations with one at the
+        noise floor are flagged; they are exactly three-observation fits, and their normals err tens of degrees
+        where the others err about one (35 against 1.1 deg when written)."""
+        from data_synth.rig import write_synthetic_capture
+        from psmini import reconstruct
+        from psmini.io import load_sample
+
+        sample_dir, _ = write_synthetic_capture(tmp_path, "net", seed=0, size=200)
+        sample = load_sample(sample_dir)
+        result = reconstruct(sample)
+        flagged, solved = result.at_noise_floor[0, 0], result.mask[0, 0]
+        error = angular_error_deg(result.normals, sample.normals_gt[None])[0, 0]
+        assert int(flagged.sum()) > 100 and bool((flagged <= solved).all())
+        assert bool((result.weights[0].sum(0)[flagged] == 3).all())
+        assert float(error[flagged].mean()) > 10 * float(error[solved & ~flagged].mean())
+        from psmini.evaluation import evaluation_mask, score_reconstruction
+
+        scores, scored = score_reconstruction(result, sample), evaluation_mask(sample, error.device)[0, 0]
+        assert scores["noise_floor_pixels"] == int((flagged & scored).sum()) > 0
+        assert scores["noise_floor_error_deg"] == pytest.approx(float(error[flagged & scored].mean()), rel=1e-4)
+        distant = reconstruct(sample, ReconstructionConfig(solver="distant"))
+        assert "noise_floor_pixels" not in score_reconstruction(distant, sample)
+
+    def test_none_where_every_light_reaches(self):
+        leds, _, _, images, card = _capture(size=24)
+        flat = _flat(images, card)
+        result = solve_near_light(flat.images, leds, PITCH, 0.0, flat.valid)
+        assert result.at_noise_floor.shape == (1, 1, 24, 24) and not bool(result.at_noise_floor.any())
+        both = NearLightResult.concatenate([result, result])
+        assert both.at_noise_floor.shape == (2, 1, 24, 24)
+
+    def test_moves_to_a_device_whole(self):
+        """``to`` keeps a near-light result's type and its diagnostics (it failed on the iteration count)."""
+        leds, _, _, images, card = _capture(size=24)
+        flat = _flat(images, card)
+        result = solve_near_light(flat.images, leds, PITCH, 0.0, flat.valid)
+        moved = result.to("cpu")
+        assert isinstance(moved, NearLightResult) and moved.iterations == result.iterations > 0
+        assert moved.converged == result.converged and torch.equal(moved.at_noise_floor, result.at_noise_floor)
+        assert torch.equal(moved.weights, result.weights) and torch.equal(moved.depth, result.depth)
 
 
 class TestRefineDepth(BaseTester):
