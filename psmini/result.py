@@ -62,6 +62,29 @@ class Reconstruction:
         return surface_figure(self.depth[index], self.albedo[index], self.mask[index], pixel_pitch_mm,
                               exaggeration=exaggeration, max_size=max_size)
 
+    def item(self, index: int) -> Reconstruction:
+        """Item ``index`` of the batch as a batch of one, of the same type: every tensor field sliced along its
+        first dimension (a near-light result's counts and flags kept as they are).
+
+        Raises:
+            InputError: an index outside the batch.
+
+        Example:
+            >>> import torch
+            >>> zeros = torch.zeros(2, 1, 4, 4)
+            >>> batch = Reconstruction(zeros, zeros.expand(2, 3, 4, 4), zeros, zeros, zeros, zeros > 0)
+            >>> batch.item(1).normals.shape
+            torch.Size([1, 3, 4, 4])
+        """
+        from psmini.errors import InputError
+
+        batch = self.depth.shape[0]
+        if not -batch <= index < batch:
+            raise InputError(f"index {index} is outside the batch of {batch}")
+        index %= batch
+        return replace(self, **{f.name: getattr(self, f.name)[index : index + 1] for f in fields(self)
+                                if isinstance(getattr(self, f.name), Tensor)})
+
     def to(self, device: torch.device | str) -> Reconstruction:
         """A copy of the same type with every tensor field on ``device`` (the others, such as a near-light result's
         iteration count, as they are)."""

@@ -569,6 +569,19 @@ class TestNoiseFloorFits:
         assert moved.converged == result.converged and torch.equal(moved.at_noise_floor, result.at_noise_floor)
         assert torch.equal(moved.weights, result.weights) and torch.equal(moved.depth, result.depth)
 
+    def test_item_of_a_batch_keeps_the_diagnostics(self):
+        """``item`` (what ``psmini.batch`` hands each sample) keeps a near-light result's type and its flags."""
+        leds, _, _, images, card = _capture(size=24)
+        flat = _flat(images, card)
+        single = solve_near_light(flat.images, leds, PITCH, 0.0, flat.valid)
+        both = NearLightResult.concatenate([single, single.to("cpu")])
+        second = both.item(-1)
+        assert isinstance(second, NearLightResult) and second.iterations == single.iterations
+        for name in ("albedo", "normals", "depth", "mask", "weights", "offset_mm", "tilt", "at_noise_floor"):
+            assert torch.equal(getattr(second, name), getattr(single, name)), name
+        with pytest.raises(InputError, match="index 2 is outside the batch of 2"):
+            both.item(2)
+
 
 class TestRefineDepth(BaseTester):
     def test_reduces_smooth_depth_error(self):

@@ -32,6 +32,7 @@ __all__ = [
     "save_depth",
     "save_ply",
     "save_mesh_ply",
+    "save_noise_floor",
     "write_outputs",
 ]
 
@@ -366,9 +367,49 @@ def save_mesh_ply(path: str | Path, points: Any, colors: Any = None, mask: Any =
 
 def _field(reconstruction: Any, name: str) -> Any:
     value = reconstruction.get(name) if isinstance(reconstruction, Mapping) else getattr(reconstruction, name, None)
-    if value is None and name != "mask":
+    if value is None and name not in ("mask", "at_noise_floor"):
         raise InputError(f"reconstruction lacks {name!r}; expected albedo, normals, depth (and optionally mask)")
     return value
+
+
+def _noise_floor(flags: Any, inside: np.ndarray) -> np.ndarray | None:
+    """The (H, W) bool ``at_noise_floor`` flags of a reconstruction (None without them), like its mask."""
+    if flags is None:
+        return None
+    array = _planes(flags, "at_noise_floor", 1)[0]
+    if array.shape != inside.shape:
+        raise ShapeError(f"at_noise_floor must be {inside.shape[0]}x{inside.shape[1]} (HxW) like the image, got "
+                         f"{array.shape}")
+    return array != 0
+
+
+def save_noise_floor(path: str | Path, flags: Any, mask: Any = None) -> dict[str, float]:
+    """Write near light's ``at_noise_floor`` flags as an 8-bit PNG: 255 at the flagged solved pixels, 0 elsewhere.
+
+    Args:
+        path: destination ``.png``.
+        flags: :attr:`psmini.nearlight.NearLightResult.at_noise_floor`, :math:`(1, 1, H, W)`, :math:`(1, H, W)`
+            or :math:`(H, W)`, bool (nonzero counts as flagged).
+        mask: the solved pixels, like ``flags`` (None: every pixel); flags outside it are not written.
+
+    Returns:
+        ``{"noise_floor_pixels": n, "noise_floor_share": n / solved}`` (the share 0 when nothing is solved).
+
+    Raises:
+        ShapeError: flags or mask of another shape. DataFormatError: the file cannot be written.
+
+    Example:
+        >>> flags = torch.zeros(1, 1, 4, 4, dtype=torch.bool)
+        >>> flags[..., 0, 0] = True
+        >>> save_noise_floor("noise_floor.png", flags)  # doctest: +SKIP
+        {'noise_floor_pixels': 1, 'noise_floor_share': 0.0625}
+    """
+    array = _planes(flags, "at_noise_floor", 1)[0] != 0
+    inside = _mask(mask, *array.shape)
+    flagged = array & inside
+    write_image(path, flagged.astype(np.uint8) * np.uint8(255))
+    count, solved = int(np.count_nonzero(flagged)), int(np.count_nonzero(inside))
+    return {"noise_floor_pixels": count, "noise_floor_share": count / solved if solved else 0.0}
 
 
 def write_outputs(
@@ -386,14 +427,17 @@ def write_outputs(
     ``depth.png``, ``depth.json`` (:func:`save_depth`), ``points.ply`` (:func:`save_ply`: orthographic points
     of :func:`psmini.geometry.depth_to_points` inside the mask, coloured by albedo), ``mesh.ply``
     (:func:`save_mesh_ply`: the same points triangulated over the mask) and ``outputs.json``
-    (the file list, the albedo scale, the depth range, the pixel pitch, ``metadata``). Written into a
-    temporary sibling folder and renamed into place.
+    (the file list, the albedo scale, the depth range, the pixel pitch, ``metadata``). A near-light result
+    (:class:`~psmini.nearlight.NearLightResult`) adds ``noise_floor.png``, 8-bit, 255 at the solved pixels
+    fitted to a shadow (:attr:`~psmini.nearlight.NearLightResult.at_noise_floor`: their normals are not to be
+    trusted) and 0 elsewhere, and ``outputs.json`` counts them (``noise_floor_pixels``,
+    ``noise_floor_share`` of the solved pixels). Written into a temporary sibling folder and renamed into place.
 
     Args:
         out_dir: the output folder; must not exist unless ``overwrite``.
         reconstruction: a ``psmini.pipeline.Reconstruction`` or a mapping with ``albedo`` (:math:`(1, 1, H, W)`
             or :math:`(1, H, W)`), ``normals`` (:math:`(1, 3, H, W)` or :math:`(3, H, W)`), ``depth`` (like
-            albedo, mm) and optionally ``mask`` (like albedo, bool); a batch of one or none.
+            albedo, mm) and optionally ``mask`` and ``at_noise_floor`` (like albedo, bool); a batch of one or none.
         pixel_pitch_mm: size of a pixel, mm, for the point cloud's x and y; None gives pixel units.
         normal_bit_depth: 8 or 16 for ``normals.png``.
         metadata: extra JSON-serialisable entries for ``outputs.json``.
@@ -422,10 +466,11 @@ def write_outputs(
             f"albedo {albedo.shape[1:]}, normals {normals.shape[1:]} and depth {depth.shape[1:]} must share one size"
         )
     inside = _mask(_field(reconstruction, "mask"), height, width)
+    floor = _noise_floor(_field(reconstruction, "at_noise_floor"), inside)  # checked before anything is written
     pitch = 1.0 if pixel_pitch_mm is None else float(pixel_pitch_mm)
     points = depth_to_points(torch.from_numpy(depth[None]), pitch)[0]
-    names = ["albedo.png", "normals.png", "depth.npy", "depth.png", "depth.json", "points.ply", "mesh.ply",
-             "outputs.json"]
+    names = ["albedo.png", "normals.png", "depth.npy", "depth.png", "depth.json", "points.ply", "mesh.ply"]
+    names += ([] if floor is None else ["noise_floor.png"]) + ["outputs.json"]
     with atomic_folder(out_dir, overwrite) as target:
         scale = save_albedo_png(target / "albedo.png", albedo, inside)
         save_normal_png(target / "normals.png", normals, inside, bit_depth=normal_bit_depth)
@@ -433,6 +478,7 @@ def write_outputs(
                    pixel_pitch_mm=pixel_pitch_mm)
         vertex_count = save_ply(target / "points.ply", points, albedo, inside[None])
         _, face_count = save_mesh_ply(target / "mesh.ply", points, albedo, inside)
+        floor_counts = {} if floor is None else save_noise_floor(target / "noise_floor.png", floor, inside)
         summary = {
             "files": names[:-1],
             "size": [width, height],
@@ -443,6 +489,7 @@ def write_outputs(
             "depth_units": "mm" if pixel_pitch_mm is not None else "pixels",
             "vertices": vertex_count,
             "faces": face_count,
+            **floor_counts,
             "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "metadata": dict(metadata or {}),
         }

@@ -19,6 +19,7 @@ from psmini.io.export import (
     save_albedo_png,
     save_depth,
     save_mesh_ply,
+    save_noise_floor,
     save_normal_png,
     save_ply,
     write_outputs,
@@ -242,6 +243,39 @@ class TestWriteOutputs:
         write_outputs(tmp_path / "out", rec)
         assert json.loads((tmp_path / "out" / "depth.json").read_text())["units"] == "pixels"
 
+    def test_near_light_noise_floor_flags(self, tmp_path):
+        """A result with near light's ``at_noise_floor`` adds noise_floor.png (255 at the flagged solved pixels)
+        and its counts; a flag outside the mask is not written."""
+        result = reconstruction()
+        flags = torch.zeros(1, 1, H, W, dtype=torch.bool)
+        flags[..., 0, 0] = True  # outside the mask
+        flags[..., 2, 3] = flags[..., 4, 5] = True
+        written = write_outputs(tmp_path / "out", result | {"at_noise_floor": flags})
+        assert [p.name for p in written][-2:] == ["noise_floor.png", "outputs.json"]
+        pixels, bits = read_image_raw(tmp_path / "out" / "noise_floor.png")
+        assert bits == 8
+        expected = np.zeros((H, W), np.uint8)
+        expected[2, 3] = expected[4, 5] = 255
+        np.testing.assert_array_equal(pixels, expected)
+        summary = json.loads((tmp_path / "out" / "outputs.json").read_text())
+        assert summary["noise_floor_pixels"] == 2 and summary["noise_floor_share"] == pytest.approx(2 / (H * W - 1))
+        assert "noise_floor.png" in summary["files"]
+        write_outputs(tmp_path / "plain", result)
+        plain = json.loads((tmp_path / "plain" / "outputs.json").read_text())
+        assert "noise_floor_pixels" not in plain and "noise_floor.png" not in plain["files"]
+
+    def test_save_noise_floor(self, tmp_path):
+        flags = torch.tensor([[True, False], [True, True]])
+        counts = save_noise_floor(tmp_path / "f.png", flags, torch.tensor([[True, True], [False, True]]))
+        assert counts == {"noise_floor_pixels": 2, "noise_floor_share": pytest.approx(2 / 3)}
+        np.testing.assert_array_equal(read_image_raw(tmp_path / "f.png")[0], [[255, 0], [0, 255]])
+        assert save_noise_floor(tmp_path / "g.png", flags, torch.zeros(2, 2, dtype=torch.bool)) == {
+            "noise_floor_pixels": 0, "noise_floor_share": 0.0}
+        with pytest.raises(ShapeError, match="mask must be 2x2"):
+            save_noise_floor(tmp_path / "h.png", flags, torch.ones(2, 3, dtype=torch.bool))
+        with pytest.raises(DataFormatError, match="cannot write"):
+            save_noise_floor(tmp_path / "none" / "f.png", flags)
+
     def test_existing_out_dir(self, tmp_path):
         write_outputs(tmp_path / "out", reconstruction())
         with pytest.raises(DataFormatError, match="already exists"):
@@ -270,6 +304,8 @@ class TestWriteOutputs:
             write_outputs(tmp_path / "out", result, metadata={"x": object()})
         with pytest.raises(InputError, match="bit_depth"):
             write_outputs(tmp_path / "out", result, normal_bit_depth=4)
+        with pytest.raises(ShapeError, match="at_noise_floor must be 6x8"):
+            write_outputs(tmp_path / "out", result | {"at_noise_floor": torch.zeros(1, 1, H + 1, W, dtype=torch.bool)})
         assert os.listdir(tmp_path) == []
 
 
