@@ -53,12 +53,9 @@ class Reconstruction:
         Example:
             >>> result.show(sample.pixel_pitch_mm)  # doctest: +SKIP
         """
-        from psmini.errors import InputError
         from psmini.viz import surface_figure
 
-        batch = self.depth.shape[0]
-        if not -batch <= index < batch:
-            raise InputError(f"index {index} is outside the batch of {batch}")
+        index = self._batch_index(index)
         return surface_figure(self.depth[index], self.albedo[index], self.mask[index], pixel_pitch_mm,
                               exaggeration=exaggeration, max_size=max_size)
 
@@ -76,14 +73,18 @@ class Reconstruction:
             >>> batch.item(1).normals.shape
             torch.Size([1, 3, 4, 4])
         """
+        index = self._batch_index(index)
+        return replace(self, **{f.name: getattr(self, f.name)[index : index + 1] for f in fields(self)
+                                if isinstance(getattr(self, f.name), Tensor)})
+
+    def _batch_index(self, index: int) -> int:
+        """``index`` as a position in the batch (negative ones count from its end); InputError outside it."""
         from psmini.errors import InputError
 
         batch = self.depth.shape[0]
         if not -batch <= index < batch:
             raise InputError(f"index {index} is outside the batch of {batch}")
-        index %= batch
-        return replace(self, **{f.name: getattr(self, f.name)[index : index + 1] for f in fields(self)
-                                if isinstance(getattr(self, f.name), Tensor)})
+        return index % batch
 
     def to(self, device: torch.device | str) -> Reconstruction:
         """A copy of the same type with every tensor field on ``device`` (the others, such as a near-light result's
