@@ -170,6 +170,30 @@ class TestRobustNormals(BaseTester):
         assert float(others.float().mean()) > 0.995
         assert float(angular_error_deg(estimate, normals)[..., 8:40, 8:40].max()) < 1.0
 
+    def test_bands_of_rows_give_the_whole_image_selection(self, monkeypatch):
+        """On the CPU the selection's rounds run in bands of rows; with bands of 8 rows (six of them, on an image
+        with noise, glinting tapes and a cast shadow that cross them) the weights are the whole image's and the
+        normals equal to float64 rounding."""
+        import psmini.nearlight as nearlight
+
+        leds, height, normals, _, _ = _capture(dtype=torch.float64)
+        rows = torch.arange(48).view(1, 1, 48, 1).expand(1, 1, 48, 48)
+        metal = (rows // 5) % 3 == 0
+        images = render(depth_to_points(height, PITCH), normals, torch.where(metal, 0.25, 0.6).to(height), leds,
+                        specular=torch.where(metal, 0.9, 0.0).to(height), shininess=40.0)
+        noise = torch.randn(images.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+        images = (images + 0.01 * images.mean() * noise).clamp_min(0)
+        images[:, 3, 5:30, 20:44] *= 0.02  # a cast shadow over several bands
+        vectors = near_light_vectors(leds, height, PITCH)
+        whole = robust_near_light_normals(images, vectors)
+        monkeypatch.setattr(nearlight, "_BAND_ELEMENTS", 1)  # every band _MIN_BAND_ROWS = 8 rows
+        assert len(nearlight._row_bands(images)) == 6
+        banded = robust_near_light_normals(images, vectors)
+        assert torch.equal(banded[2], whole[2]) and not bool(whole[2][:, 3, 5:30, 20:44].any())
+        assert bool((~whole[2][:, :, metal[0, 0]]).any())  # glints were dropped
+        self.assert_close(banded[1], whole[1], rtol=0, atol=1e-12)
+        self.assert_close(banded[0], whole[0], rtol=0, atol=1e-12)
+
     def test_read_noise_ignores_lit_observations_among_the_dark(self):
         """The read noise comes from observations that the fit puts in attached shadow; lit ones among them (2%
         here, reading 0.06, as a glint-bent fit predicts) are clipped away: the estimate stays within 10% of the
