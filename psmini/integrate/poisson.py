@@ -17,6 +17,7 @@ in the backward pass).
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass
 
@@ -50,6 +51,11 @@ def edge_mask(mask: Tensor) -> tuple[Tensor, Tensor]:
     return mask[..., :, 1:] * mask[..., :, :-1], mask[..., 1:, :] * mask[..., :-1, :]
 
 
+def _shifted(padded: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Each pixel's left, right, upper and lower neighbour, as views of the array padded by one on every side."""
+    return padded[..., 1:-1, :-2], padded[..., 1:-1, 2:], padded[..., :-2, 1:-1], padded[..., 2:, 1:-1]
+
+
 @dataclass
 class _Level:
     """One grid of the multigrid hierarchy as a 5-point stencil.
@@ -75,19 +81,38 @@ class _Level:
         return cls(wu, wv, active, neighbours, torch.where(active, total, torch.ones_like(total)))
 
     def apply(self, z: Tensor) -> Tensor:
+        # one pass per neighbour (the products accumulated in place): the hierarchy's tensors outgrow the cache
+        # and every pass reads them from memory
         zp = F.pad(z, (1, 1, 1, 1))
         left, right, up, down = self.neighbours
-        return (
-            self.diag * z
-            - left * zp[..., 1:-1, :-2]
-            - right * zp[..., 1:-1, 2:]
-            - up * zp[..., :-2, 1:-1]
-            - down * zp[..., 2:, 1:-1]
-        )
+        out = self.diag * z
+        for weight, shifted in zip((left, right, up, down), _shifted(zp)):
+            out.addcmul_(weight, shifted, value=-1)
+        return out
 
-    def smooth(self, x: Tensor, r: Tensor, sweeps: int) -> Tensor:
+    @functools.cached_property
+    def jacobi(self) -> tuple[Tensor, Tensor]:
+        r"""The damped Jacobi sweep's constants: :math:`\omega / d` and the neighbour weights times it (4, ...)."""
+        scale = _JACOBI_OMEGA / self.diag
+        return scale, self.neighbours * scale
+
+    def smooth(self, x: Tensor | None, r: Tensor, sweeps: int) -> Tensor:
+        r"""``sweeps`` damped Jacobi sweeps :math:`x \leftarrow x + \omega D^{-1}(r - A x)` from ``x`` (zero when
+        ``None``), each computed as :math:`(1 - \omega) x + \omega D^{-1} r + \omega D^{-1} N x` (:math:`N` the
+        neighbour weights, :math:`A = D - N`): one pass per neighbour, and the first sweep from zero is
+        :math:`\omega D^{-1} r` alone."""
+        if sweeps == 0:
+            return torch.zeros_like(r) if x is None else x
+        scale, weights = self.jacobi
+        start = r * scale
         for _ in range(sweeps):
-            x = x + (r - self.apply(x)) * (_JACOBI_OMEGA / self.diag)
+            if x is None:
+                x = start
+                continue
+            new = torch.add(start, x, alpha=1 - _JACOBI_OMEGA)
+            for weight, shifted in zip(weights, _shifted(F.pad(x, (1, 1, 1, 1)))):
+                new.addcmul_(weight, shifted)
+            x = new
         return x
 
     def restrict(self, r: Tensor) -> Tensor:
@@ -139,7 +164,7 @@ class _Hierarchy:
         level = self.levels[index]
         if index == len(self.levels) - 1:
             return (self.coarse_inverse @ r.flatten(1).unsqueeze(-1)).view_as(r)
-        x = level.smooth(torch.zeros_like(r), r, _SWEEPS)
+        x = level.smooth(None, r, _SWEEPS)
         x = x + level.prolong(self.precondition(level.restrict(r - level.apply(x)), index + 1))
         return level.smooth(x, r, _SWEEPS)
 
