@@ -870,7 +870,19 @@ def robust_near_light_normals(
 def _offset_cost(field: _LightField, images: Tensor, used: Tensor, depth: Tensor, offsets: Tensor) -> Tensor:
     """Relative least-squares residual of each batch item at ``depth + offsets``; offsets (B, n) → costs (B, n).
 
-    All offsets are evaluated in one batched pass (the batch becomes B·n)."""
+    The offsets are evaluated in batched passes (the batch becomes B·n): all at once on a GPU, on the CPU as many
+    at a time as :data:`_BAND_ELEMENTS` observations hold (at least one), so that each pass's tensors stay in
+    the cache (25 offsets on 100² pixels: 37 ms one at a time against 56 ms at once; the same costs)."""
+    count = offsets.shape[1]
+    per_pass = count if images.device.type != "cpu" else max(1, _BAND_ELEMENTS // images.numel())
+    if per_pass >= count:
+        return _offset_cost_pass(field, images, used, depth, offsets)
+    return torch.cat([_offset_cost_pass(field, images, used, depth, offsets[:, start : start + per_pass])
+                      for start in range(0, count, per_pass)], dim=1)
+
+
+def _offset_cost_pass(field: _LightField, images: Tensor, used: Tensor, depth: Tensor, offsets: Tensor) -> Tensor:
+    """:func:`_offset_cost` in one batched pass."""
     batch, count = offsets.shape
     heights = (depth[:, None] + offsets[:, :, None, None, None]).flatten(0, 1)  # (B·n, 1, h, w)
     lx, ly, lz, _ = field(heights)
