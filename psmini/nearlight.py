@@ -427,10 +427,20 @@ def _fit(intensities: Tensor, lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) 
     matrix = _adjugate(lx, ly, lz, used)
     (c00, c01, c02, c11, c12, c22), det = matrix
     signal = used * intensities
-    r0, r1, r2 = ((signal * l).sum(1, keepdim=True) for l in (lx, ly, lz))
+    r0, r1, r2 = (_sum_of_products(signal, l) for l in (lx, ly, lz))
     m = torch.cat([c00 * r0 + c01 * r1 + c02 * r2, c01 * r0 + c11 * r1 + c12 * r2,
                    c02 * r0 + c12 * r1 + c22 * r2], dim=1) / det
     return m, torch.isfinite(det), matrix
+
+
+def _sum_of_products(a: Tensor, b: Tensor) -> Tensor:
+    r""":math:`\sum_k a_k b_k` over the lights (dimension 1), (B, 1, H, W): one product per light accumulated in
+    place, which reads each operand once (a product and then a sum writes and reads back a (B, K, H, W)
+    temporary: 1.1 against 0.5 ms on 8 × 400²)."""
+    total = a[:, 0:1] * b[:, 0:1]
+    for k in range(1, a.shape[1]):
+        total = total.addcmul_(a[:, k : k + 1], b[:, k : k + 1])
+    return total
 
 
 def _split(m: Tensor, well_posed: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
@@ -448,8 +458,8 @@ def _adjugate(lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) -> tuple[tuple[T
     the determinant is +inf where the matrix is not well posed (its inverse is then 0)."""
     used = used.to(lx.dtype)
     wx, wy, wz = used * lx, used * ly, used * lz
-    a, b, c = (wx * lx).sum(1, keepdim=True), (wx * ly).sum(1, keepdim=True), (wx * lz).sum(1, keepdim=True)
-    d, e, f = (wy * ly).sum(1, keepdim=True), (wy * lz).sum(1, keepdim=True), (wz * lz).sum(1, keepdim=True)
+    a, b, c = _sum_of_products(wx, lx), _sum_of_products(wx, ly), _sum_of_products(wx, lz)
+    d, e, f = _sum_of_products(wy, ly), _sum_of_products(wy, lz), _sum_of_products(wz, lz)
     adjugate, det, well_posed = _symmetric_adjugate(a, b, c, d, e, f)
     return adjugate, torch.where(well_posed, det, torch.full_like(det, torch.inf))
 
