@@ -24,7 +24,8 @@ batch of 16 captures against 16 single calls (seconds per sample).
 
 With ``--speed`` only that last measurement runs (at 400 px by default: the rig's resolution), recorded on its own.
 
-    python benchmarks/nearlight.py [--quick | --speed] [--json] [--size N] [--device cpu|cuda] [--no-record]
+    python benchmarks/nearlight.py [--quick | --speed] [--json] [--size N] [--device cpu|cuda] [--threads N]
+                                   [--no-record]
 """
 
 from __future__ import annotations
@@ -201,8 +202,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="last line: one JSON object of mean errors")
     parser.add_argument("--size", type=int, default=None, help="image side in pixels (default 400, quick 128)")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch's CPU threads (default: torch's own choice, the machine's cores); the speed "
+                        "target of near light is set on one")
     parser.add_argument("--no-record", action="store_true")
     args = parser.parse_args(argv)
+    if args.threads is not None:
+        if args.threads < 1:
+            parser.error(f"--threads must be at least 1, got {args.threads}")
+        torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     size = args.size or (128 if args.quick else 400)
     fabrics = QUICK_FABRICS if args.quick else FULL_FABRICS
