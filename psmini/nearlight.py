@@ -730,7 +730,8 @@ def _select(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], 
         rejection.settle_relative_noise(vectors, used, mask)
         state = _banded_rounds(rejection, images, vectors, mask, state, highlight_rounds, highlights_only=True)
     if updates > 0:
-        rejection.settle_noise_model(vectors, *state[1:3], state[0], mask)
+        used, fit, albedo, _ = state  # after the highlight rounds
+        rejection.settle_noise_model(vectors, fit, albedo, used, mask)
         state = _banded_rounds(rejection, images, vectors, mask, state, updates, highlights_only=False)
     return state
 
