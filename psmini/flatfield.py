@@ -50,8 +50,10 @@ class FlatFieldResult:
     gain: Tensor | None = None
 
 
-def _check_frame(frame: Tensor | None, batch: int, count: int, height: int, width: int, name: str) -> Tensor | None:
-    """Check a dark frame or a reference stack, broadcastable to (B, K, H, W); return it 4-D."""
+def _check_frame(frame: Tensor | None, batch: int, count: int, height: int, width: int, name: str,
+                 finite: bool = True) -> Tensor | None:
+    """Check a dark frame or a reference stack, broadcastable to (B, K, H, W); return it 4-D. ``finite=False``
+    leaves the test for NaN and infinities to the caller."""
     if frame is None:
         return None
     check_tensor(frame, name)
@@ -70,7 +72,7 @@ def _check_frame(frame: Tensor | None, batch: int, count: int, height: int, widt
             f"{name} must broadcast to the images' shape ({batch}, {count}, {height}, {width}) "
             f"(as (B|1, K|1, H, W), (K|1, H, W) or (H, W)), got {tuple(frame.shape)}"
         )
-    return check_finite(frame, name)
+    return check_finite(frame, name) if finite else frame
 
 
 def flatfield(
@@ -122,7 +124,7 @@ def flatfield(
     shape = (sizes["B"], sizes["K"], sizes["H"], sizes["W"])
     card_tensors = (reference, dark if reference_dark is None else reference_dark)  # the caller's, for the cache
     dark = _check_frame(dark, *shape, "dark")
-    reference = _check_frame(reference, *shape, "reference")
+    reference = _check_frame(reference, *shape, "reference", finite=False)  # in _card_terms, once per card
     reference_dark = _check_frame(reference_dark, *shape, "reference_dark") if reference_dark is not None else dark
 
     # One new tensor per sample, updated in place: the difference, its clamp, the card's scale (each a pass over
@@ -181,7 +183,9 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
     reshaping view: the tensors that own their data, and where they lie in it) are alive and unmodified (same
     ``_version``) and need no gradient: a batch run passes one card with every batch, and its ten passes over
     the card (a third of the flat-field's time at batch 4) are then done once, also when the caller slices the
-    card's dark frame afresh in every call.
+    card's dark frame afresh in every call. The card's test for NaN and infinities runs with the terms: a kept
+    card was tested when they were computed (8 of the ~40 passes over a capture's worth of memory that a
+    flat-field, normals and Frankot–Chellappa make per capture, were that test on an unchanged card).
     """
     original, original_dark = originals
     cacheable = not reference.requires_grad and not (reference_dark is not None and reference_dark.requires_grad)
@@ -193,8 +197,8 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
         if (entry.key == key and entry.reference() is owner
                 and (owner_dark is None or (entry.reference_dark is not None
                                             and entry.reference_dark() is owner_dark))):
-            return entry.terms
-    converted = reference.to(images)
+            return entry.terms  # a card already checked for NaN and infinities, unchanged since
+    converted = check_finite(reference, "reference").to(images)
     card = converted if reference_dark is None else converted - reference_dark.to(images)
     trusted = (card > min_reference * card.amax(dim=(-2, -1), keepdim=True)) & (card > 0)
     if saturation_level is not None:

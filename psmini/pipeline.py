@@ -165,14 +165,18 @@ class PhotometricStereo(nn.Module):
         frames = {"images": images, "reference": reference, "dark": dark, "reference_dark": reference_dark,
                   "mask": mask}
         # the flat-fielded images, the solver's largest temporaries, one capture at a time on the CPU (see
-        # psmini._chunks); only what a solver returns is concatenated
-        parts = [self._solve_normals(*(batch_part(x, images, part, name) for name, x in frames.items()),
-                                     card_albedo, saturation_level, card_height_mm) for part in chunks(images)]
+        # psmini._chunks); only what a solver returns is assembled
+        def solve(part: slice):
+            return self._solve_normals(*(batch_part(x, images, part, name) for name, x in frames.items()),
+                                       card_albedo, saturation_level, card_height_mm)
+
+        parts = chunks(images)
         if self.solver == "near":
-            return parts[0] if len(parts) == 1 else NearLightResult.concatenate(parts)
-        albedo, normals = (torch.cat(tensors) for tensors in zip(*parts)) if len(parts) > 1 else parts[0]
+            results = [solve(part) for part in parts]
+            return results[0] if len(results) == 1 else NearLightResult.concatenate(results)
+        albedo, normals, slopes = _assemble(parts, solve)
         solved = albedo > 0
-        p, q = normals_to_gradients(normals)  # 0 where not solved: the normal there is (0, 0, 1)
+        p, q = slopes[:, 0:1], slopes[:, 1:2]  # 0 where not solved: the normal there is (0, 0, 1)
         integrator = config.integrator_for(self.solver, mask is not None)
         depth = integrate(p, q, integrator, self.pixel_pitch_mm or 1.0, solved, **config.integrator_options)
         return Reconstruction(albedo, normals, p, q, depth, solved)
@@ -194,6 +198,31 @@ class PhotometricStereo(nn.Module):
         weights = None if all_valid else flat.valid
         estimator = "lstsq" if config.estimator == "auto" else config.estimator
         return NORMAL_ESTIMATORS[estimator](flat.images, matrix, mask, weights, config.estimator_options)
+
+
+def _assemble(parts: list[slice], solve) -> tuple[Tensor, Tensor, Tensor]:
+    """Albedo, normals and slopes :math:`(B, 2, H, W)` (:func:`~psmini.normals.normals_to_gradients`) of a batch
+    solved chunk by chunk, ``solve(part)`` giving a chunk's albedo and normals.
+
+    Each chunk's results are written into the batch's tensors as it comes, its slopes computed from its normals
+    while they are still in the cache: concatenating the chunks afterwards, then taking the slopes of the whole
+    batch, made two more passes over its normals (0.4-0.5 of 7.7 ms per 8 x 400^2 capture on one thread of the
+    2-core Xeon). Writes into slices are differentiable like a concatenation.
+    """
+    if len(parts) == 1:
+        albedo, normals = solve(parts[0])
+        return albedo, normals, torch.cat(normals_to_gradients(normals), dim=1)
+    albedo = normals = slopes = None
+    for part in parts:
+        chunk_albedo, chunk_normals = solve(part)
+        if albedo is None:
+            batch = parts[-1].stop
+            albedo = chunk_albedo.new_empty((batch, *chunk_albedo.shape[1:]))
+            normals = chunk_normals.new_empty((batch, *chunk_normals.shape[1:]))
+            slopes = chunk_normals.new_empty((batch, 2, *chunk_normals.shape[2:]))
+        albedo[part], normals[part] = chunk_albedo, chunk_normals
+        slopes[part, 0:1], slopes[part, 1:2] = normals_to_gradients(chunk_normals)
+    return albedo, normals, slopes
 
 
 def reconstruct(sample, config: ReconstructionConfig | None = None) -> Reconstruction:

@@ -79,6 +79,14 @@ class TestFlatField(BaseTester):
         with pytest.raises(InputError, match="reference must be finite"):
             flatfield(torch.rand(1, 8, 4, 4), reference)
 
+    def test_nan_written_into_a_kept_card_raises(self):
+        # the card's finiteness is tested with its kept terms: an in-place change must be tested again
+        reference = torch.rand(8, 4, 4) + 0.1
+        flatfield(torch.rand(1, 8, 4, 4), reference)
+        reference[3, 2, 1] = float("inf")
+        with pytest.raises(InputError, match="reference must be finite, got 1"):
+            flatfield(torch.rand(1, 8, 4, 4), reference)
+
     def test_bad_options_raise(self):
         with pytest.raises(InputError, match="min_reference"):
             flatfield(torch.rand(1, 8, 4, 4), min_reference=1.5)
