@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import itertools
 import logging
 import math
 from dataclasses import dataclass
@@ -341,7 +342,8 @@ class _LightField:
                 self.axy = self.ox * axis[:, 0, None, None] + self.oy * axis[:, 1, None, None]
                 self.az = axis[:, 2, None, None]
                 self.mu = model.mu.to(like)[:, None, None]
-                self.unit_mu = bool((self.mu.detach() == 1).all())
+                # (a learnable mu of 1 still needs the power: its derivative, cos^mu ln cos, is not 0)
+                self.unit_mu = not self.mu.requires_grad and bool((self.mu.detach() == 1).all())
         else:
             self.points_xy = torch.stack([x, y])[None]
         self.card_scale = None
@@ -1331,8 +1333,14 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, light_model: nn.M
                            tolerance=options.tolerance_deg, final=True, first_level=first, gain=gain)
     # the last solve, at the final depth, carries the gradients (intensities, light model's parameters); without
     # them, a converged iteration's last fit is that solve already
-    learnable = any(parameter.requires_grad for parameter in light_model.parameters())
-    if state.fit is None or torch.is_grad_enabled() and (images.requires_grad or learnable):
+    # parameters, or the tensors of a model built from tensors that require a gradient (plain attributes)
+    attributes = (value for value in vars(light_model).values() if isinstance(value, Tensor))
+    learnable = any(t.requires_grad for t in itertools.chain(light_model.parameters(), light_model.buffers(),
+                                                             attributes))
+    differentiable = torch.is_grad_enabled() and (images.requires_grad or learnable)
+    if differentiable:  # the alternations' field was built without gradients: its terms hold no graph
+        field = _LightField(light_model, height, width, pitch, card_height, images)
+    if state.fit is None or differentiable:
         vectors = field(state.depth)
         state.fit = _fit(images, *vectors[:3], state.used)
     albedo, normals = _split(*state.fit[:2], mask)
