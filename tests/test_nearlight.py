@@ -557,6 +557,43 @@ class TestSolveNearLight(BaseTester):
                                    torch.ones(1, 8, 8, 8, dtype=torch.bool), search_mm=(1.0, -1.0))
 
 
+class TestKeptGainTerms:
+    """The gain's noise scales and 2 x 2 average are kept while its data live unchanged (psmini.nearlight._kept)."""
+
+    def test_kept_equal_fresh_and_follow_changes(self):
+        from psmini import nearlight
+
+        gain = torch.rand(1, 8, 16, 16) + 0.5
+        gain[0, 3, :2] = 0  # untrusted card pixels
+        images = torch.rand(1, 8, 16, 16)
+        first = nearlight._noise_scales(gain, images)
+        assert torch.equal(first, nearlight._relative_gain(gain, images))
+        assert nearlight._noise_scales(gain, images) is first  # kept
+        pooled = nearlight._pooled_gain(gain, images)
+        assert torch.equal(pooled, torch.nn.functional.avg_pool2d(gain, 2))
+        assert nearlight._pooled_gain(gain, images) is pooled
+        gain[0, 5] *= 3  # an in-place change: computed again
+        changed = nearlight._noise_scales(gain, images)
+        assert changed is not first and torch.equal(changed, nearlight._relative_gain(gain, images))
+        assert not torch.equal(changed, first)
+
+    def test_freed_gain_is_forgotten(self):
+        from psmini import nearlight
+
+        gain = torch.rand(1, 8, 16, 16) + 0.5
+        nearlight._noise_scales(gain, torch.rand(1, 8, 16, 16))
+        count = len(nearlight._kept_gains)
+        del gain
+        assert len(nearlight._kept_gains) == count - 1
+
+    def test_gain_that_needs_a_gradient_is_not_kept(self):
+        from psmini import nearlight
+
+        gain = (torch.rand(1, 8, 16, 16) + 0.5).requires_grad_()
+        images = torch.rand(1, 8, 16, 16)
+        assert nearlight._noise_scales(gain, images) is not nearlight._noise_scales(gain, images)
+
+
 class TestSimulatedKnit:
     def test_depth_has_no_spikes(self, tmp_path):
         """`psmini synth knit` reconstructed as `psmini reconstruct` does (noisy 10-bit capture, its card, near
