@@ -594,6 +594,46 @@ class TestKeptGainTerms:
         assert nearlight._noise_scales(gain, images) is not nearlight._noise_scales(gain, images)
 
 
+class TestKeptLightFields:
+    """Light fields are kept by the light model's values (psmini.nearlight._light_field)."""
+
+    def test_same_values_share_a_field_and_equal_a_fresh_one(self):
+        from psmini import nearlight
+
+        like = torch.zeros(1, 8, 24, 20)
+        first = nearlight._light_field(_rig(), 24, 20, PITCH, 0.0, like, 2)
+        again = nearlight._light_field(_rig(), 24, 20, PITCH, 0.0, like, 2)  # another model object, same values
+        assert again is first
+        depth = torch.full((1, 1, 12, 10), 0.4)
+        fresh = nearlight._LightField(_rig(), 24, 20, PITCH, 0.0, like, 2)
+        for kept, expected in zip(first(depth), fresh(depth)):
+            assert torch.equal(kept, expected)
+
+    def test_other_values_or_grids_get_their_own(self):
+        from psmini import nearlight
+
+        like = torch.zeros(1, 8, 24, 20)
+        first = nearlight._light_field(_rig(), 24, 20, PITCH, 0.0, like)
+        moved = _rig()
+        moved.positions_mm[0, 0] += 0.5
+        assert nearlight._light_field(moved, 24, 20, PITCH, 0.0, like) is not first
+        assert nearlight._light_field(_rig(), 24, 20, PITCH, 0.5, like) is not first  # card height
+        assert nearlight._light_field(_rig(), 24, 20, PITCH, 0.0, like.double()) is not first
+
+    def test_models_that_need_gradients_and_large_fields_are_not_kept(self, monkeypatch):
+        from psmini import nearlight
+
+        like = torch.zeros(1, 8, 24, 20)
+        ring = _rig()
+        learnable = LEDLights(ring.positions_mm, ring.principal_directions, ring.intensities, learnable=True)
+        assert nearlight._light_field(learnable, 24, 20, PITCH, 0.0, like) is not \
+            nearlight._light_field(learnable, 24, 20, PITCH, 0.0, like)
+        monkeypatch.setattr(nearlight, "_KEPT_FIELD_BYTES", 1000)
+        nearlight._kept_fields.clear()
+        nearlight._light_field(_rig(), 24, 20, PITCH, 0.0, like)
+        assert not nearlight._kept_fields
+
+
 class TestSimulatedKnit:
     def test_depth_has_no_spikes(self, tmp_path):
         """`psmini synth knit` reconstructed as `psmini reconstruct` does (noisy 10-bit capture, its card, near
