@@ -44,6 +44,7 @@ import dataclasses
 import itertools
 import logging
 import math
+import threading
 import weakref
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -391,6 +392,9 @@ class _LightField:
 #: take about 42 MB; larger images' fields are built afresh.
 _KEPT_FIELD_BYTES = 64 * 2**20
 _kept_fields: collections.OrderedDict[tuple, _LightField] = collections.OrderedDict()
+# guards the kept fields and gains (solves in several threads; re-entrant: freeing a kept gain runs the weak
+# reference callback of what was derived from it); what is kept is computed outside it
+_kept_lock = threading.RLock()
 
 
 def _light_field(model: nn.Module, height: int, width: int, pitch: float, card_height: float | None, like: Tensor,
@@ -410,15 +414,17 @@ def _light_field(model: nn.Module, height: int, width: int, pitch: float, card_h
                    for name, value in sorted(vars(model).items()) + list(model.named_buffers())
                    + list(model.named_parameters()) if isinstance(value, Tensor))
     key = (type(model), values, height, width, float(pitch), card_height, stride, like.dtype, like.device)
-    field = _kept_fields.get(key)
-    if field is not None:
-        _kept_fields.move_to_end(key)
-        return field
+    with _kept_lock:
+        field = _kept_fields.get(key)
+        if field is not None:
+            _kept_fields.move_to_end(key)
+            return field
     field = _LightField(model, height, width, pitch, card_height, like, stride)
     if field.nbytes() <= _KEPT_FIELD_BYTES:
-        _kept_fields[key] = field
-        while sum(kept.nbytes() for kept in _kept_fields.values()) > _KEPT_FIELD_BYTES:
-            _kept_fields.popitem(last=False)
+        with _kept_lock:
+            _kept_fields[key] = field
+            while sum(kept.nbytes() for kept in _kept_fields.values()) > _KEPT_FIELD_BYTES:
+                _kept_fields.popitem(last=False)
     return field
 
 
@@ -596,21 +602,25 @@ def _kept(source: Tensor, what: tuple, compute):
         return compute()
     owner, where = _data_of(source)
     key = (where, source.dtype, source.device)
-    for entry in _kept_gains:
-        if entry.key == key and entry.owner() is owner:
-            if what not in entry.results:
-                entry.results[what] = compute()
+    with _kept_lock:
+        entry = next((entry for entry in _kept_gains if entry.key == key and entry.owner() is owner), None)
+        if entry is not None and what in entry.results:
             return entry.results[what]
     result = compute()
-    if len(_kept_gains) >= _KEPT_GAINS:
-        del _kept_gains[0]
-    _kept_gains.append(_Kept(key, weakref.ref(owner, lambda _, key=key: _forget_gain(key)), {what: result}))
+    with _kept_lock:
+        if entry is None:
+            if len(_kept_gains) >= _KEPT_GAINS:
+                del _kept_gains[0]
+            entry = _Kept(key, weakref.ref(owner, lambda _, key=key: _forget_gain(key)), {})
+            _kept_gains.append(entry)
+        entry.results[what] = result
     return result
 
 
 def _forget_gain(key: tuple) -> None:
     """Drop what was kept for a gain once the tensor that owns its data is freed."""
-    _kept_gains[:] = [entry for entry in _kept_gains if entry.key != key]
+    with _kept_lock:
+        _kept_gains[:] = [entry for entry in _kept_gains if entry.key != key]
 
 
 def _twice_mean(values: Tensor, chosen: Tensor) -> Tensor:

@@ -586,6 +586,27 @@ class TestKeptGainTerms:
         del gain
         assert len(nearlight._kept_gains) == count - 1
 
+    def test_eviction_frees_derived_terms_without_deadlock(self):
+        """Dropping the oldest gain frees its pooled gain, whose own entry's weak reference callback then takes
+        the (re-entrant) lock while it is held."""
+        import threading
+
+        from psmini import nearlight
+
+        images = torch.rand(1, 8, 16, 16)
+
+        def fill():
+            for _ in range(3 * nearlight._KEPT_GAINS):
+                gain = torch.rand(1, 8, 16, 16) + 0.5
+                nearlight._noise_scales(nearlight._pooled_gain(gain, images), images[..., ::2, ::2])
+                del gain
+
+        worker = threading.Thread(target=fill, daemon=True)
+        worker.start()
+        worker.join(timeout=30)
+        assert not worker.is_alive()
+        assert len(nearlight._kept_gains) <= nearlight._KEPT_GAINS
+
     def test_gain_that_needs_a_gradient_is_not_kept(self):
         from psmini import nearlight
 
