@@ -359,20 +359,27 @@ class _LightField:
             # the card reads E_k l_kz: flat-fielded vectors are L_k / (E_k(x_c) l_kz(x_c)), with l_kz = lz / E_k
             self.card_scale = 1 / lz[0]
 
-    def _raw(self, depth: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Unnormalised-by-card vectors (x, y, z components) and their lengths, each (B, K, h, w)."""
+    def _raw(self, depth: Tensor, factor: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Vectors (x, y, z components) and their lengths, each (B, K, h, w), times ``factor`` (the card's
+        scale) when given."""
         if not self.fast:
             points = torch.cat([self.points_xy.expand(depth.shape[0], -1, -1, -1), depth], dim=1)
             directions, irradiance = self.model(points)
             vectors = directions * irradiance
             lx, ly, lz = vectors.unbind(dim=2)
-            return lx, ly, lz, irradiance[:, :, 0]
+            length = irradiance[:, :, 0]
+            return (lx, ly, lz, length) if factor is None else (lx * factor, ly * factor, lz * factor,
+                                                                 length * factor)
+        # each operation is a pass over (B, K, h, w): fused multiply-adds where two would do, and the card's scale
+        # applied once, to the length, before it scales the three offsets
         oz = self.pz - depth  # (B, K, h, w) by broadcasting (B, 1, h, w)
-        inverse = (self.rxy2 + oz.square()).rsqrt()
+        inverse = torch.addcmul(self.rxy2, oz, oz).rsqrt()
         length = self.phi * inverse.square()  # irradiance φ / r²
         if self.led:
-            cosine = ((self.axy + self.az * oz) * inverse).neg_().clamp_min_(torch.finfo(oz.dtype).tiny)
+            cosine = (torch.addcmul(self.axy, oz, self.az) * inverse).neg_().clamp_min_(torch.finfo(oz.dtype).tiny)
             length = length * (cosine if self.unit_mu else cosine.pow(self.mu))
+        if factor is not None:
+            length = length * factor
         scale = length * inverse  # irradiance / r: the offsets become unit directions times irradiance
         return self.ox * scale, self.oy * scale, oz * scale, length
 
@@ -381,11 +388,7 @@ class _LightField:
         return sum(value.nbytes for value in vars(self).values() if isinstance(value, Tensor))
 
     def __call__(self, depth: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        lx, ly, lz, length = self._raw(depth)
-        if self.card_scale is None:
-            return lx, ly, lz, length
-        s = self.card_scale
-        return lx * s, ly * s, lz * s, length * s
+        return self._raw(depth, self.card_scale)
 
 
 #: Bytes of light fields kept for the next solves (:func:`_light_field`): a 400 x 400 rig's fields at both levels
