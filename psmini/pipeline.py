@@ -174,9 +174,8 @@ class PhotometricStereo(nn.Module):
         if self.solver == "near":
             results = [solve(part) for part in parts]
             return results[0] if len(results) == 1 else NearLightResult.concatenate(results)
-        albedo, normals, slopes = _assemble(parts, solve)
+        albedo, normals, p, q = _assemble(parts, solve)  # p, q 0 where not solved: the normal there is (0, 0, 1)
         solved = albedo > 0
-        p, q = slopes[:, 0:1], slopes[:, 1:2]  # 0 where not solved: the normal there is (0, 0, 1)
         integrator = config.integrator_for(self.solver, mask is not None)
         depth = integrate(p, q, integrator, self.pixel_pitch_mm or 1.0, solved, **config.integrator_options)
         return Reconstruction(albedo, normals, p, q, depth, solved)
@@ -200,9 +199,9 @@ class PhotometricStereo(nn.Module):
         return NORMAL_ESTIMATORS[estimator](flat.images, matrix, mask, weights, config.estimator_options)
 
 
-def _assemble(parts: list[slice], solve) -> tuple[Tensor, Tensor, Tensor]:
-    """Albedo, normals and slopes :math:`(B, 2, H, W)` (:func:`~psmini.normals.normals_to_gradients`) of a batch
-    solved chunk by chunk, ``solve(part)`` giving a chunk's albedo and normals.
+def _assemble(parts: list[slice], solve) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Albedo, normals and slopes p, q (:func:`~psmini.normals.normals_to_gradients`) of a batch solved chunk by
+    chunk, ``solve(part)`` giving a chunk's albedo and normals.
 
     Each chunk's results are written into the batch's tensors as it comes, its slopes computed from its normals
     while they are still in the cache: concatenating the chunks afterwards, then taking the slopes of the whole
@@ -211,7 +210,7 @@ def _assemble(parts: list[slice], solve) -> tuple[Tensor, Tensor, Tensor]:
     """
     if len(parts) == 1:
         albedo, normals = solve(parts[0])
-        return albedo, normals, torch.cat(normals_to_gradients(normals), dim=1)
+        return albedo, normals, *normals_to_gradients(normals)
     albedo = normals = slopes = None
     for part in parts:
         chunk_albedo, chunk_normals = solve(part)
@@ -222,7 +221,7 @@ def _assemble(parts: list[slice], solve) -> tuple[Tensor, Tensor, Tensor]:
             slopes = chunk_normals.new_empty((batch, 2, *chunk_normals.shape[2:]))
         albedo[part], normals[part] = chunk_albedo, chunk_normals
         slopes[part, 0:1], slopes[part, 1:2] = normals_to_gradients(chunk_normals)
-    return albedo, normals, slopes
+    return albedo, normals, slopes[:, 0:1], slopes[:, 1:2]
 
 
 def reconstruct(sample, config: ReconstructionConfig | None = None) -> Reconstruction:
