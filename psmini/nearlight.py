@@ -41,7 +41,6 @@ from __future__ import annotations
 import collections
 import copy
 import dataclasses
-import itertools
 import logging
 import math
 import threading
@@ -414,8 +413,7 @@ def _light_field(model: nn.Module, height: int, width: int, pitch: float, card_h
     if not isinstance(model, PointLights) or _needs_gradient(model):
         return _LightField(model, height, width, pitch, card_height, like, stride)
     values = tuple((name, tuple(value.shape), value.dtype, value.detach().cpu().numpy().tobytes())
-                   for name, value in sorted(vars(model).items()) + list(model.named_buffers())
-                   + list(model.named_parameters()) if isinstance(value, Tensor))
+                   for name, value in _model_tensors(model))
     key = (type(model), values, height, width, float(pitch), card_height, stride, like.dtype, like.device)
     with _kept_lock:
         field = _kept_fields.get(key)
@@ -431,11 +429,16 @@ def _light_field(model: nn.Module, height: int, width: int, pitch: float, card_h
     return field
 
 
+def _model_tensors(model: nn.Module) -> list[tuple[str, Tensor]]:
+    """A light model's tensors by name: its parameters, buffers and tensor attributes (a model that is not
+    learnable keeps its tensors as plain attributes)."""
+    attributes = sorted((name, value) for name, value in vars(model).items() if isinstance(value, Tensor))
+    return attributes + list(model.named_buffers()) + list(model.named_parameters())
+
+
 def _needs_gradient(model: nn.Module) -> bool:
-    """Whether a light model's parameters, buffers or tensor attributes (a model built from tensors that require a
-    gradient keeps them as plain attributes) need a gradient."""
-    attributes = (value for value in vars(model).values() if isinstance(value, Tensor))
-    return any(t.requires_grad for t in itertools.chain(model.parameters(), model.buffers(), attributes))
+    """Whether any of a light model's tensors (:func:`_model_tensors`) needs a gradient."""
+    return any(value.requires_grad for _, value in _model_tensors(model))
 
 
 def near_light_vectors(
@@ -1450,10 +1453,10 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, light_model: nn.M
                            tolerance=options.tolerance_deg, final=True, first_level=first, gain=gain)
     # the last solve, at the final depth, carries the gradients (intensities, light model's parameters); without
     # them, a converged iteration's last fit is that solve already
-    differentiable = torch.is_grad_enabled() and (images.requires_grad or _needs_gradient(light_model))
-    if differentiable:  # the alternations' field was built without gradients: its terms hold no graph
+    learnable = torch.is_grad_enabled() and _needs_gradient(light_model)
+    if learnable:  # the alternations' field was built without gradients: its terms hold no graph of the model
         field = _LightField(light_model, height, width, pitch, card_height, images)
-    if state.fit is None or differentiable:
+    if state.fit is None or learnable or torch.is_grad_enabled() and images.requires_grad:
         vectors = field(state.depth)
         state.fit = _fit(images, *vectors[:3], state.used)
     albedo, normals = _split(*state.fit[:2], mask)
