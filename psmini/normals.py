@@ -29,11 +29,17 @@ def _unit_and_length(m: Tensor, solved: Tensor | None) -> tuple[Tensor, Tensor]:
 
     ``solved`` (B, 1, H, W) marks well-posed pixels; ``None`` means all. Pixels with |m| = 0 count as not solved.
     """
-    # (vector_norm over the 3-long dim 1 measured 10x slower than this on the CPU)
-    length = m.square().sum(dim=1, keepdim=True).clamp_min(torch.finfo(m.dtype).tiny).sqrt()  # no NaN grad at 0
-    nonzero = length > torch.finfo(m.dtype).eps
+    # the squared length as one product and two multiply-adds, which read each component once and write one plane
+    # (m.square().sum(dim=1) writes and reads back a three-plane temporary: 0.60 against 0.28 ms with the test
+    # below on 400^2; vector_norm over the 3-long dim 1 measured 10x slower still on the CPU)
+    x, y, z = m[:, 0:1], m[:, 1:2], m[:, 2:3]
+    length = (x * x).addcmul_(y, y).addcmul_(z, z).clamp_min(torch.finfo(m.dtype).tiny).sqrt_()  # no NaN grad at 0
+    eps = torch.finfo(m.dtype).eps
+    if solved is None and bool(length.amin() > eps):  # the usual case: one reduction, no boolean plane, no where
+        return length, m / length
+    nonzero = length > eps
     solved = nonzero if solved is None else solved & nonzero
-    if all_true(solved):  # the usual case: no masked_fill, no where, one division
+    if all_true(solved):  # no masked_fill, no where, one division
         return length, m / length
     # an infinite length zeroes the unsolved pixels' normals in the division, and their n_z is then set to 1: two
     # passes over one plane each instead of a where over the three (and a gradient of 0 there, as where's)
