@@ -182,6 +182,31 @@ class TestCosineTransforms(BaseTester):
             expected = torch.from_numpy(doubled_grid_fc(p[b, 0].numpy(), q[b, 0].numpy(), 0.025))
             assert float((z[b, 0] - expected).abs().max() / expected.abs().max()) < 1e-12
 
+    @pytest.mark.parametrize("shape", [(6, 9), (7, 5), (2, 2), (3, 8), (16, 11), (2, 7)])
+    def test_spectral_map_equals_reference_steps(self, shape):
+        """The mirrored FC's per-frequency map, probed from the reference steps between its two FFTs, gives those
+        steps' result on any spectrum, not only on the probes: the steps are local in frequency (k_v with -k_v)."""
+        from psmini.integrate.fourier import _mirror_plan, _mirror_reference, _reference_solution, _solution_spectrum
+
+        height, width = shape
+        torch.manual_seed(3)
+        spectrum = torch.randn(3, 2, height, width // 2 + 1, dtype=torch.complex128)
+        plan = _mirror_plan(height, width, 0.3, torch.device("cpu"), torch.float64)
+        expected = _reference_solution(spectrum, _mirror_reference(height, width))
+        self.assert_close(_solution_spectrum(spectrum, plan), expected, 1e-12, 1e-12 * float(expected.abs().max()))
+
+    def test_first_row_and_column_stay_in_place(self):
+        """The mean slopes are added in the spectrum on its row k_v = 0 and column k_u = 0 alone: the inverse
+        DCT's steps map a coefficient row 0 (column 0) onto the spectrum's row 0 (column 0) and nowhere else."""
+        from psmini.integrate._dct import inverse_spectrum
+        from psmini.integrate._dct import plan as dct_plan
+
+        coefficients = torch.zeros(2, 7, 6, dtype=torch.float64)
+        coefficients[0, 0], coefficients[1, :, 0] = torch.rand(6) + 0.5, torch.rand(7) + 0.5
+        spectrum = inverse_spectrum(coefficients, dct_plan(7, 6, torch.device("cpu"), torch.float64))
+        assert float(spectrum[0, 1:].abs().max()) == 0 and float(spectrum[1, :, 1:].abs().max()) == 0
+        assert float(spectrum[0, 0].abs().min()) > 0 and float(spectrum[1, :, 0].abs().min()) > 0
+
     @pytest.mark.parametrize("weights", ["bool", "float"])
     def test_masked_mirror_fc_equals_doubled_grid(self, weights):
         """A mask (or float weights m) replaces the gradients by m g + (1 - m) mean: the doubled grid on those

@@ -91,20 +91,30 @@ def plan_for(x: Tensor) -> Plan:
     return plan(x.shape[-2], x.shape[-1], x.device, x.dtype)
 
 
-def half_spectra(x: Tensor, p: Plan) -> tuple[Tensor, Tensor]:
-    r"""``Re(P + Q)`` and ``-Im(Q - P)``, each ``(..., N1, K2)`` real: the DCT-II of ``x`` in two halves (see above).
+def reordered_spectrum(x: Tensor, p: Plan) -> Tensor:
+    """The real 2-D FFT ``(..., N1, K2)`` of ``x`` reordered along both axes: the FFT that every transform here
+    starts from."""
+    n1, n2 = x.shape[-2:]
+    return torch.fft.rfft2(x.reshape(-1, n1 * n2).index_select(1, p.order).view(x.shape))
+
+
+def halves(spectrum: Tensor, p: Plan) -> tuple[Tensor, Tensor]:
+    r"""``Re(P + Q)`` and ``-Im(Q - P)``, each ``(..., N1, K2)`` real: the DCT-II in two halves (see above), from
+    :func:`reordered_spectrum`.
 
     Both are read from one complex array, :math:`P + \bar Q` (its real part is :math:`\mathrm{Re}(P + Q)`, its
     imaginary part :math:`\mathrm{Im}(P - Q)`), formed by one product and one fused multiply-add: :math:`\bar Q`
     is a product with the negated rows, where a product with a conjugated tensor materialises the conjugate first
     (3.5x the product here), and the complex sum replaces two strided real sums. The halves are strided views.
     """
-    n1, n2 = x.shape[-2:]
-    v = x.reshape(-1, n1 * n2).index_select(1, p.order).view(x.shape)
-    spectrum = torch.fft.rfft2(v)
-    halves = torch.view_as_real(torch.addcmul(p.forward[0] * spectrum, p.forward[1],
-                                              spectrum.index_select(-2, p.negated)))
-    return halves[..., 0], halves[..., 1]
+    combined = torch.view_as_real(torch.addcmul(p.forward[0] * spectrum, p.forward[1],
+                                                spectrum.index_select(-2, p.negated)))
+    return combined[..., 0], combined[..., 1]
+
+
+def half_spectra(x: Tensor, p: Plan) -> tuple[Tensor, Tensor]:
+    """:func:`halves` of the :func:`reordered_spectrum` of ``x``: the DCT-II of ``x`` in two halves."""
+    return halves(reordered_spectrum(x, p), p)
 
 
 def from_halves(real: Tensor, negated_imag: Tensor, p: Plan) -> Tensor:
@@ -123,9 +133,8 @@ def dct2(x: Tensor) -> Tensor:
     return from_halves(*half_spectra(x, p), p)
 
 
-def idct2(c: Tensor) -> Tensor:
-    """Inverse of :func:`dct2` over the last two dimensions (``scipy.fft.idctn(c, type=2, axes=(-2, -1))``)."""
-    p = plan_for(c)
+def inverse_spectrum(c: Tensor, p: Plan) -> Tensor:
+    """The complex ``(..., N1, K2)`` spectrum whose :func:`from_reordered_spectrum` is the inverse DCT of ``c``."""
     n1, n2 = c.shape[-2:]
     k2 = n2 // 2 + 1
     padded = F.pad(c, (0, 1, 0, 1))  # C at N1 and N2 is 0
@@ -133,6 +142,18 @@ def idct2(c: Tensor) -> Tensor:
     # C[., N2 - k2] for k2 < K2: the last K2 columns of the padded array, reversed (only those columns copied)
     real = padded[..., :n1, :k2] - rows[..., n2 + 1 - k2 :].flip(-1)
     negated_imag = (rows[..., :k2] + padded[..., :n1, n2 + 1 - k2 :].flip(-1)).neg_()
-    spectrum = torch.complex(real, negated_imag).mul_(p.inverse)
+    return torch.complex(real, negated_imag).mul_(p.inverse)
+
+
+def from_reordered_spectrum(spectrum: Tensor, p: Plan, shape: torch.Size) -> Tensor:
+    """The real array of ``shape`` (..., N1, N2) whose :func:`reordered_spectrum` is ``spectrum``: the inverse real
+    FFT and the inverse reordering."""
+    n1, n2 = shape[-2:]
     v = torch.fft.irfft2(spectrum, s=(n1, n2))
-    return v.reshape(-1, n1 * n2).index_select(1, p.unorder).view(c.shape)
+    return v.reshape(-1, n1 * n2).index_select(1, p.unorder).view(shape)
+
+
+def idct2(c: Tensor) -> Tensor:
+    """Inverse of :func:`dct2` over the last two dimensions (``scipy.fft.idctn(c, type=2, axes=(-2, -1))``)."""
+    p = plan_for(c)
+    return from_reordered_spectrum(inverse_spectrum(c, p), p, c.shape)
