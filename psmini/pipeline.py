@@ -164,11 +164,15 @@ class PhotometricStereo(nn.Module):
         mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
         frames = {"images": images, "reference": reference, "dark": dark, "reference_dark": reference_dark,
                   "mask": mask}
+        # the distant solver's light matrix once per call, not once per chunk (0.14 ms a chunk: 1.1 of 51 ms for a
+        # batch of 8 x 400^2 on one thread of the 2-core Xeon)
+        matrix = None if self.solver == "near" else distant_light_matrix(self.lights, reference is not None, images)
         # the flat-fielded images, the solver's largest temporaries, one capture at a time on the CPU (see
         # psmini._chunks); only what a solver returns is assembled
+
         def solve(part: slice):
             return self._solve_normals(*(batch_part(x, images, part, name) for name, x in frames.items()),
-                                       card_albedo, saturation_level, card_height_mm)
+                                       card_albedo, saturation_level, card_height_mm, matrix)
 
         parts = chunks(images)
         if self.solver == "near":
@@ -182,17 +186,16 @@ class PhotometricStereo(nn.Module):
 
     def _solve_normals(self, images: Tensor, reference: Tensor | None, dark: Tensor | None,
                        reference_dark: Tensor | None, mask: Tensor | None, card_albedo: float,
-                       saturation_level: float | None,
-                       card_height_mm: float) -> NearLightResult | tuple[Tensor, Tensor]:
+                       saturation_level: float | None, card_height_mm: float,
+                       matrix: Tensor | None) -> NearLightResult | tuple[Tensor, Tensor]:
         """Flat-field and solve one chunk of the batch: the whole near-light result, or the distant solver's albedo
-        and normals."""
+        and normals with the light ``matrix`` (:func:`distant_light_matrix`)."""
         config = self.config
         flat = flatfield(images, reference, dark, reference_dark, card_albedo, config.min_reference, saturation_level)
         if self.solver == "near":
             card_height = card_height_mm if reference is not None else None
             return solve_near_light(flat.images, self.lights, self.pixel_pitch_mm, card_height, flat.valid, mask,
                                     config.near_options(mask is not None), flat.gain)
-        matrix = distant_light_matrix(self.lights, reference is not None, images)
         all_valid = flat.all_valid if flat.all_valid is not None else all_true(flat.valid)
         weights = None if all_valid else flat.valid
         estimator = "lstsq" if config.estimator == "auto" else config.estimator
