@@ -169,7 +169,6 @@ class PhotometricStereo(nn.Module):
         matrix = None if self.solver == "near" else distant_light_matrix(self.lights, reference is not None, images)
         # the flat-fielded images, the solver's largest temporaries, one capture at a time on the CPU (see
         # psmini._chunks); only what a solver returns is assembled
-
         def solve(part: slice):
             return self._solve_normals(*(batch_part(x, images, part, name) for name, x in frames.items()),
                                        card_albedo, saturation_level, card_height_mm, matrix)
