@@ -67,6 +67,43 @@ class TestAlbedoNormals(BaseTester):
         for a, b in zip(LeastSquaresNormals(lights)(images), albedo_normals(images, lights)):
             self.assert_close(a, b)
 
+    @pytest.mark.parametrize("case", ["plain", "masked", "weighted", "zero pixel"])
+    def test_out_equals_new_tensors(self, device, dtype, case):
+        """Results written into ``out`` are the new tensors' values on every path (the all-solved one, masked
+        pixels, per-pixel weights, a pixel of zero intensity), and the out tensors themselves are returned."""
+        lights = ring_lights(8, 55.0, device=device, dtype=dtype)
+        images = torch.rand(2, 8, 6, 5, device=device, dtype=dtype) + 0.1
+        mask = weights = None
+        if case == "masked":
+            mask = torch.rand(2, 1, 6, 5, device=device) > 0.3
+        if case == "weighted":
+            weights = torch.rand(2, 8, 6, 5, device=device) > 0.2
+        if case == "zero pixel":
+            images[1, :, 2, 3] = 0.0
+        expected = albedo_normals(images, lights, mask, weights)
+        out = (torch.full((2, 1, 6, 5), torch.nan, device=device, dtype=dtype),
+               torch.full((2, 3, 6, 5), torch.nan, device=device, dtype=dtype))
+        got = albedo_normals(images, lights, mask, weights, out=out)
+        assert got[0] is out[0] and got[1] is out[1]
+        self.assert_close(got[0], expected[0], rtol=0, atol=0)
+        self.assert_close(got[1], expected[1], rtol=0, atol=0)
+
+    def test_bad_out_raise(self):
+        lights, images = ring_lights(8, 55.0), torch.rand(1, 8, 4, 4)
+        albedo, normals = torch.empty(1, 1, 4, 4), torch.empty(1, 3, 4, 4)
+        with pytest.raises(InputError, match="tuple of 2 tensors"):
+            albedo_normals(images, lights, out=albedo)
+        with pytest.raises(ShapeError, match=r"out normals .*\(1, 3, 4, 4\).*\(1, 3, 4, 3\)"):
+            albedo_normals(images, lights, out=(albedo, torch.empty(1, 3, 4, 3)))
+        with pytest.raises(ShapeError, match="float64"):
+            albedo_normals(images, lights, out=(albedo, normals.double()))
+        with pytest.raises(InputError, match="share memory"):
+            albedo_normals(images, lights, out=(normals[:, :1], normals))
+        with pytest.raises(InputError, match="requires grad"):
+            albedo_normals(images.requires_grad_(), lights, out=(albedo, normals))
+        with pytest.raises(InputError, match="out albedo requires grad"):
+            albedo_normals(images.detach(), lights, out=(albedo.requires_grad_(), normals))
+
     def test_count_mismatch_raise(self):
         with pytest.raises(ShapeError, match=r"number of lights.*\(8\).*\(7\)"):
             albedo_normals(torch.rand(1, 7, 4, 4), ring_lights(8, 55.0))
@@ -137,6 +174,18 @@ class TestGradients(BaseTester):
     def test_bad_min_nz_raise(self):
         with pytest.raises(InputError, match="min_nz"):
             normals_to_gradients(torch.rand(1, 3, 2, 2), min_nz=0.0)
+
+    def test_out(self, device, dtype):
+        normals = torch.nn.functional.normalize(torch.rand(2, 3, 4, 5, device=device, dtype=dtype) - 0.3, dim=1)
+        out = torch.full((2, 2, 4, 5), torch.nan, device=device, dtype=dtype)
+        p, q = normals_to_gradients(normals, out=out)
+        expected = normals_to_gradients(normals)
+        assert p.data_ptr() == out.data_ptr()
+        self.assert_close(out, torch.cat(expected, 1), rtol=0, atol=0)
+        with pytest.raises(ShapeError, match=r"\(2, 2, 4, 5\)"):
+            normals_to_gradients(normals, out=out[:, :1])
+        with pytest.raises(InputError, match="requires grad"):
+            normals_to_gradients(normals.clone().requires_grad_(), out=out)
 
     def test_gradcheck(self):
         normals = torch.nn.functional.normalize(torch.rand(1, 3, 3, 3, dtype=torch.float64) + 0.3, dim=1).requires_grad_()

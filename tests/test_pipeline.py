@@ -137,11 +137,13 @@ class TestPhotometricStereo(BaseTester):
         with pytest.raises(InputError, match="above the card"):
             PhotometricStereo(lights, None)(torch.rand(1, 3, 4, 4), reference=torch.ones(3, 4, 4))
 
+    @pytest.mark.parametrize("with_mask", [True, False], ids=["mask", "no mask"])
     @pytest.mark.parametrize("chunked", [False, True], ids=["whole", "chunked"])
     @pytest.mark.parametrize("integrator", ["auto", "masked"])
-    def test_batch_equals_items(self, device, dtype, integrator, chunked, monkeypatch):
+    def test_batch_equals_items(self, device, dtype, integrator, chunked, with_mask, monkeypatch):
         """A batch gives each item what it gets alone: no estimator or integrator couples the items, and solving a
-        CPU batch in chunks (of two items and one, here) changes nothing."""
+        CPU batch in chunks (of two items and one, here) changes nothing, also where a chunk's least squares
+        writes straight into the batch's tensors (the unsaturated last chunk, with a mask and without)."""
         if chunked:
             monkeypatch.setattr(_chunks, "CPU_CHUNK_ELEMENTS", 2 * 8 * 24 * 20)
         lights = ring_lights(8, 50.0, device=device, dtype=dtype)
@@ -149,11 +151,12 @@ class TestPhotometricStereo(BaseTester):
         images[1, 2, :4, :5] = 1.0  # saturated: fewer observations there
         reference = torch.rand(1, 8, 24, 20, device=device, dtype=dtype) * 0.4 + 0.5
         dark = torch.rand(3, 1, 24, 20, device=device, dtype=dtype) * 0.01
-        mask = torch.rand(3, 1, 24, 20, device=device) > 0.1
+        mask = torch.rand(3, 1, 24, 20, device=device) > 0.1 if with_mask else None
         model = PhotometricStereo(lights, 0.025, ReconstructionConfig(integrator=integrator))
         batch = model(images, reference, dark, dark[:1], mask, 0.8, 0.99)
         for i in range(3):
-            item = model(images[i : i + 1], reference, dark[i : i + 1], dark[:1], mask[i : i + 1], 0.8, 0.99)
+            item_mask = None if mask is None else mask[i : i + 1]
+            item = model(images[i : i + 1], reference, dark[i : i + 1], dark[:1], item_mask, 0.8, 0.99)
             self.assert_close(batch.albedo[i : i + 1], item.albedo)
             self.assert_close(batch.normals[i : i + 1], item.normals)
             assert torch.equal(batch.mask[i : i + 1], item.mask)
