@@ -21,7 +21,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from psmini._checks import check_finite, check_shape, check_tensor
+from psmini._checks import check_finite, check_out, check_shape, check_tensor
 from psmini.errors import InputError, ShapeError
 
 __all__ = ["FlatFieldResult", "flatfield", "FlatField"]
@@ -83,6 +83,8 @@ def flatfield(
     card_albedo: float = 1.0,
     min_reference: float = 0.02,
     saturation_level: float | None = None,
+    *,
+    out: Tensor | None = None,
 ) -> FlatFieldResult:
     r"""Subtract the dark frame and divide by the per-LED reference (matte card) images.
 
@@ -97,14 +99,19 @@ def flatfield(
             trusted (the LED barely lights the card there): those observations are marked not valid.
         saturation_level: raw values at or above it are saturated and marked not valid (in the images and in
             the reference); ``None`` disables the check.
+        out: optional :math:`(B, K, H, W)` tensor of the images' dtype and device that receives the flat-fielded
+            images (the pipeline reuses one such buffer chunk after chunk of a CPU batch: a fresh one of several
+            MB is page-faulted in on every first touch). Not differentiable: refused when an input requires grad
+            with grad enabled.
 
     Returns:
-        :class:`FlatFieldResult` with ``images`` :math:`(B, K, H, W)`, ``valid`` :math:`(B, K, H, W)` and the
-        card's ``gain``.
+        :class:`FlatFieldResult` with ``images`` :math:`(B, K, H, W)` (``out`` when given), ``valid``
+        :math:`(B, K, H, W)` and the card's ``gain``.
 
     Raises:
-        ShapeError: when a frame does not broadcast to the images' shape.
-        InputError: when a value is NaN or infinite, or an option is out of range.
+        ShapeError: when a frame, or ``out``, does not fit the images' shape.
+        InputError: when a value is NaN or infinite, an option is out of range, or ``out`` cannot take the result
+            (it requires grad, shares memory with an input, or an input requires grad).
 
     Example:
         >>> images = torch.rand(2, 8, 16, 16)
@@ -126,10 +133,15 @@ def flatfield(
     dark = _check_frame(dark, *shape, "dark")
     reference = _check_frame(reference, *shape, "reference", finite=False)  # in _card_terms, once per card
     reference_dark = _check_frame(reference_dark, *shape, "reference_dark") if reference_dark is not None else dark
+    if out is not None:
+        check_out((out,), (shape,), ("images",), (images, reference, dark, reference_dark))
 
-    # One new tensor per sample, updated in place: the difference, its clamp, the card's scale (each a pass over
-    # memory; there is no fused kernel for max(I - D, 0) * s in eager torch).
-    signal = images.clamp_min(0) if dark is None else (images - dark.to(images)).clamp_min_(0)
+    # One new tensor per sample (or ``out``), updated in place: the difference, its clamp, the card's scale (each a
+    # pass over memory; there is no fused kernel for max(I - D, 0) * s in eager torch).
+    if dark is None:
+        signal = torch.clamp_min(images, 0, out=out)
+    else:
+        signal = torch.sub(images, dark.to(images), out=out).clamp_min_(0)
     # one read of the images decides whether anything is saturated: when nothing is (the usual capture), the
     # bool map, its masked fill and the per-observation valid map are skipped, and the card alone decides
     # (the unsaturated map multiplies: a float product by a bool map took half a masked_fill_'s 1.6 ms on a capture)

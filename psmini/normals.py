@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from psmini._checks import all_true, any_true, check_finite, check_mask, check_same_size, check_shape
+from psmini._checks import all_true, any_true, check_finite, check_mask, check_out, check_same_size, check_shape
 from psmini.errors import CalibrationError, InputError, ShapeError
 from psmini.lights import as_batched_lights, check_spans_3d
 
@@ -28,8 +28,8 @@ def _unit_and_length(m: Tensor, solved: Tensor | None, out: tuple[Tensor, Tensor
     """Split m (B, 3, H, W) into albedo |m| and unit normal; (0, 0, 1) and albedo 0 where not solved.
 
     ``solved`` (B, 1, H, W) marks well-posed pixels; ``None`` means all. Pixels with |m| = 0 count as not solved.
-    ``out`` (albedo, normals), checked by :func:`_check_out`, receives the results; only then are the length's
-    clamp and fills done in place (out of place, autograd records them).
+    ``out`` (albedo, normals), checked by :func:`psmini._checks.check_out`, receives the results; only then are
+    the length's clamp and fills done in place (out of place, autograd records them).
     """
     # the squared length as one product and two multiply-adds, which read each component once and write one plane
     # (m.square().sum(dim=1) writes and reads back a three-plane temporary: 0.60 against 0.28 ms with the test
@@ -56,27 +56,6 @@ def _unit_and_length(m: Tensor, solved: Tensor | None, out: tuple[Tensor, Tensor
     if out is None:
         return length.masked_fill(unsolved, 0), normals
     return length.masked_fill_(unsolved, 0), normals
-
-
-def _check_out(out, shapes: tuple[tuple[int, ...], ...], names: tuple[str, ...], inputs: tuple[Tensor, ...]) -> None:
-    """Refuse ``out`` tensors that cannot receive a result: not a tuple of ``len(shapes)`` tensors, another shape,
-    dtype or device than ``inputs[0]``, memory shared between them, or an autograd graph to break (an out tensor
-    that requires grad, or inputs that do while grad is enabled: out= writes are not differentiable)."""
-    if not isinstance(out, tuple) or len(out) != len(shapes) or not all(isinstance(t, Tensor) for t in out):
-        raise InputError(f"out must be a tuple of {len(shapes)} tensors ({', '.join(names)}), got {out!r:.80}")
-    reference = inputs[0]
-    for tensor, shape, name in zip(out, shapes, names):
-        if tuple(tensor.shape) != tuple(shape) or tensor.dtype != reference.dtype or tensor.device != reference.device:
-            raise ShapeError(f"out {name} must be a {reference.dtype} tensor of shape {tuple(shape)} on "
-                             f"{reference.device}, got {tensor.dtype} {tuple(tensor.shape)} on {tensor.device}")
-        if tensor.requires_grad:
-            raise InputError(f"out {name} requires grad: out= writes are not differentiable; pass no out")
-    if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):
-        raise InputError("out= writes are not differentiable, and an input requires grad: pass no out, or compute "
-                         "under torch.no_grad()")
-    pointers = [t.untyped_storage().data_ptr() for t in out]
-    if len(set(pointers)) != len(pointers) or any(t.untyped_storage().data_ptr() in pointers for t in inputs):
-        raise InputError(f"the out tensors ({', '.join(names)}) must not share memory with each other or the inputs")
 
 
 def _check_weights(weights: Tensor | None, shape: torch.Size) -> Tensor | None:
@@ -260,7 +239,7 @@ def albedo_normals(
     weights = _check_weights(weights, intensities.shape)
     if out is not None:
         batch, height, width = sizes["B"], sizes["H"], sizes["W"]
-        _check_out(out, ((batch, 1, height, width), (batch, 3, height, width)), ("albedo", "normals"),
+        check_out(out, ((batch, 1, height, width), (batch, 3, height, width)), ("albedo", "normals"),
                    (intensities, lights) if weights is None else (intensities, lights, weights))
     if weights is None and lights.ndim != 5:
         # one product with the pseudo-inverse: a NaN or infinite reading reaches its pixel's m (0 * NaN and
@@ -338,7 +317,7 @@ def normals_to_gradients(normals: Tensor, min_nz: float = 1e-2, *, out: Tensor |
     if not 0.0 < min_nz < 1.0:
         raise InputError(f"min_nz must lie in (0, 1), got {min_nz}")
     if out is not None:
-        _check_out((out,), ((normals.shape[0], 2, *normals.shape[2:]),), ("slopes",), (normals,))
+        check_out((out,), ((normals.shape[0], 2, *normals.shape[2:]),), ("slopes",), (normals,))
     # one division of both slopes by -n_z; p and q are views of one (B, 2, H, W) tensor
     slopes = torch.div(normals[:, 0:2], normals[:, 2:3].clamp_min(min_nz).neg_(), out=out)
     return slopes[:, 0:1], slopes[:, 1:2]

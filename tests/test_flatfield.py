@@ -67,6 +67,29 @@ class TestFlatField(BaseTester):
         self.assert_close(a.images, b.images)
         assert torch.equal(a.valid, b.valid)
 
+    @pytest.mark.parametrize("case", ["card", "no card", "no dark", "saturated"])
+    def test_out_equals_new_tensor(self, device, dtype, case):
+        """The flat-fielded images written into ``out`` are the new tensor's on every path, and are ``out``."""
+        images = torch.rand(2, 8, 6, 5, device=device, dtype=dtype)
+        dark = None if case == "no dark" else torch.rand(2, 1, 6, 5, device=device, dtype=dtype) * 0.05
+        reference = None if case == "no card" else torch.rand(8, 6, 5, device=device, dtype=dtype) * 0.5 + 0.4
+        level = 0.9 if case == "saturated" else None
+        expected = flatfield(images, reference, dark, card_albedo=0.8, saturation_level=level)
+        out = torch.full_like(images, torch.nan)
+        got = flatfield(images, reference, dark, card_albedo=0.8, saturation_level=level, out=out)
+        assert got.images is out
+        self.assert_close(got.images, expected.images, rtol=0, atol=0)
+        assert torch.equal(got.valid, expected.valid)
+
+    def test_bad_out_raise(self):
+        images, card = torch.rand(2, 8, 4, 4), torch.full((8, 4, 4), 0.5)
+        with pytest.raises(ShapeError, match=r"out images .*\(2, 8, 4, 4\).*\(1, 8, 4, 4\)"):
+            flatfield(images, card, out=torch.empty(1, 8, 4, 4))
+        with pytest.raises(InputError, match="share memory"):
+            flatfield(images, card, out=images)
+        with pytest.raises(InputError, match="requires grad"):
+            flatfield(images.clone().requires_grad_(), card, out=torch.empty(2, 8, 4, 4))
+
     def test_bad_shapes_raise(self):
         with pytest.raises(ShapeError, match="reference must broadcast"):
             flatfield(torch.rand(1, 8, 4, 4), torch.rand(7, 4, 4))
