@@ -58,6 +58,26 @@ def _unit_and_length(m: Tensor, solved: Tensor | None, out: tuple[Tensor, Tensor
     return length.masked_fill_(unsolved, 0), normals
 
 
+def _project(intensities: Tensor, pinv: Tensor) -> Tensor:
+    """m = L^+ I per pixel: ``pinv`` (B|1, 3, K) or (3, K) times ``intensities`` (B, K, H, W), as (B, 3, H, W)."""
+    batch, _, height, width = intensities.shape
+    return torch.matmul(pinv, intensities.flatten(2)).view(batch, 3, height, width)
+
+
+def _solve_with_pinv(intensities: Tensor, pinv: Tensor, mask: Tensor | None = None,
+                    out: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+    """:func:`albedo_normals` without weights, from the light matrix's pseudo-inverse ``pinv`` (3, K), for
+    callers that have checked everything: the pipeline, whose flat-fielded images are finite by construction
+    and whose light matrix is the same for every chunk of a batch (its SVD and the scan of the solution for NaN
+    were 0.1 and 0.12 ms per 8 x 400^2 capture on one thread of the 2-core Xeon). ``mask`` is bool or ``None``;
+    ``out`` is checked as :func:`albedo_normals` checks it."""
+    if out is not None:
+        batch, _, height, width = intensities.shape
+        check_out(out, ((batch, 1, height, width), (batch, 3, height, width)), ("albedo", "normals"),
+                  (intensities, pinv))
+    return _unit_and_length(_project(intensities, pinv), mask, out)
+
+
 def _check_weights(weights: Tensor | None, shape: torch.Size) -> Tensor | None:
     if weights is None:
         return None
@@ -246,7 +266,7 @@ def albedo_normals(
         # 0 * inf are NaN), so the K-image stack is scanned only when m is not finite (on DiLiGenT cat the scan
         # of the 96 images was a quarter of the solve's time)
         pinv = torch.linalg.pinv(as_batched_lights(lights, sizes["B"], intensities))  # (B, 3, K)
-        m = torch.matmul(pinv, intensities.flatten(2)).view(sizes["B"], 3, sizes["H"], sizes["W"])
+        m = _project(intensities, pinv)
         if not bool(torch.isfinite(m.detach().sum())):
             check_finite(intensities, "intensities")
         return _unit_and_length(m, None if mask is None else mask.bool(), out)
@@ -318,6 +338,13 @@ def normals_to_gradients(normals: Tensor, min_nz: float = 1e-2, *, out: Tensor |
         raise InputError(f"min_nz must lie in (0, 1), got {min_nz}")
     if out is not None:
         check_out((out,), ((normals.shape[0], 2, *normals.shape[2:]),), ("slopes",), (normals,))
+    return _slopes_of(normals, min_nz, out)
+
+
+def _slopes_of(normals: Tensor, min_nz: float = 1e-2, out: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """:func:`normals_to_gradients` without its checks, for the pipeline's normals (unit and finite by
+    construction, their scan for NaN 0.12 ms per 400^2 capture; the integrator still checks the slopes) and an
+    ``out`` of the caller's own making (not checked)."""
     # one division of both slopes by -n_z; p and q are views of one (B, 2, H, W) tensor
     slopes = torch.div(normals[:, 0:2], normals[:, 2:3].clamp_min(min_nz).neg_(), out=out)
     return slopes[:, 0:1], slopes[:, 1:2]

@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from psmini._checks import all_true, check_mask, check_positive, check_shape, check_tensor
+from psmini._checks import all_true, check_mask, check_positive, check_same_size, check_shape, check_tensor
 from psmini._chunks import batch_part, chunks
 from psmini.config import ReconstructionConfig
 from psmini.errors import InputError
@@ -22,7 +22,7 @@ from psmini.integrate import integrate
 from psmini.lights import DirectionalLights, LightModel, check_spans_3d
 from psmini.nearlight import NearLightResult, solve_near_light
 from psmini.nonlambertian import nonlambertian_normals
-from psmini.normals import albedo_normals, normals_to_gradients
+from psmini.normals import _slopes_of, _solve_with_pinv, albedo_normals
 from psmini.robust import ROBUST_METHODS, robust_normals
 from psmini.result import Reconstruction
 
@@ -167,13 +167,17 @@ class PhotometricStereo(nn.Module):
         # the distant solver's light matrix once per call, not once per chunk (0.14 ms a chunk: 1.1 of 51 ms for a
         # batch of 8 x 400^2 on one thread of the 2-core Xeon)
         matrix = None if self.solver == "near" else distant_light_matrix(self.lights, reference is not None, images)
+        pinv = None
+        if matrix is not None:  # the distant solver's pseudo-inverse, also once per call (an SVD: 0.1 ms a chunk)
+            check_same_size(matrix.shape[0], sizes["K"], "the number of lights", "lights", "images")
+            pinv = torch.linalg.pinv(check_spans_3d(matrix))
         # the flat-fielded images, the solver's largest temporaries, one capture at a time on the CPU (see
         # psmini._chunks); only what a solver returns is assembled
         workspace: list[Tensor] = []  # the first chunk's flat-fielded images, a buffer for the next chunks'
 
         def solve(part: slice, into: tuple[Tensor, Tensor] | None = None):
             return self._solve_normals(*(batch_part(x, images, part, name) for name, x in frames.items()),
-                                       card_albedo, saturation_level, card_height_mm, matrix, into, workspace)
+                                       card_albedo, saturation_level, card_height_mm, (matrix, pinv), into, workspace)
 
         parts = chunks(images)
         if self.solver == "near":
@@ -187,12 +191,13 @@ class PhotometricStereo(nn.Module):
 
     def _solve_normals(self, images: Tensor, reference: Tensor | None, dark: Tensor | None,
                        reference_dark: Tensor | None, mask: Tensor | None, card_albedo: float,
-                       saturation_level: float | None, card_height_mm: float, matrix: Tensor | None,
-                       into: tuple[Tensor, Tensor] | None = None,
+                       saturation_level: float | None, card_height_mm: float,
+                       matrices: tuple[Tensor | None, Tensor | None], into: tuple[Tensor, Tensor] | None = None,
                        workspace: list[Tensor] | None = None) -> NearLightResult | tuple[Tensor, Tensor]:
         """Flat-field and solve one chunk of the batch: the whole near-light result, or the distant solver's albedo
-        and normals with the light ``matrix`` (:func:`distant_light_matrix`), written into ``into`` (albedo,
-        normals) where least squares can write them there (no weights, no gradient to record).
+        and normals with ``matrices``, the light matrix (:func:`distant_light_matrix`) and its pseudo-inverse
+        (``None`` for near light), written into ``into`` (albedo, normals) where least squares can write them there
+        (no weights, no gradient to record).
 
         With distant least squares and no gradient to record, the flat-fielded images go into ``workspace[0]``
         (the first chunk's, kept there; least squares returns nothing that aliases them): a fresh 5 MB tensor
@@ -200,6 +205,7 @@ class PhotometricStereo(nn.Module):
         capture in the profile of a batch of 8 x 400^2 on one thread, about four times its arithmetic.
         """
         config = self.config
+        matrix, pinv = matrices
         estimator = "lstsq" if config.estimator == "auto" else config.estimator
         reusable = (workspace is not None and self.solver == "distant" and estimator == "lstsq"
                     and not _needs_gradient(*(x for x in (images, reference, dark, reference_dark) if x is not None)))
@@ -214,8 +220,10 @@ class PhotometricStereo(nn.Module):
                                     config.near_options(mask is not None), flat.gain)
         all_valid = flat.all_valid if flat.all_valid is not None else all_true(flat.valid)
         weights = None if all_valid else flat.valid
-        if into is not None and estimator == "lstsq" and weights is None and not _needs_gradient(flat.images, matrix):
-            return albedo_normals(flat.images, matrix, mask, out=into)
+        if estimator == "lstsq" and weights is None:
+            # the flat-fielded images are finite (flatfield checked the frames), the pseudo-inverse is the batch's
+            into = None if _needs_gradient(flat.images, pinv) else into
+            return _solve_with_pinv(flat.images, pinv, None if mask is None else mask.bool(), out=into)
         return NORMAL_ESTIMATORS[estimator](flat.images, matrix, mask, weights, config.estimator_options)
 
 
@@ -238,7 +246,7 @@ def _assemble(parts: list[slice], solve) -> tuple[Tensor, Tensor, Tensor, Tensor
     """
     if len(parts) == 1:
         albedo, normals = solve(parts[0])
-        return albedo, normals, *normals_to_gradients(normals)
+        return albedo, normals, *_slopes_of(normals)
     albedo = normals = slopes = None
     for part in parts:
         into = None if albedo is None else (albedo[part], normals[part])
@@ -251,9 +259,9 @@ def _assemble(parts: list[slice], solve) -> tuple[Tensor, Tensor, Tensor, Tensor
         if into is None or chunk_albedo.data_ptr() != into[0].data_ptr():
             albedo[part], normals[part] = chunk_albedo, chunk_normals
         if _needs_gradient(chunk_normals):
-            slopes[part, 0:1], slopes[part, 1:2] = normals_to_gradients(chunk_normals)
+            slopes[part, 0:1], slopes[part, 1:2] = _slopes_of(chunk_normals)
         else:
-            normals_to_gradients(chunk_normals, out=slopes[part])
+            _slopes_of(chunk_normals, out=slopes[part])
     return albedo, normals, slopes[:, 0:1], slopes[:, 1:2]
 
 

@@ -88,6 +88,18 @@ class TestAlbedoNormals(BaseTester):
         self.assert_close(got[0], expected[0], rtol=0, atol=0)
         self.assert_close(got[1], expected[1], rtol=0, atol=0)
 
+    def test_pipeline_kernel_equals_albedo_normals(self, device, dtype):
+        """The pipeline's unchecked kernel (one pseudo-inverse per batch) gives albedo_normals' values."""
+        from psmini.normals import _solve_with_pinv
+
+        lights = ring_lights(8, 55.0, device=device, dtype=dtype)
+        images = torch.rand(2, 8, 6, 5, device=device, dtype=dtype) + 0.1
+        mask = torch.rand(2, 1, 6, 5, device=device) > 0.3
+        for m in (None, mask):
+            for got, expected in zip(_solve_with_pinv(images, torch.linalg.pinv(lights), m),
+                                     albedo_normals(images, lights, m)):
+                self.assert_close(got, expected, rtol=1e-6 if dtype == torch.float32 else 1e-12, atol=1e-7)
+
     def test_bad_out_raise(self):
         lights, images = ring_lights(8, 55.0), torch.rand(1, 8, 4, 4)
         albedo, normals = torch.empty(1, 1, 4, 4), torch.empty(1, 3, 4, 4)
