@@ -184,7 +184,9 @@ class PhotometricStereo(nn.Module):
             results = [solve(part) for part in parts]
             return results[0] if len(results) == 1 else NearLightResult.concatenate(results)
         albedo, normals, p, q = _assemble(parts, solve)  # p, q 0 where not solved: the normal there is (0, 0, 1)
-        solved = albedo > 0
+        # least squares' albedo is a length (finite, >= 0): its cast to bool is the test > 0, in 0.22 ms where the
+        # comparison took 0.76 ms on a batch of 8 x 400^2 (one thread); other estimators' fitted albedo is compared
+        solved = albedo.bool() if config.estimator in ("auto", "lstsq") else albedo > 0
         integrator = config.integrator_for(self.solver, mask is not None)
         depth = integrate(p, q, integrator, self.pixel_pitch_mm or 1.0, solved, **config.integrator_options)
         return Reconstruction(albedo, normals, p, q, depth, solved)
