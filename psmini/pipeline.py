@@ -199,7 +199,7 @@ class PhotometricStereo(nn.Module):
         """Flat-field and solve one chunk of the batch: the whole near-light result, or the distant solver's albedo
         and normals with ``matrices``, the light matrix (:func:`distant_light_matrix`) and its pseudo-inverse
         (``None`` for near light), written into ``into`` (albedo, normals) where least squares can write them there
-        (no weights, no gradient to record).
+        (no gradient to record).
 
         With distant least squares and no gradient to record, the flat-fielded images go into ``workspace[0]``
         (the first chunk's, kept there; least squares returns nothing that aliases them): a fresh 5 MB tensor
@@ -222,10 +222,12 @@ class PhotometricStereo(nn.Module):
                                     config.near_options(mask is not None), flat.gain)
         all_valid = flat.all_valid if flat.all_valid is not None else all_true(flat.valid)
         weights = None if all_valid else flat.valid
-        if estimator == "lstsq" and weights is None:
-            # the flat-fielded images are finite (flatfield checked the frames), the pseudo-inverse is the batch's
+        if estimator == "lstsq":
             into = None if _needs_gradient(flat.images, pinv) else into
-            return _solve_with_pinv(flat.images, pinv, None if mask is None else mask.bool(), out=into)
+            if weights is None:
+                # the flat-fielded images are finite (flatfield checked the frames), the pseudo-inverse the batch's
+                return _solve_with_pinv(flat.images, pinv, None if mask is None else mask.bool(), out=into)
+            return albedo_normals(flat.images, matrix, mask, weights, out=into)
         return NORMAL_ESTIMATORS[estimator](flat.images, matrix, mask, weights, config.estimator_options)
 
 
