@@ -94,6 +94,12 @@ def check_positive(value: float, name: str) -> float:
     return float(value)
 
 
+def records_gradient(*tensors: Tensor | None) -> bool:
+    """Whether autograd records operations on any of ``tensors`` (``None`` skipped): out= writes would then break
+    the graph."""
+    return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)
+
+
 def check_out(out, shapes: tuple[tuple[int, ...], ...], names: tuple[str, ...], inputs: tuple[Tensor, ...]) -> None:
     """Refuse ``out`` tensors that cannot receive a result: not a tuple of ``len(shapes)`` tensors, another shape,
     dtype or device than ``inputs[0]``, memory shared between them, or an autograd graph to break (an out tensor
@@ -109,7 +115,7 @@ def check_out(out, shapes: tuple[tuple[int, ...], ...], names: tuple[str, ...], 
                              f"{reference.device}, got {tensor.dtype} {tuple(tensor.shape)} on {tensor.device}")
         if tensor.requires_grad:
             raise InputError(f"out {name} requires grad: out= writes are not differentiable; pass no out")
-    if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):
+    if records_gradient(*inputs):
         raise InputError("out= writes are not differentiable, and an input requires grad: pass no out, or compute "
                          "under torch.no_grad()")
     pointers = [t.untyped_storage().data_ptr() for t in out]
