@@ -72,10 +72,15 @@ def _solve_with_pinv(intensities: Tensor, pinv: Tensor, mask: Tensor | None = No
     were 0.1 and 0.12 ms per 8 x 400^2 capture on one thread of the 2-core Xeon). ``mask`` is bool or ``None``;
     ``out`` is checked as :func:`albedo_normals` checks it."""
     if out is not None:
-        batch, _, height, width = intensities.shape
-        check_out(out, ((batch, 1, height, width), (batch, 3, height, width)), ("albedo", "normals"),
-                  (intensities, pinv))
+        _check_results_out(out, intensities, pinv)
     return _unit_and_length(_project(intensities, pinv), mask, out)
+
+
+def _check_results_out(out, intensities: Tensor, *inputs: Tensor | None) -> None:
+    """:func:`~psmini._checks.check_out` for ``(albedo, normals)`` of ``intensities`` (B, K, H, W)."""
+    batch, _, height, width = intensities.shape
+    check_out(out, ((batch, 1, height, width), (batch, 3, height, width)), ("albedo", "normals"),
+              (intensities, *inputs))
 
 
 def _check_weights(weights: Tensor | None, shape: torch.Size) -> Tensor | None:
@@ -258,9 +263,7 @@ def albedo_normals(
     mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
     weights = _check_weights(weights, intensities.shape)
     if out is not None:
-        batch, height, width = sizes["B"], sizes["H"], sizes["W"]
-        check_out(out, ((batch, 1, height, width), (batch, 3, height, width)), ("albedo", "normals"),
-                   (intensities, lights) if weights is None else (intensities, lights, weights))
+        _check_results_out(out, intensities, lights, weights)
     if weights is None and lights.ndim != 5:
         # one product with the pseudo-inverse: a NaN or infinite reading reaches its pixel's m (0 * NaN and
         # 0 * inf are NaN), so the K-image stack is scanned only when m is not finite (on DiLiGenT cat the scan
