@@ -130,6 +130,8 @@ class PhotometricStereo(nn.Module):
             raise InputError(f"config must be a ReconstructionConfig, got {type(self.config).__name__}")
         self.lights = _as_light_model(lights)
         self.solver = self.config.solver_for(self.lights)
+        # the distant solver's estimator (``auto``: least squares)
+        self.estimator = "lstsq" if self.config.estimator == "auto" else self.config.estimator
         if pixel_pitch_mm is not None:
             check_positive(pixel_pitch_mm, "pixel_pitch_mm")
         elif self.solver == "near":
@@ -187,7 +189,7 @@ class PhotometricStereo(nn.Module):
         albedo, normals, p, q = _assemble(parts, solve)  # p, q 0 where not solved: the normal there is (0, 0, 1)
         # least squares' albedo is a length (finite, >= 0): its cast to bool is the test > 0, in 0.22 ms where the
         # comparison took 0.76 ms on a batch of 8 x 400^2 (one thread); other estimators' fitted albedo is compared
-        solved = albedo.bool() if config.estimator in ("auto", "lstsq") else albedo > 0
+        solved = albedo.bool() if self.estimator == "lstsq" else albedo > 0
         integrator = config.integrator_for(self.solver, mask is not None)
         depth = integrate(p, q, integrator, self.pixel_pitch_mm or 1.0, solved, **config.integrator_options)
         return Reconstruction(albedo, normals, p, q, depth, solved)
@@ -209,8 +211,7 @@ class PhotometricStereo(nn.Module):
         """
         config = self.config
         matrix, pinv = matrices
-        estimator = "lstsq" if config.estimator == "auto" else config.estimator
-        reusable = (workspace is not None and self.solver == "distant" and estimator == "lstsq"
+        reusable = (workspace is not None and self.solver == "distant" and self.estimator == "lstsq"
                     and not records_gradient(images, reference, dark, reference_dark))
         buffer = workspace[0][: images.shape[0]] if reusable and workspace else None
         flat = flatfield(images, reference, dark, reference_dark, card_albedo, config.min_reference, saturation_level,
@@ -223,13 +224,13 @@ class PhotometricStereo(nn.Module):
                                     config.near_options(mask is not None), flat.gain)
         all_valid = flat.all_valid if flat.all_valid is not None else all_true(flat.valid)
         weights = None if all_valid else flat.valid
-        if estimator == "lstsq":
+        if self.estimator == "lstsq":
             into = None if records_gradient(flat.images, pinv) else into
             if weights is None:
                 # the flat-fielded images are finite (flatfield checked the frames), the pseudo-inverse the batch's
                 return _solve_with_pinv(flat.images, pinv, None if mask is None else mask.bool(), out=into)
             return albedo_normals(flat.images, matrix, mask, weights, out=into)
-        return NORMAL_ESTIMATORS[estimator](flat.images, matrix, mask, weights, config.estimator_options)
+        return NORMAL_ESTIMATORS[self.estimator](flat.images, matrix, mask, weights, config.estimator_options)
 
 
 def _assemble(parts: list[slice], solve) -> tuple[Tensor, Tensor, Tensor, Tensor]:
