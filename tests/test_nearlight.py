@@ -14,6 +14,7 @@ from psmini.nearlight import (
     NearLightResult,
     RefineOptions,
     _adjugate,
+    _candidates,
     _confidence,
     _integrate,
     _noise_model,
@@ -193,6 +194,66 @@ class TestRobustNormals(BaseTester):
         assert bool((~whole[2][:, :, metal[0, 0]]).any())  # glints were dropped
         self.assert_close(banded[1], whole[1], rtol=0, atol=1e-12)
         self.assert_close(banded[0], whole[0], rtol=0, atol=1e-12)
+
+    def test_packed_rounds_give_the_selection_of_re_solving_every_pixel(self, monkeypatch):
+        """After the first update of a phase only the pixels that changed are updated and re-solved, packed: the
+        weights and fits equal those of the plain loop that updates and re-solves every pixel in every round (on
+        the image of glinting tapes, noise and a cast shadow), and the packing itself is lossless."""
+        import psmini.nearlight as nearlight
+
+        def every_pixel(rejection, images, vectors, mask, state, rounds, highlights_only):
+            used, fit, albedo, normals = state
+            if not highlights_only:
+                used, fit, albedo, normals = nearlight._solve_selection(images, vectors, mask, rejection.settle(used))
+            for _ in range(rounds):
+                new = rejection.update(vectors, fit, albedo, used, highlights_only)
+                if torch.equal(new, used):
+                    break
+                used, fit, albedo, normals = nearlight._solve_selection(images, vectors, mask, new)
+            return used, fit, albedo, normals
+
+        leds, height, normals, _, _ = _capture(dtype=torch.float64)
+        rows = torch.arange(48).view(1, 1, 48, 1).expand(1, 1, 48, 48)
+        metal = (rows // 5) % 3 == 0
+        images = render(depth_to_points(height, PITCH), normals, torch.where(metal, 0.25, 0.6).to(height), leds,
+                        specular=torch.where(metal, 0.9, 0.0).to(height), shininess=40.0)
+        noise = torch.randn(images.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+        images = (images + 0.01 * images.mean() * noise).clamp_min(0)
+        images[:, 2, 10:40, 4:30] *= 0.03
+        vectors = near_light_vectors(leds, height, PITCH)
+        packed = robust_near_light_normals(images, vectors, rounds=3)
+        monkeypatch.setattr(nearlight, "_rounds", every_pixel)
+        plain = robust_near_light_normals(images, vectors, rounds=3)
+        assert torch.equal(packed[2], plain[2]) and bool((~plain[2][:, 2, 10:40, 4:30]).any())
+        self.assert_close(packed[1], plain[1], rtol=0, atol=1e-12)
+        self.assert_close(packed[0], plain[0], rtol=0, atol=1e-12)
+        where = torch.rand(2, 1, 5, 6, generator=torch.Generator().manual_seed(0)) < 0.3
+        pixels = nearlight._Pixels(where)
+        grid = torch.randn(2, 4, 5, 6, dtype=torch.float64)
+        column = pixels.take(grid)
+        assert column.shape == (1, 4, 1, int(where.sum()))
+        assert torch.equal(pixels.put(torch.zeros_like(grid), column), grid * where)
+        per_item = pixels.take(torch.tensor([1.0, 2.0]).view(2, 1, 1, 1)).flatten()  # a level per batch item
+        assert per_item.tolist() == [1.0] * int(where[0].sum()) + [2.0] * int(where[1].sum())
+
+    def test_candidates_match_a_count_over_the_lights(self):
+        """The candidates (running top three, no count over the lights) equal the plain definition: brighter than
+        the level times the brightest where three or more are, else the three brightest valid ones (ties all
+        count) when the third is not zero; checked on quantised random images with ties, zeros and invalid
+        observations, for 2-12 lights and a scalar or per-pixel level."""
+        gen = torch.Generator().manual_seed(0)
+        for count in (2, 3, 4, 8, 12):
+            images = torch.round(5 * (torch.rand(2, count, 30, 30, generator=gen) - 0.3).clamp_min(0)) / 5
+            valid = torch.rand(2, count, 30, 30, generator=gen) > 0.2
+            for level in (0.0, 0.1, 0.5, torch.rand(2, 1, 30, 30, generator=gen)):
+                ranked = images.masked_fill(~valid, -torch.inf)
+                bright = valid & (images > level * ranked.amax(dim=1, keepdim=True))
+                top = min(3, count)
+                third = ranked.topk(top, dim=1).values[:, top - 1 : top]
+                nonzero = (valid & (images > 0)).sum(dim=1, keepdim=True) >= 3
+                expected = torch.where(bright.sum(dim=1, keepdim=True) >= 3, bright,
+                                       valid & (ranked >= third) & nonzero)
+                assert torch.equal(_candidates(images, valid, level), expected)
 
     def test_read_noise_ignores_lit_observations_among_the_dark(self):
         """The read noise comes from observations that the fit puts in attached shadow; lit ones among them (2%
