@@ -255,6 +255,28 @@ class TestRobustNormals(BaseTester):
                                        valid & (ranked >= third) & nonzero)
                 assert torch.equal(_candidates(images, valid, level), expected)
 
+    def test_counts_and_box_means_equal_their_plain_definitions(self):
+        """The byte counts over the lights equal a sum of the booleans (also past 255 lights, summed plainly), the
+        logical choice equals torch.where on booleans, and the fill's box mean equals avg_pool2d's two 1-D passes
+        to the bit, on images smaller than the window too."""
+        import torch.nn.functional as F
+
+        import psmini.nearlight as nearlight
+
+        gen = torch.Generator().manual_seed(0)
+        for count in (3, 8, 300):
+            selection = torch.rand(2, count, 7, 5, generator=gen) < 0.4
+            assert torch.equal(nearlight._count(selection).long(), selection.sum(dim=1, keepdim=True))
+            assert nearlight._count(selection, torch.float64).dtype == torch.float64
+        a, b = torch.rand(2, 8, 7, 5, generator=gen) < 0.5, torch.rand(2, 8, 7, 5, generator=gen) < 0.5
+        condition = torch.rand(2, 1, 7, 5, generator=gen) < 0.5
+        assert torch.equal(nearlight._choose(condition, a, b), torch.where(condition, a, b))
+        k = nearlight._FILL_SIZE
+        for shape in ((1, 1, 64, 48), (2, 2, 5, 3)):
+            x = torch.randn(shape, generator=gen)
+            plain = F.avg_pool2d(F.avg_pool2d(x, (k, 1), 1, (k // 2, 0)), (1, k), 1, (0, k // 2))
+            assert torch.equal(nearlight._box(x), plain)
+
     def test_read_noise_ignores_lit_observations_among_the_dark(self):
         """The read noise comes from observations that the fit puts in attached shadow; lit ones among them (2%
         here, reading 0.06, as a glint-bent fit predicts) are clipped away: the estimate stays within 10% of the
