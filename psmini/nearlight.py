@@ -762,8 +762,8 @@ class _Rejection:
 
     def unpack(self, part: _Rejection, pixels: _Pixels) -> None:
         """Write the highlight and shadow maps of ``part`` (:meth:`packed` on ``pixels``) back into this one's."""
-        self.highlights = pixels.put(self.highlights, part.highlights)
-        self.shadows = pixels.put(self.shadows, part.shadows)
+        pixels.put(self.highlights, part.highlights)
+        pixels.put(self.shadows, part.shadows)
 
     def settle_relative_noise(self, field: tuple[Tensor, Tensor, Tensor, Tensor], used: Tensor,
                               mask: Tensor | None) -> None:
@@ -889,59 +889,43 @@ def _select(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], 
     pixel), the noise model and the shadows below its level (:meth:`_Rejection.settle_noise_model`), then
     ``updates`` full updates of the selection, re-solving after each change; returns the selection and its fit.
 
-    The rounds of each phase run band by band of image rows (:func:`_row_bands`): each pixel's update depends on
-    that pixel alone once the noise levels are known, which are estimated from all pixels before each phase. A
-    band stops when a round changes none of its pixels (a further round would not either), so the selection is the
-    whole image's (the fits equal to rounding: torch sums over the lights of a band in another order), while every
-    band's dozens of passes stay in the core's cache (the full update took 47 against 74 ms on a 400² capture).
+    Each pixel's update depends on that pixel alone once the noise levels are known (estimated from all pixels
+    before each phase), and it returns a selection that the last update left unchanged unchanged again (its fit,
+    and so its tests, are the same; the highlight and shadow maps only grow by what they already hold). So only the
+    first update of a phase runs on every pixel, band by band of image rows (:func:`_row_bands`: its dozens of
+    passes stay in the core's cache, 47 against 74 ms on a 400² capture); the fits, and the updates after the first,
+    run on the pixels that changed, packed (:class:`_Pixels`; 1-5% of a fabric's), until a round changes none.
+    The selection and the fits are those of re-solving every pixel after every round.
     """
     highlight_rounds = (images.shape[1] - 3) if highlight_rounds is None else highlight_rounds
-    state = (used, fit, albedo, normals)
+    state = _owned((used, fit, albedo, normals))  # written in place from here on
     if rejection.options.highlight_fraction is not None and highlight_rounds > 0:
         rejection.settle_relative_noise(vectors, used, mask)
-        state = _banded_rounds(rejection, images, vectors, mask, state, highlight_rounds, highlights_only=True)
+        _rounds(rejection, images, vectors, mask, state, highlight_rounds, highlights_only=True)
     if updates > 0:
         used, fit, albedo, _ = state  # after the highlight rounds
         rejection.settle_noise_model(vectors, fit, albedo, used, mask)
-        state = _banded_rounds(rejection, images, vectors, mask, state, updates, highlights_only=False)
+        _resolve(images, vectors, mask, state, rejection.settle(used))
+        _rounds(rejection, images, vectors, mask, state, updates, highlights_only=False)
     return state
 
 
-def _banded_rounds(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], mask: Tensor | None,
-                   state: tuple, rounds: int, highlights_only: bool) -> tuple[Tensor, tuple, Tensor, Tensor]:
-    """:func:`_select`'s rounds of one phase, band by band; the state ``(used, fit, albedo, normals)`` assembled."""
-    bands = _row_bands(images)
-    if len(bands) == 1:
-        return _rounds(rejection, images, vectors, mask, state, rounds, highlights_only)
-    parts = []
-    for rows in bands:
-        band = rejection.band(rows)
-        parts.append(_rounds(band, _rows_of(images, rows), _rows_of(vectors, rows), _rows_of(mask, rows),
-                             _rows_of(state, rows), rounds, highlights_only))
-        rejection.absorb(band, rows)
-    return _cat_rows(parts)
+def _owned(state):
+    """A copy of the state's tensors (nested tuples of them) that :func:`_select` may write into."""
+    return tuple(_owned(x) for x in state) if isinstance(state, tuple) else state.clone()
 
 
 def _rounds(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], mask: Tensor | None, state: tuple,
-            rounds: int, highlights_only: bool) -> tuple[Tensor, tuple, Tensor, Tensor]:
-    """Up to ``rounds`` updates of the selection (a full phase settles the shadows first), re-solving after each
-    change; stops at the first round that changes nothing.
-
-    Each pixel's update depends on that pixel alone, and it returns a selection that the last update left as it
-    was unchanged again (its fit, and so its tests, are the same; the highlight and shadow maps only grow by what
-    they already hold). So only the first update runs on every pixel: the fits, and the updates after the first,
-    run on the pixels that changed, packed (:class:`_Pixels`; 1-5% of a fabric's after the first update), which
-    gives the selection and the fits of re-solving every pixel after every round.
-    """
-    if not highlights_only:
-        state = _resolve(images, vectors, mask, state, rejection.settle(state[0]))
+            rounds: int, highlights_only: bool) -> None:
+    """Up to ``rounds`` updates of the selection of one phase of :func:`_select`, re-solving after each change, the
+    state ``(used, fit, albedo, normals)`` written in place; stops at the first round that changes nothing."""
     if rounds == 0:
-        return state
-    used, fit, albedo, _ = state
-    new = rejection.update(vectors, fit, albedo, used, highlights_only)
+        return
+    used = state[0]
+    new = _first_update(rejection, images, vectors, state, highlights_only)
     changed = _count(new != used) > 0
     if not bool(changed.any()):
-        return state
+        return
     pixels = _Pixels(changed)
     part = rejection.packed(pixels)
     sub_images, sub_vectors, sub_mask = pixels.take(images), pixels.take(vectors), pixels.take(mask)
@@ -953,7 +937,23 @@ def _rounds(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], 
             break
         sub_state = _solve_selection(sub_images, sub_vectors, sub_mask, new)
     rejection.unpack(part, pixels)
-    return pixels.put(state, sub_state)
+    pixels.put(state, sub_state)
+
+
+def _first_update(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], state: tuple,
+                  highlights_only: bool) -> Tensor:
+    """The update of every pixel's selection from the state's fits, band by band of rows (:func:`_row_bands`)."""
+    bands = _row_bands(images)
+    if len(bands) == 1:
+        used, fit, albedo, _ = state
+        return rejection.update(vectors, fit, albedo, used, highlights_only)
+    proposals = []
+    for rows in bands:
+        band = rejection.band(rows)
+        used, fit, albedo, _ = _rows_of(state, rows)
+        proposals.append(band.update(_rows_of(vectors, rows), fit, albedo, used, highlights_only))
+        rejection.absorb(band, rows)
+    return torch.cat(proposals, dim=-2)
 
 
 def _solve_selection(images: Tensor, vectors: tuple[Tensor, ...], mask: Tensor | None,
@@ -964,15 +964,15 @@ def _solve_selection(images: Tensor, vectors: tuple[Tensor, ...], mask: Tensor |
 
 
 def _resolve(images: Tensor, vectors: tuple[Tensor, ...], mask: Tensor | None, state: tuple,
-             selection: Tensor) -> tuple[Tensor, tuple, Tensor, Tensor]:
-    """The state of :func:`_solve_selection` with ``selection``, re-solving only the pixels where it differs from
-    the state's."""
+             selection: Tensor) -> None:
+    """The state (written in place) of :func:`_solve_selection` with ``selection``, re-solving only the pixels where
+    it differs from the state's."""
     changed = _count(selection != state[0]) > 0
     if not bool(changed.any()):
-        return state
+        return
     pixels = _Pixels(changed)
     part = _solve_selection(pixels.take(images), pixels.take(vectors), pixels.take(mask), pixels.take(selection))
-    return pixels.put(state, part)
+    pixels.put(state, part)
 
 
 class _Pixels:
@@ -999,14 +999,14 @@ class _Pixels:
         columns = x[batch, :, 0, 0] if x.shape[-2:] == (1, 1) else x[batch, :, self.y, self.x]  # (N, C)
         return columns.t().contiguous().view(1, x.shape[1], 1, self.count)
 
-    def put(self, whole, part):
-        """A copy of ``whole`` (a (B, C, H, W) tensor, or nested tuples of them) with the packed ``part``
-        (:meth:`take`'s shape) written into its pixels."""
+    def put(self, whole, part) -> None:
+        """Write the packed ``part`` (:meth:`take`'s shape) into the pixels of ``whole`` (a (B, C, H, W) tensor, or
+        nested tuples of them, the same nesting), in place."""
         if isinstance(whole, tuple):
-            return tuple(self.put(w, p) for w, p in zip(whole, part))
-        whole = whole.clone()
+            for w, p in zip(whole, part):
+                self.put(w, p)
+            return
         whole[self.batch, :, self.y, self.x] = part.view(part.shape[1], -1).t()
-        return whole
 
 
 #: Observations (B · K · rows · W) of one band of :func:`_select` on the CPU: about 0.5 MB of float32 per tensor,
@@ -1032,14 +1032,6 @@ def _rows_of(x, rows: slice):
     if isinstance(x, tuple):
         return tuple(_rows_of(item, rows) for item in x)
     return x[..., rows, :] if isinstance(x, Tensor) else x
-
-
-def _cat_rows(parts: list):
-    """The bands' results (tensors or nested tuples of them, :func:`_rows_of`'s shapes) joined along the rows."""
-    first = parts[0]
-    if isinstance(first, tuple):
-        return tuple(_cat_rows([part[i] for part in parts]) for i in range(len(first)))
-    return torch.cat(parts, dim=-2)
 
 
 def robust_near_light_normals(
