@@ -327,6 +327,36 @@ class TestMaskedLeastSquares(BaseTester):
         mask[..., 0, :2] = False
         self.gradcheck(lambda a, b, c: masked_least_squares(a, b, 0.3, mask, c, tol=1e-12), (p, q, w))
 
+    def test_stencil_and_transfers_equal_their_padded_definitions(self):
+        """The multigrid's operator, Jacobi sweep, restriction and prolongation (border terms left out rather than
+        read from zero-padded copies, 2 x 2 sums by strided views) equal their definitions on padded arrays, to
+        the bit, on a masked grid of odd size."""
+        import torch.nn.functional as F
+
+        from psmini.integrate.poisson import _JACOBI_OMEGA, _Level
+
+        gen = torch.Generator().manual_seed(0)
+        wu, wv = torch.rand(2, 1, 9, 6, generator=gen), torch.rand(2, 1, 8, 7, generator=gen)
+        inside = (torch.rand(2, 1, 9, 7, generator=gen) > 0.2).float()
+        level = _Level.build(wu, wv, inside)
+        z, r = torch.randn(2, 1, 9, 7, generator=gen), torch.randn(2, 1, 9, 7, generator=gen)
+        padded = F.pad(z, (1, 1, 1, 1))
+        shifted = (padded[..., 1:-1, :-2], padded[..., 1:-1, 2:], padded[..., :-2, 1:-1], padded[..., 2:, 1:-1])
+        applied = level.diag * z
+        for weight, neighbour in zip(level.neighbours, shifted):
+            applied.addcmul_(weight, neighbour, value=-1)
+        assert torch.equal(level.apply(z), applied)
+        scale, weights = level.jacobi
+        swept = torch.add(r * scale, z, alpha=1 - _JACOBI_OMEGA)
+        for weight, neighbour in zip(weights, shifted):
+            swept.addcmul_(weight, neighbour)
+        assert torch.equal(level.smooth(z, r, 1), swept)
+        zeroed = torch.where(level.active, r, torch.zeros_like(r))
+        assert torch.equal(level.restrict(r), 4 * F.avg_pool2d(F.pad(zeroed, (0, 1, 0, 1)), 2))
+        coarse = torch.randn(2, 1, 5, 4, generator=gen)
+        fine = coarse.repeat_interleave(2, dim=-2).repeat_interleave(2, dim=-1)[..., :9, :7]
+        assert torch.equal(level.prolong(coarse), torch.where(level.active, fine, torch.zeros_like(fine)))
+
     def test_errors(self):
         p = torch.zeros(1, 1, 8, 8)
         with pytest.raises(ShapeError, match="weights"):
