@@ -61,6 +61,19 @@ def _capture(size=48, offset_mm=0.5, device=None, dtype=torch.float32):
     return leds, height, normals, images, card
 
 
+def _glinting_tapes(seed: int):
+    """The float64 capture of :func:`_capture` with metallic tapes every 15 rows (glints under some LEDs) and 1%
+    noise: its images (1, K, 48, 48), light vectors and the tapes' mask."""
+    leds, height, normals, _, _ = _capture(dtype=torch.float64)
+    rows = torch.arange(48).view(1, 1, 48, 1).expand(1, 1, 48, 48)
+    metal = (rows // 5) % 3 == 0
+    images = render(depth_to_points(height, PITCH), normals, torch.where(metal, 0.25, 0.6).to(height), leds,
+                    specular=torch.where(metal, 0.9, 0.0).to(height), shininess=40.0)
+    noise = torch.randn(images.shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    images = (images + 0.01 * images.mean() * noise).clamp_min(0)
+    return images, near_light_vectors(leds, height, PITCH), metal
+
+
 class TestNearLightVectors(BaseTester):
     def test_flat_card_reads_its_albedo(self, device, dtype):
         """On the card plane, flat-fielded vectors have z = 1: a flat patch of albedo ρ reads ρ under every LED."""
@@ -177,15 +190,8 @@ class TestRobustNormals(BaseTester):
         normals equal to float64 rounding."""
         import psmini.nearlight as nearlight
 
-        leds, height, normals, _, _ = _capture(dtype=torch.float64)
-        rows = torch.arange(48).view(1, 1, 48, 1).expand(1, 1, 48, 48)
-        metal = (rows // 5) % 3 == 0
-        images = render(depth_to_points(height, PITCH), normals, torch.where(metal, 0.25, 0.6).to(height), leds,
-                        specular=torch.where(metal, 0.9, 0.0).to(height), shininess=40.0)
-        noise = torch.randn(images.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
-        images = (images + 0.01 * images.mean() * noise).clamp_min(0)
+        images, vectors, metal = _glinting_tapes(seed=2)
         images[:, 3, 5:30, 20:44] *= 0.02  # a cast shadow over several bands
-        vectors = near_light_vectors(leds, height, PITCH)
         whole = robust_near_light_normals(images, vectors)
         monkeypatch.setattr(nearlight, "_BAND_ELEMENTS", 1)  # every band _MIN_BAND_ROWS = 8 rows
         assert len(nearlight._row_bands(images)) == 6
@@ -217,15 +223,8 @@ class TestRobustNormals(BaseTester):
             state = nearlight._solve_selection(images, vectors, mask, rejection.settle(state[0]))
             return phase(state, updates, False)
 
-        leds, height, normals, _, _ = _capture(dtype=torch.float64)
-        rows = torch.arange(48).view(1, 1, 48, 1).expand(1, 1, 48, 48)
-        metal = (rows // 5) % 3 == 0
-        images = render(depth_to_points(height, PITCH), normals, torch.where(metal, 0.25, 0.6).to(height), leds,
-                        specular=torch.where(metal, 0.9, 0.0).to(height), shininess=40.0)
-        noise = torch.randn(images.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
-        images = (images + 0.01 * images.mean() * noise).clamp_min(0)
-        images[:, 2, 10:40, 4:30] *= 0.03
-        vectors = near_light_vectors(leds, height, PITCH)
+        images, vectors, _ = _glinting_tapes(seed=3)
+        images[:, 2, 10:40, 4:30] *= 0.03  # a cast shadow
         packed = robust_near_light_normals(images, vectors, rounds=3)
         monkeypatch.setattr(nearlight, "_select", every_pixel)
         plain = robust_near_light_normals(images, vectors, rounds=3)
