@@ -557,9 +557,11 @@ def _leverage(lx: Tensor, ly: Tensor, lz: Tensor, matrix: tuple) -> Tensor:
     r"""Leverage :math:`L_k^T (\sum_{j} w_j L_j L_j^T)^{-1} L_k` of every light, (B, K, H, W), from the adjugate
     and determinant of the fit's normal matrix (:func:`_fit`)."""
     (c00, c01, c02, c11, c12, c22), det = matrix
-    quadratic = (c00 * lx * lx + c11 * ly * ly + c22 * lz * lz
-                 + 2 * (c01 * lx * ly + c02 * lx * lz + c12 * ly * lz))
-    return quadratic / det
+    # c00 lx lx + c11 ly ly + c22 lz lz + 2 (c01 lx ly + c02 lx lz + c12 ly lz), grouped as written and computed in
+    # place (the same values, six fresh buffers where there were seventeen)
+    quadratic = (c00 * lx).mul_(lx).add_((c11 * ly).mul_(ly)).add_((c22 * lz).mul_(lz))
+    mixed = (c01 * lx).mul_(ly).add_((c02 * lx).mul_(lz)).add_((c12 * ly).mul_(lz))
+    return quadratic.add_(mixed.mul_(2)).div_(det)
 
 
 def _candidates(intensities: Tensor, valid: Tensor, level: Tensor | float) -> Tensor:
@@ -869,27 +871,32 @@ class _Rejection:
         m, _, matrix = fit
         # (arithmetic on a float copy of the selection: on the CPU, where(), masked_fill() and reductions of
         # booleans over K cost two to five times a float product)
+        # (the K-plane terms are computed in place where a term is not needed again: the same operations in the
+        # same order, so the same values, with fewer fresh buffers: with the leverage's, a band's update of 8 x 40 x 400
+        # took 4.3 against 4.8 ms, its highlight test 2.7 against 3.2 ms)
+        tiny = torch.finfo(images.dtype).tiny
         weight = used.to(images.dtype)
         pred = _predict(m, lx, ly, lz)
         positive = pred.clamp_min(0)
         scale = albedo * length.mean(dim=1, keepdim=True)
-        relative = images / length.clamp_min(torch.finfo(length.dtype).tiny)
+        relative = length.clamp_min(tiny)
+        relative = torch.div(images, relative, out=relative)
         count = weight.sum(dim=1, keepdim=True)
         if highlights_only:
             # shot noise grows with the signal: scaled by the square root of the prediction over the pixel's mean
             shot = positive * self.noise_scale
             level = (shot * weight).sum(dim=1, keepdim=True) / count.clamp_min(1)
-            sigma = self.relative_noise * scale * (shot / level.clamp_min(1e-12)).sqrt()
+            sigma = shot.div_(level.clamp_min(1e-12)).sqrt_().mul_(self.relative_noise * scale)
         else:
             s = self.noise_scale
             floor_sq, gain = self.noise
-            sigma = (floor_sq * s**2 + gain * positive * s).sqrt()
+            sigma = (gain * positive).mul_(s).add_(floor_sq * s**2).sqrt_()
         leverage = _leverage(lx, ly, lz, matrix)
         # residuals of each observation against the fit of the others: r / (1 - h) for the observations in the
         # fit (leave-one-out, from the hat matrix), r itself for the others; and their spread in noise levels
-        kept = 1 + weight * ((1 - leverage).clamp_min(1e-6) - 1)
-        spread = (1 + leverage + weight * (1 / kept - 1 - leverage)).sqrt()
-        left_out = (images - pred) / kept
+        kept = (1 - leverage).clamp_min_(1e-6).sub_(1).mul_(weight).add_(1)
+        spread = (1 + leverage).add_(kept.reciprocal().sub_(1).sub_(leverage).mul_(weight)).sqrt_()
+        left_out = (images - pred).div_(kept)
         # the two suspects, the brightest and the darkest observation relative to its light (unused observations
         # pushed out of reach; amax: argmax is slow), and how far each lies from the fit of the others in noise
         # levels: only the farther of the two may leave in this update, when beyond its threshold. A cast shadow
@@ -898,14 +905,15 @@ class _Rejection:
         # pixels lost a good observation so, and their normals erred by 7 degrees), and the darkest of a glinting
         # pixel like a cast shadow. One deletion at a time, the largest studentised residual first (Cook and
         # Weisberg).
-        beyond = (1 - weight) * torch.finfo(images.dtype).max
+        beyond = (1 - weight).mul_(torch.finfo(images.dtype).max)
         ranked = relative - beyond
         brightest = used & (ranked == ranked.amax(dim=1, keepdim=True))
-        ranked = relative + beyond
+        ranked = torch.add(relative, beyond, out=ranked)
         darkest = used & (ranked == ranked.amin(dim=1, keepdim=True))
-        studentised = left_out / (sigma * spread).clamp_min(torch.finfo(images.dtype).tiny)
+        studentised = (sigma * spread).clamp_min_(tiny)
+        studentised = torch.div(left_out, studentised, out=studentised)
         above = (studentised * brightest).amax(dim=1, keepdim=True)
-        below = (-studentised * darkest).amax(dim=1, keepdim=True)
+        below = studentised.neg_().mul_(darkest).amax(dim=1, keepdim=True)
         if options.highlight_fraction is not None:
             sigmas = _FIRST_HIGHLIGHT_SIGMAS if highlights_only else _HIGHLIGHT_SIGMAS
             threshold = torch.maximum(sigma * sigmas * spread, options.highlight_fraction * scale)
