@@ -374,16 +374,19 @@ class _LightField:
                                                                  length * factor)
         # each operation is a pass over (B, K, h, w): fused multiply-adds where two would do, and the card's scale
         # applied once, to the length, before it scales the three offsets
+        # (fresh results updated in place where autograd keeps no copy of them: the same values, fewer buffers)
         oz = self.pz - depth  # (B, K, h, w) by broadcasting (B, 1, h, w)
-        inverse = torch.addcmul(self.rxy2, oz, oz).rsqrt()
-        length = self.phi * inverse.square()  # irradiance φ / r²
+        inverse = torch.addcmul(self.rxy2, oz, oz).rsqrt_()
+        length = inverse.square().mul_(self.phi)  # irradiance φ / r²
         if self.led:
             cosine = (torch.addcmul(self.axy, oz, self.az) * inverse).neg_().clamp_min_(torch.finfo(oz.dtype).tiny)
-            length = length * (cosine if self.unit_mu else cosine.pow(self.mu))
+            length = length.mul_(cosine if self.unit_mu else cosine.pow(self.mu))
         if factor is not None:
-            length = length * factor
+            length = length.mul_(factor)
         scale = length * inverse  # irradiance / r: the offsets become unit directions times irradiance
-        return self.ox * scale, self.oy * scale, oz * scale, length
+        # (oz is kept for the backward of its products above, when one is recorded)
+        z = oz * scale if torch.is_grad_enabled() else oz.mul_(scale)
+        return self.ox * scale, self.oy * scale, z, length
 
     def every(self, n: int) -> _LightField:
         """The same field on every ``n``-th pixel of its grid in each direction (views of its terms)."""

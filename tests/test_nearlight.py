@@ -100,6 +100,12 @@ class TestNearLightVectors(BaseTester):
 
         self.gradcheck(vectors, (depth, positions))
 
+        def every_parameter(d, pos, axes, intensities, mu):  # the terms the field updates in place among them
+            return near_light_vectors(LEDLights(pos, axes, intensities, mu), d, PITCH, 0.0)
+
+        parameters = (-leds.positions_mm, leds.intensities * 1.1, torch.full_like(leds.intensities, 1.3))
+        self.gradcheck(every_parameter, (depth, positions, *(t.clone().requires_grad_() for t in parameters)))
+
 
 class TestRobustNormals(BaseTester):
     def test_per_pixel_lights_exact(self, device, dtype):
