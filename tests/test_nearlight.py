@@ -725,6 +725,31 @@ class TestKeptLightFields:
         for kept, expected in zip(first(depth), fresh(depth)):
             assert torch.equal(kept, expected)
 
+    def test_every_nth_pixel_equals_the_field_at_that_stride(self):
+        """The offset scan's field (every second pixel of a stride-2 field: views of its terms) equals the field
+        built at stride 4, for an LED model (card scale and lobe) and for a model evaluated through its forward;
+        the noise statistics' sampling reads every second row and column only from 4 x 2^15 pixels on."""
+        from psmini import nearlight
+        like = torch.zeros(1, 8, 24, 20)
+        depth = torch.rand(1, 1, 6, 5, generator=torch.Generator().manual_seed(0))
+        class Wrapped(torch.nn.Module):  # not a point model: the field evaluates its forward on its grid's points
+            def __init__(self, inner):
+                super().__init__()
+                self.inner, self.count = inner, inner.count
+
+            def forward(self, points):
+                return self.inner(points)
+
+        for model in (_rig(), PointLights(_rig().positions_mm), Wrapped(_rig())):
+            sub = nearlight._LightField(model, 24, 20, PITCH, 0.0, like, 2).every(2)
+            direct = nearlight._LightField(model, 24, 20, PITCH, 0.0, like, 4)
+            assert sub.shape == direct.shape and sub.stride == 4
+            for a, b in zip(sub(depth), direct(depth)):
+                assert torch.equal(a, b)
+        assert nearlight._noise_sample(torch.zeros(1, 8, 362, 362))(like) is like  # 131,044 pixels: all
+        assert nearlight._noise_sample(torch.zeros(1, 8, 400, 400))(like).shape == (1, 8, 12, 10)
+        assert nearlight._noise_sample(like)(1.0) == 1.0 and nearlight._noise_sample(like)(None) is None
+
     def test_other_values_or_grids_get_their_own(self):
         from psmini import nearlight
 
