@@ -950,8 +950,8 @@ def _select(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], 
     pixel), the noise model and the shadows below its level (:meth:`_Rejection.settle_noise_model`), then
     ``updates`` full updates of the selection, re-solving after each change; returns the selection and its fit.
 
-    Each pixel's update depends on that pixel alone once the noise levels are known (estimated from all pixels
-    before each phase), and it returns a selection that the last update left unchanged unchanged again (its fit,
+    Each pixel's update depends on that pixel alone once the noise levels are known (estimated over the image
+    before each phase, :func:`_noise_sample`), and it returns a selection that the last update left unchanged unchanged again (its fit,
     and so its tests, are the same; the highlight and shadow maps only grow by what they already hold). So only the
     first update of a phase runs on every pixel, band by band of image rows (:func:`_row_bands`: its dozens of
     passes stay in the core's cache, 47 against 74 ms on a 400² capture); the fits, and the updates after the first,
