@@ -18,7 +18,8 @@ Beside each case: the noise floor (per-pixel least squares at the TRUE surface w
 flat-fielded images, using exactly the lit, usable observations) and near_true's excess over it split in two (least
 squares at the true surface with near_true's selection of observations; at near_true's surface with the true
 selection), the share of scored pixels whose near-light depth
-(true LEDs, mean offset removed) is more than 0.1 mm off, the alternations run, and the seconds of near light and of
+(true LEDs, mean offset removed) is more than 0.1 mm off, near light's absolute height error (the mean offset itself), the
+alternations run, and the seconds of near light and of
 the distant pipeline (flat-field, least squares, Frankot–Chellappa) in the same run. At the end, near light on a
 batch of 16 captures against 16 single calls (seconds per sample).
 
@@ -117,9 +118,11 @@ def evaluate_case(fabric, config, offset_mm, calibrated, card, device) -> dict[s
         seconds = time.perf_counter() - start
         error = angular_error_deg(result.normals, truth_normals)[0, 0][region[0]]
         difference = (result.depth - truth_depth)[0, 0]
-        difference = difference - difference[region[0]].mean()
+        height_error = difference[region[0]].mean()  # the absolute height's error, which the RMSE below leaves out
+        difference = difference - height_error
         results[method] = {
             "angle_deg": float(error.mean()),
+            "height_error_um": float(height_error) * 1000,
             "depth_rmse_um": float(difference[region[0]].square().mean().sqrt()) * 1000,
             "dome_um": dome_error_um(difference, region[0], pitch),
             "off_0.1mm": float((difference[region[0]].abs() > 0.1).float().mean()),
@@ -220,6 +223,7 @@ def main(argv: list[str] | None = None) -> int:
         return speed_only(size, pitch, device, args)
 
     rows, summary, worst, floors = [], {}, {}, {False: [], True: []}
+    heights = {False: [], True: []}  # near_true's absolute height error per case, µm
     noisy_config = RigConfig(size=size, pixel_pitch_mm=pitch, noise=True, bit_depth=8, intensity_spread=0.05)
     calibrated, fit = calibrate(noisy_config, device)
     for noisy in (False, True):
@@ -234,6 +238,7 @@ def main(argv: list[str] | None = None) -> int:
                     collected[method].append(case[method])
                 near_case, far_case = case["near_true"], case["far_flatfield"]
                 floors[noisy].append(case["floor"]["angle_deg"])
+                heights[noisy].append(near_case["height_error_um"])
                 rows.append([name, f"{offset:g}", "8-bit noisy" if noisy else "noise-free"]
                             + [f"{case[m]['angle_deg']:.3f} / {case[m]['depth_rmse_um']:.0f} / {case[m]['dome_um']:.1f}"
                                for m in METHODS]
@@ -241,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
                                f"{case['split']['selection'] - case['floor']['angle_deg']:+.3f} / "
                                f"{case['split']['depth'] - case['floor']['angle_deg']:+.3f}",
                                f"{near_case['depth_rmse_um'] / far_case['depth_rmse_um']:.2f}",
-                               f"{100 * near_case['off_0.1mm']:.2f}%",
+                               f"{100 * near_case['off_0.1mm']:.2f}%", f"{near_case['height_error_um']:+.0f}",
                                f"{100 * case['coverage']['fewer_than_3']:.1f}%", f"{near_case['iterations']}",
                                f"{near_case['seconds']:.2f}", f"{far_case['seconds']:.3f}"])
                 print(" | ".join(rows[-1]), flush=True)
@@ -251,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
             worst[key] = (max(c["angle_deg"] for c in collected[method]), max(c["dome_um"] for c in collected[method]))
     header = (["fabric", "offset (mm)", "render"] + [f"{m}: ° / µm / dome µm" for m in METHODS]
               + ["noise floor (°)", "near_true − floor (°)", "of which selection / depth (°)",
-                 "depth near / far_flatfield", "near > 0.1 mm off",
+                 "depth near / far_flatfield", "near > 0.1 mm off", "near height error (µm)",
                  "lit by < 3", "alternations", "near s", "far_flatfield s"])
     report = table(header, rows)
     means = table(["method", "mean error noise-free (°)", "worst case noise-free (°)", "worst dome noise-free (µm)",
@@ -266,7 +271,10 @@ def main(argv: list[str] | None = None) -> int:
             f"the mean offset / dome: RMS of that depth error low-passed at σ = 1 mm (normalised convolution over the "
             f"same pixels), the low-frequency bend without the weave-scale integration error. Of which selection / "
             f"depth: the excess over the floor of least squares at the true surface with near_true's selection of "
-            f"observations, and at near_true's surface with the true selection. Near light on a batch "
+            f"observations, and at near_true's surface with the true selection. Near height error: the mean of "
+            f"near_true's depth minus the true height over the same pixels (the absolute height, which the RMSE "
+            f"leaves out), {min(heights[False]):+.0f} to {max(heights[False]):+.0f} µm noise-free, "
+            f"{min(heights[True]):+.0f} to {max(heights[True]):+.0f} µm noisy. Near light on a batch "
             f"of 16 {size}² captures: {speed['batch']:.2f} s per sample, single calls {speed['single']:.2f} s per "
             f"sample (ratio {speed['batch'] / speed['single']:.2f}); distant pipeline {speed['far']:.3f} s per sample "
             f"(near / distant {speed['single'] / speed['far']:.0f}×). LEDs calibrated from noisy 8-bit cards at 0 and 1 mm in {fit['seconds']:.1f} s: "
