@@ -504,11 +504,10 @@ def _fit(intensities: Tensor, lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) 
     well posed), where it is well posed (B, 1, H, W), and the normal matrix's adjugate and determinant
     (:func:`_adjugate`), which the leverage and the confidence reuse."""
     used = used.to(lx.dtype)  # once: a boolean factor costs twice a float one in every product
-    planes = tuple(t.unbind(1) for t in (lx, ly, lz))
-    matrix = _adjugate_of_planes((lx, ly, lz), planes, used)
+    matrix = _adjugate(lx, ly, lz, used)
     (c00, c01, c02, c11, c12, c22), det = matrix
     signal = (used * intensities).unbind(1)
-    r0, r1, r2 = (_sum_of_products(signal, l) for l in planes)
+    r0, r1, r2 = (_sum_of_products(signal, l.unbind(1)) for l in (lx, ly, lz))
     m = torch.cat([c00 * r0 + c01 * r1 + c02 * r2, c01 * r0 + c11 * r1 + c12 * r2,
                    c02 * r0 + c12 * r1 + c22 * r2], dim=1) / det
     return m, torch.isfinite(det), matrix
@@ -516,7 +515,7 @@ def _fit(intensities: Tensor, lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) 
 
 def _sum_of_products(a: tuple[Tensor, ...], b: tuple[Tensor, ...]) -> Tensor:
     r""":math:`\sum_k a_k b_k` over the lights, (B, 1, H, W), from the planes of each light (``unbind(1)`` of a
-    (B, K, H, W) tensor, once per operand): one product per light accumulated in place, which reads each operand
+    (B, K, H, W) tensor): one product per light accumulated in place, which reads each operand
     once (a product and then a sum writes and reads back a (B, K, H, W) temporary: 1.1 against 0.5 ms on
     8 × 400²; planes sliced afresh for every sum cost 30% more than these)."""
     total = a[0] * b[0]
@@ -540,16 +539,9 @@ def _predict(m: Tensor, lx: Tensor, ly: Tensor, lz: Tensor) -> Tensor:
 def _adjugate(lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) -> tuple[tuple[Tensor, ...], Tensor]:
     """The six entries of the adjugate of each pixel's normal matrix and its determinant, each (B, 1, H, W);
     the determinant is +inf where the matrix is not well posed (its inverse is then 0)."""
-    components = (lx, ly, lz)
-    return _adjugate_of_planes(components, tuple(c.unbind(1) for c in components), used.to(lx.dtype))
-
-
-def _adjugate_of_planes(components: tuple[Tensor, Tensor, Tensor], planes: tuple[tuple[Tensor, ...], ...],
-                        used: Tensor) -> tuple[tuple[Tensor, ...], Tensor]:
-    """:func:`_adjugate` from the three components, their lights' planes (:func:`_sum_of_products`) and float
-    weights."""
-    x, y, z = planes
-    wx, wy, wz = ((used * component).unbind(1) for component in components)
+    used = used.to(lx.dtype)
+    x, y, z = (component.unbind(1) for component in (lx, ly, lz))
+    wx, wy, wz = ((used * component).unbind(1) for component in (lx, ly, lz))
     a, b, c = _sum_of_products(wx, x), _sum_of_products(wx, y), _sum_of_products(wx, z)
     d, e, f = _sum_of_products(wy, y), _sum_of_products(wy, z), _sum_of_products(wz, z)
     adjugate, det, well_posed = _symmetric_adjugate(a, b, c, d, e, f)
