@@ -227,6 +227,21 @@ class TestCosineTransforms(BaseTester):
             expected = expected - (expected * w).sum() / w.sum()
             assert float((z[b, 0].numpy() - expected).__abs__().max() / abs(expected).max()) < 1e-12
 
+    @pytest.mark.parametrize("masked", [False, True])
+    def test_mirror_fc_without_gradient_equals_recorded_path(self, masked):
+        """Without a gradient to record, the CPU batch gathers the slopes straight into the transform's order and
+        writes each item's depth into the batch's; with one, it concatenates. Both give the same numbers."""
+        torch.manual_seed(4)
+        p, q = torch.randn(3, 1, 17, 12, dtype=torch.float64), torch.randn(3, 1, 17, 12, dtype=torch.float64)
+        mask = torch.rand(3, 1, 17, 12) > 0.3 if masked else None
+        fast = frankot_chellappa(p, q, pixel_pitch_mm=0.025, mask=mask)
+        recorded = frankot_chellappa(p.clone().requires_grad_(), q, pixel_pitch_mm=0.025, mask=mask)
+        assert recorded.requires_grad and not fast.requires_grad
+        assert torch.equal(fast, recorded.detach())
+        items = torch.cat([frankot_chellappa(p[i : i + 1], q[i : i + 1], 0.025, mask=None if mask is None
+                                             else mask[i : i + 1]) for i in range(3)])
+        assert torch.equal(fast, items)
+
     def test_masked_gradcheck_float_weights(self):
         p = torch.rand(2, 1, 5, 6, dtype=torch.float64, requires_grad=True)
         q = torch.rand(2, 1, 5, 6, dtype=torch.float64, requires_grad=True)

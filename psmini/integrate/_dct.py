@@ -145,12 +145,14 @@ def inverse_spectrum(c: Tensor, p: Plan) -> Tensor:
     return torch.complex(real, negated_imag).mul_(p.inverse)
 
 
-def from_reordered_spectrum(spectrum: Tensor, p: Plan, shape: torch.Size) -> Tensor:
+def from_reordered_spectrum(spectrum: Tensor, p: Plan, shape: torch.Size, out: Tensor | None = None) -> Tensor:
     """The real array of ``shape`` (..., N1, N2) whose :func:`reordered_spectrum` is ``spectrum``: the inverse real
-    FFT and the inverse reordering."""
+    FFT and the inverse reordering, into ``out`` (contiguous, of ``shape``; not differentiable) when given."""
     n1, n2 = shape[-2:]
-    v = torch.fft.irfft2(spectrum, s=(n1, n2))
-    return v.reshape(-1, n1 * n2).index_select(1, p.unorder).view(shape)
+    v = torch.fft.irfft2(spectrum, s=(n1, n2)).reshape(-1, n1 * n2)
+    if out is None:
+        return v.index_select(1, p.unorder).view(shape)
+    return torch.index_select(v, 1, p.unorder, out=out.view(-1, n1 * n2)).view(shape)
 
 
 def idct2(c: Tensor) -> Tensor:
