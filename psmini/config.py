@@ -21,6 +21,7 @@ from typing import Any
 
 import torch
 
+from psmini._checks import check_positive
 from psmini.errors import InputError
 from psmini.integrate import METHODS as INTEGRATION_METHODS
 from psmini.integrate.api import method_options
@@ -69,6 +70,8 @@ class ReconstructionConfig:
             shadow and highlight rejection, offset search, integration).
         min_reference: card pixels darker than this fraction of the LED's brightest card pixel are not trusted
             (:func:`psmini.flatfield.flatfield`).
+        card_smoothing_px: denoise the card before dividing by it (:func:`psmini.flatfield.smooth_card`, a window
+            of this many pixels); ``None`` (default) divides by the card as captured.
         device: where to compute (``"cpu"``, ``"cuda"``, ``"cuda:1"``).
         dtype: ``"float32"`` or ``"float64"``.
 
@@ -91,6 +94,7 @@ class ReconstructionConfig:
     integrator_options: Mapping[str, Any] = field(default_factory=dict)
     near: NearLightOptions = field(default_factory=NearLightOptions)
     min_reference: float = 0.02
+    card_smoothing_px: float | None = None
     device: str = "cpu"
     dtype: str = "float32"
 
@@ -107,6 +111,8 @@ class ReconstructionConfig:
                              "(leave estimator='auto')")
         if not (isinstance(self.min_reference, (int, float)) and 0 <= self.min_reference < 1):
             raise InputError(f"min_reference must be a number in [0, 1), got {self.min_reference!r}")
+        if self.card_smoothing_px is not None:
+            check_positive(self.card_smoothing_px, "card_smoothing_px")
         try:
             torch.device(self.device)
         except (RuntimeError, TypeError) as error:

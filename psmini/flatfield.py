@@ -13,18 +13,21 @@ while the cloth lies at the card's height; see :mod:`psmini.lights` for the near
 
 from __future__ import annotations
 
+import math
 import weakref
 from dataclasses import dataclass
 from functools import partial
 from typing import NamedTuple
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
-from psmini._checks import check_finite, check_out, check_shape, check_tensor
+from psmini._checks import check_finite, check_out, check_positive, check_shape, check_tensor
 from psmini.errors import InputError, ShapeError
+from psmini.normals import _symmetric_adjugate
 
-__all__ = ["FlatFieldResult", "flatfield", "FlatField"]
+__all__ = ["FlatFieldResult", "flatfield", "FlatField", "smooth_card"]
 
 
 @dataclass
@@ -84,6 +87,7 @@ def flatfield(
     min_reference: float = 0.02,
     saturation_level: float | None = None,
     *,
+    card_smoothing_px: float | None = None,
     out: Tensor | None = None,
 ) -> FlatFieldResult:
     r"""Subtract the dark frame and divide by the per-LED reference (matte card) images.
@@ -99,6 +103,8 @@ def flatfield(
             trusted (the LED barely lights the card there): those observations are marked not valid.
         saturation_level: raw values at or above it are saturated and marked not valid (in the images and in
             the reference); ``None`` disables the check.
+        card_smoothing_px: when given, the dark-subtracted card is first denoised by :func:`smooth_card` with
+            this window (pixels); ``None`` (default) divides by the card as captured.
         out: optional :math:`(B, K, H, W)` tensor of the images' dtype and device that receives the flat-fielded
             images (the pipeline reuses one such buffer chunk after chunk of a CPU batch: a fresh one of several
             MB is page-faulted in on every first touch). Not differentiable: refused when an input requires grad
@@ -129,6 +135,8 @@ def flatfield(
     if not card_albedo > 0.0:
         raise InputError(f"card_albedo must be positive, got {card_albedo}")
     shape = (sizes["B"], sizes["K"], sizes["H"], sizes["W"])
+    if card_smoothing_px is not None:
+        check_positive(card_smoothing_px, "card_smoothing_px")
     card_tensors = (reference, dark if reference_dark is None else reference_dark)  # the caller's, for the cache
     dark = _check_frame(dark, *shape, "dark")
     reference = _check_frame(reference, *shape, "reference", finite=False)  # in _card_terms, once per card
@@ -154,7 +162,7 @@ def flatfield(
         return FlatFieldResult(signal.mul_(unsaturated), unsaturated)
 
     scale, trusted, all_trusted = _card_terms(reference, reference_dark, card_tensors, images, card_albedo,
-                                              min_reference, saturation_level)
+                                              min_reference, saturation_level, card_smoothing_px)
     ratio = signal.mul_(scale)
     valid = trusted.expand(shape)
     if unsaturated is not None:
@@ -187,7 +195,7 @@ def _data_of(x: Tensor) -> tuple[Tensor, tuple]:
 
 def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tuple[Tensor, Tensor | None],
                 images: Tensor, card_albedo: float, min_reference: float,
-                saturation_level: float | None) -> tuple[Tensor, Tensor, bool]:
+                saturation_level: float | None, smoothing_px: float | None = None) -> tuple[Tensor, Tensor, bool]:
     """The card's scale ``card_albedo / (R - D_R)`` (0 where not trusted), where it is trusted, and whether it
     is everywhere: everything that depends on the card alone, computed at the card's size, not per sample.
 
@@ -203,7 +211,7 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
     cacheable = not reference.requires_grad and not (reference_dark is not None and reference_dark.requires_grad)
     owner, where = _data_of(original)
     owner_dark, where_dark = (None, None) if original_dark is None else _data_of(original_dark)
-    key = (where, where_dark, images.dtype, images.device, card_albedo, min_reference, saturation_level)
+    key = (where, where_dark, images.dtype, images.device, card_albedo, min_reference, saturation_level, smoothing_px)
     if cacheable and _last_card:
         entry = _last_card[0]
         if (entry.key == key and entry.reference() is owner
@@ -212,9 +220,12 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
             return entry.terms  # a card already checked for NaN and infinities, unchanged since
     converted = check_finite(reference, "reference").to(images)
     card = converted if reference_dark is None else converted - reference_dark.to(images)
+    unsaturated = None if saturation_level is None else converted < saturation_level
+    if smoothing_px is not None:
+        card = smooth_card(card, smoothing_px, unsaturated)
     trusted = (card > min_reference * card.amax(dim=(-2, -1), keepdim=True)) & (card > 0)
-    if saturation_level is not None:
-        trusted = trusted & (converted < saturation_level)
+    if unsaturated is not None:
+        trusted = trusted & unsaturated
     # the scale is card_albedo / card where trusted and 0 elsewhere (an infinite denominator gives the 0 with a
     # zero gradient, where a 0/0 would send NaN back)
     scale = card_albedo / torch.where(trusted, card, torch.inf)
@@ -223,6 +234,100 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
         _last_card[:] = [_CardEntry(key, weakref.ref(owner, partial(_forget, key)), None if owner_dark is None
                                     else weakref.ref(owner_dark, partial(_forget, key)), terms)]
     return terms
+
+
+#: Least share of a pixel's window (in Gaussian weight) that must hold usable card pixels for :func:`smooth_card`
+#: to fit there; a pixel with less keeps its reading.
+_MIN_CARD_SUPPORT = 0.1
+
+
+def _gaussian_taps(sigma: float, like: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """A Gaussian window of ``sigma`` pixels out to 3 sigma, normalised to sum 1, and its first and second moments
+    (the taps times the offset in units of sigma, and times its square)."""
+    radius = max(1, math.ceil(3 * sigma))
+    offset = torch.arange(-radius, radius + 1, device=like.device, dtype=like.dtype) / sigma
+    taps = torch.exp(-0.5 * offset.square())
+    taps = taps / taps.sum()
+    return taps, taps * offset, taps * offset.square()
+
+
+def _window_sums(x: Tensor, along_rows: Tensor, along_columns: Tensor) -> Tensor:
+    """Sums over each pixel's window of ``x`` (N, C, H, W) weighted by separable taps, zero outside the image:
+    ``along_columns`` weights the offset u within a row, ``along_rows`` the offset v within a column."""
+    batch, channels, height, width = x.shape
+    n, radius = along_columns.numel(), along_columns.numel() // 2
+    flat = x.reshape(batch * channels, 1, height, width)
+    # cross-correlation with the taps read backwards: the sum over d of taps[d] x(p + d)
+    flat = F.conv2d(flat, along_columns.flip(0).view(1, 1, 1, n), padding=(0, radius))
+    flat = F.conv2d(flat, along_rows.flip(0).view(1, 1, n, 1), padding=(radius, 0))
+    return flat.view(batch, channels, height, width)
+
+
+def smooth_card(card: Tensor, sigma_px: float = 3.0, usable: Tensor | None = None) -> Tensor:
+    r"""The dark-subtracted card images with their noise smoothed away, keeping what is common to every LED.
+
+    A matte card under LED k reads :math:`R_k(x) = g(x)\,E_k(x)`: the camera's gain :math:`g` (vignetting and the
+    pixels' own response, which need not be smooth) times the LED's irradiance and foreshortening :math:`E_k`,
+    which vary over millimetres. So each LED's ratio to the mean over the LEDs, :math:`E_k / ar E`, is smooth:
+    it is replaced by a local linear fit in a Gaussian window of ``sigma_px`` (normalised convolution with a
+    linear basis, Knutsson and Westin, "Normalized and differential convolution", CVPR 1993), weighted to the
+    pixels where every LED is usable, which has no bias on a plane and none at the image's borders. Then each
+    pixel's common factor is fitted back to its own readings by least squares over its usable LEDs:
+    :math:`\hat R_k = \hat g\,\hat s_k` with :math:`\hat g = \sum_k R_k \hat s_k / \sum_k \hat s_k^2`. The
+    card's noise in the LED-dependent part, which every flat-fielded capture inherits, shrinks by about the
+    window's size; the common part keeps :math:`1/\sqrt{K}` of it, which scales a pixel's readings together and
+    leaves its normal alone. Pixels whose window holds less than a tenth of usable weight, or not usable
+    themselves, keep their readings.
+
+    Args:
+        card: dark-subtracted card images, shape :math:`(B, K, H, W)` (linear values; :math:`B` is usually 1).
+        sigma_px: standard deviation of the Gaussian window, pixels (positive; the window reaches 3 sigma).
+        usable: optional bool map of the card readings to fit to (e.g. unsaturated), :math:`(B, K, H, W)`;
+            readings at or below 0 are never used.
+
+    Returns:
+        the denoised card, shape and dtype of ``card``. Differentiable with respect to ``card``.
+
+    Raises:
+        ShapeError: when ``card`` is not :math:`(B, K, H, W)` or ``usable`` does not match it.
+        InputError: when ``card`` holds NaN/inf or ``sigma_px`` is not a positive number.
+
+    Example:
+        >>> u = torch.linspace(-1, 1, 32).view(1, 1, 1, 32)
+        >>> gain = 0.8 + 0.1 * torch.rand(1, 1, 32, 32)  # pixel to pixel, common to the LEDs: kept
+        >>> card = gain * torch.cat([1 + 0.3 * u, 1 - 0.3 * u], dim=1)  # two LEDs, linear irradiance
+        >>> bool(torch.allclose(smooth_card(card, 2.0), card, rtol=1e-5))
+        True
+        >>> noisy = card + 0.01 * torch.randn_like(card)
+        >>> share = lambda c: c / c.mean(dim=1, keepdim=True)  # each LED's part, which the normals see
+        >>> bool((share(smooth_card(noisy, 2.0)) - share(card)).std() < 0.3 * (share(noisy) - share(card)).std())
+        True
+    """
+    check_shape(card, ["B", "K", "H", "W"], "card")
+    check_finite(card, "card")
+    sigma = check_positive(sigma_px, "sigma_px")
+    positive = card > 0
+    if usable is not None:
+        if not isinstance(usable, Tensor) or usable.shape != card.shape:
+            raise ShapeError(f"usable must be a bool tensor of the card's shape {tuple(card.shape)}, got "
+                             f"{getattr(usable, 'shape', type(usable).__name__)}")
+        positive = positive & usable.bool()
+    weight = positive.to(card.dtype)
+    mean = (card * weight).sum(dim=1, keepdim=True) / weight.sum(dim=1, keepdim=True).clamp_min(1)
+    ratio = card / torch.where(mean > 0, mean, torch.ones_like(mean))
+    window = positive.all(dim=1, keepdim=True).to(card.dtype)  # pixels where every LED is usable
+    taps, first, second = _gaussian_taps(sigma, card)
+    m00, m10, m01 = (_window_sums(window, a, b) for a, b in ((taps, taps), (taps, first), (first, taps)))
+    m20, m11, m02 = (_window_sums(window, a, b) for a, b in ((taps, second), (first, first), (second, taps)))
+    weighted = ratio * window
+    b0, b1, b2 = (_window_sums(weighted, a, b) for a, b in ((taps, taps), (taps, first), (first, taps)))
+    # the local fit's value at the window's centre: the first row of the moment matrix's inverse times the sums
+    (c00, c01, c02, _, _, _), det, well_posed = _symmetric_adjugate(m00, m10, m01, m20, m11, m02)
+    fitted = (c00 * b0 + c01 * b1 + c02 * b2) / torch.where(well_posed, det, torch.ones_like(det))
+    shape = torch.where(well_posed & (m00 >= _MIN_CARD_SUPPORT), fitted, ratio)
+    common = (card * shape * weight).sum(dim=1, keepdim=True) / (shape.square() * weight).sum(
+        dim=1, keepdim=True).clamp_min(torch.finfo(card.dtype).tiny)
+    return torch.where(positive, common * shape, card)
 
 
 class FlatField(nn.Module):

@@ -215,7 +215,7 @@ class PhotometricStereo(nn.Module):
                     and not records_gradient(images, reference, dark, reference_dark))
         buffer = workspace[0][: images.shape[0]] if reusable and workspace else None
         flat = flatfield(images, reference, dark, reference_dark, card_albedo, config.min_reference, saturation_level,
-                         out=buffer)
+                         card_smoothing_px=config.card_smoothing_px, out=buffer)
         if reusable and not workspace:
             workspace.append(flat.images)
         if self.solver == "near":

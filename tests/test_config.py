@@ -52,6 +52,7 @@ class TestReconstructionConfig:
             ({"estimator": "tukey", "estimator_options": {"window": 3}}, "window"),
             ({"estimator": "tukey", "estimator_options": {"iterations": 0}}, "iterations"),
             ({"min_reference": 1.5}, "min_reference"),
+            ({"card_smoothing_px": 0.0}, "card_smoothing_px"),
             ({"device": "gpu0"}, "device must name"),
         ],
     )

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from psmini import InputError, ShapeError
-from psmini.flatfield import FlatField, flatfield
+from psmini.flatfield import FlatField, flatfield, smooth_card
 from tests.conftest import BaseTester
 
 
@@ -221,3 +221,82 @@ class TestFlatField(BaseTester):
         result = flatfield(images, card)
         assert result.all_valid is False and not bool(result.valid.all())
         assert flatfield(images, card, saturation_level=0.99).all_valid is None
+
+
+def linear_card(size: int = 24, dtype=torch.float64, seed: int = 0) -> torch.Tensor:
+    """Three LEDs whose irradiance ratios to their mean are linear across the field, times a pixel-to-pixel gain
+    common to the LEDs (vignetting and the pixels' response): what smooth_card must keep exactly."""
+    gen = torch.Generator().manual_seed(seed)
+    u = torch.linspace(-1, 1, size, dtype=dtype).view(1, 1, 1, size)
+    v = torch.linspace(-1, 1, size, dtype=dtype).view(1, 1, size, 1)
+    shapes = torch.cat([(1 + 0.3 * u + 0.1 * v), (1 - 0.3 * u + 0 * v), (1 - 0.1 * v + 0 * u)], dim=1)
+    gain = 0.7 + 0.2 * torch.rand(1, 1, size, size, generator=gen, dtype=dtype)
+    return gain * shapes
+
+
+class TestSmoothCard(BaseTester):
+    def test_keeps_a_common_gain_times_linear_shapes(self):
+        """Local linear fits reproduce linear ratios to the mean, borders included, and the per-pixel gain common
+        to the LEDs (not smooth) is fitted back exactly."""
+        card = linear_card()
+        self.assert_close(smooth_card(card, 2.0), card, rtol=1e-12, atol=0)
+
+    def test_removes_the_noise_of_a_simulated_card(self):
+        """On the simulator's card (inverse square, LED beams, vignetting), 8-bit noise: the smoothed card is far
+        closer to the noise-free card than the noisy one is, and the noise-free card comes back as it was."""
+        from data_synth.rig import RigConfig, render_card
+
+        config = RigConfig(size=96, pixel_pitch_mm=0.1, noise=False, bit_depth=16)
+        clean = render_card(config, 0.8)
+        noisy = render_card(config.replace(noise=True, bit_depth=8), 0.8)
+        truth = (clean.images - clean.dark)[None].double()
+        raw = (noisy.images - noisy.dark)[None].double()
+        usable = (noisy.images < 1.0)[None] & (clean.images < 1.0)[None]
+        smoothed = smooth_card(raw, 3.0, usable)
+        every = usable.all(dim=1, keepdim=True).expand_as(usable)
+
+        def shape_error(card):  # the LED-dependent part: each LED's ratio to the mean (the mean leaves normals alone)
+            relative = (card / card.mean(dim=1, keepdim=True)) / (truth / truth.mean(dim=1, keepdim=True)) - 1
+            return float(relative[every].square().mean().sqrt())
+
+        assert shape_error(smoothed) < 0.2 * shape_error(raw)
+        kept = smooth_card(truth, 3.0, (clean.images < 1.0)[None])
+        assert float(((kept - truth) / truth)[usable].abs().median()) < 5e-4  # 1e-5 on the rig's 400 px
+
+    def test_unusable_readings_are_kept_and_stay_untrusted(self):
+        card = 0.5 * linear_card(size=20).float()
+        card[0, 1, 5:9, 5:9] = 1.0  # a saturated patch of LED 1
+        usable = card < 1.0
+        smoothed = smooth_card(card, 2.0, usable)
+        assert torch.equal(smoothed[~usable], card[~usable])
+        images = torch.full((1, 3, 20, 20), 0.5)
+        result = flatfield(images, card, card_smoothing_px=2.0, saturation_level=1.0)
+        assert not bool(result.valid[0, 1, 5:9, 5:9].any()) and bool(result.valid[0, 0].all())
+
+    def test_flatfield_divides_by_the_smoothed_card(self):
+        card = linear_card(size=20)
+        noisy = card + 0.01 * torch.randn(card.shape, generator=torch.Generator().manual_seed(1), dtype=card.dtype)
+        images = 0.5 * card
+        plain = flatfield(images, noisy, card_albedo=0.8).images
+        smoothed = flatfield(images, noisy, card_albedo=0.8, card_smoothing_px=2.0).images
+        self.assert_close(smoothed, flatfield(images, smooth_card(noisy, 2.0), card_albedo=0.8).images)
+        # what the normals see: each LED's share of a pixel's readings (a common factor per pixel cancels)
+        share = lambda x: x / x.mean(dim=1, keepdim=True)  # noqa: E731
+        assert float((share(smoothed) - 1).abs().mean()) < 0.3 * float((share(plain) - 1).abs().mean())
+
+    def test_gradcheck(self):
+        card = (linear_card(size=7) + 0.01 * torch.rand(1, 3, 7, 7, dtype=torch.float64)).requires_grad_()
+        self.gradcheck(lambda c: smooth_card(c, 1.0), (card,))
+
+    def test_errors(self):
+        card = linear_card(size=8)
+        with pytest.raises(InputError, match="sigma_px"):
+            smooth_card(card, 0.0)
+        with pytest.raises(InputError, match="finite"):
+            smooth_card(card.index_fill(3, torch.tensor([2]), float("nan")), 2.0)
+        with pytest.raises(ShapeError, match="card must have shape"):
+            smooth_card(card[0], 2.0)
+        with pytest.raises(ShapeError, match="usable"):
+            smooth_card(card, 2.0, torch.ones(1, 3, 8, 7, dtype=torch.bool))
+        with pytest.raises(InputError, match="card_smoothing_px"):
+            flatfield(torch.rand(1, 3, 8, 8), card, card_smoothing_px=-1.0)

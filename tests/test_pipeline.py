@@ -208,3 +208,30 @@ class TestPhotometricStereo(BaseTester):
 
         images = (torch.rand(1, 8, 4, 4, dtype=torch.float64) * 0.5 + 0.5).requires_grad_()
         self.gradcheck(run, (images, reference.requires_grad_()))
+
+
+def test_card_smoothing_lowers_the_noise_of_near_light_normals():
+    """A noisy 8-bit card: dividing by its smoothed images (config.card_smoothing_px) gives near light's normals
+    less noise; on a noise-free card it changes nothing measurable."""
+    from data_synth import make_fabric
+    from data_synth.rig import RigConfig, render_capture, render_card
+    from psmini.config import ReconstructionConfig
+    from psmini.metrics import angular_error_deg
+
+    size, pitch = 160, 0.0625
+    noisy = RigConfig(size=size, pixel_pitch_mm=pitch, noise=True, bit_depth=8)
+    fabric = make_fabric("cotton", size=size, pixel_pitch_mm=pitch, seed=0)
+    for config, expect_gain in ((noisy, True), (noisy.replace(noise=False, bit_depth=16), False)):
+        card = render_card(config, 0.8)
+        capture = render_capture(fabric, config, height_offset_mm=0.5)
+        region = capture.mask.bool() & (capture.lit.sum(0, keepdim=True) >= 3)
+        errors = []
+        for smoothing in (None, 3.0):
+            result = PhotometricStereo(capture.lights, pitch, ReconstructionConfig(card_smoothing_px=smoothing))(
+                capture.images[None], card.images[None], capture.dark[None], card.dark[None], card_albedo=0.8,
+                saturation_level=1.0)
+            errors.append(float(angular_error_deg(result.normals, capture.normals[None])[0][region].mean()))
+        if expect_gain:
+            assert errors[1] < 0.9 * errors[0], errors
+        else:
+            assert abs(errors[1] - errors[0]) < 0.005, errors

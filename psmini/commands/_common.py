@@ -59,6 +59,9 @@ def add_config_flags(parser: argparse.ArgumentParser) -> None:
                         help="an option of the near-light solver (VALUE as JSON), e.g. max_iterations=3")
     parser.add_argument("--min-reference", type=float, default=0.02, metavar="F",
                         help="card pixels darker than F x the LED's brightest card pixel are not trusted (default 0.02)")
+    parser.add_argument("--card-smoothing-px", type=float, default=None, metavar="S",
+                        help="denoise the card before dividing by it: a local linear fit of each LED's share in a "
+                             "Gaussian window of S pixels (psmini.flatfield.smooth_card; default: the card as captured)")
     parser.add_argument("--dtype", choices=["float32", "float64"], default="float32",
                         help="floating dtype of the computation (default float32)")
     add_device_flag(parser)
@@ -89,7 +92,8 @@ def config_from_args(args: argparse.Namespace):
     return ReconstructionConfig(
         solver=args.solver, estimator=args.estimator, integrator=args.integrator,
         integrator_options=_options(args.integrator_option, "--integrator-option"),
-        near=_options(args.near_option, "--near-option"), min_reference=args.min_reference, device=args.device,
+        near=_options(args.near_option, "--near-option"), min_reference=args.min_reference,
+        card_smoothing_px=args.card_smoothing_px, device=args.device,
         dtype=args.dtype,
     )
 

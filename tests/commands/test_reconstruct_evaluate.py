@@ -83,6 +83,7 @@ def test_evaluate_without_ground_truth_fails_cleanly(tmp_path, capsys):
         (["--light-model", "near", "--estimator", "tukey"], "near-light solver has its own"),
         (["--light-model", "distant", "--near-option", "max_iterations=2"], "solver is 'distant'"),
         (["--near-option", "max_iterations"], "KEY=VALUE"),
+        (["--card-smoothing-px", "-2"], "card_smoothing_px"),
     ],
 )
 @pytest.mark.parametrize("command", ["reconstruct", "evaluate", "batch"])
