@@ -268,7 +268,7 @@ def smooth_card(card: Tensor, sigma_px: float = 3.0, usable: Tensor | None = Non
 
     A matte card under LED k reads :math:`R_k(x) = g(x)\,E_k(x)`: the camera's gain :math:`g` (vignetting and the
     pixels' own response, which need not be smooth) times the LED's irradiance and foreshortening :math:`E_k`,
-    which vary over millimetres. So each LED's ratio to the mean over the LEDs, :math:`E_k / ar E`, is smooth:
+    which vary over millimetres. So each LED's ratio to the mean over the LEDs, :math:`E_k / \bar E`, is smooth:
     it is replaced by a local linear fit in a Gaussian window of ``sigma_px`` (normalised convolution with a
     linear basis, Knutsson and Westin, "Normalized and differential convolution", CVPR 1993), weighted to the
     pixels where every LED is usable, which has no bias on a plane and none at the image's borders. Then each
