@@ -1527,7 +1527,10 @@ def solve_near_light(
     Differentiable with respect to the intensities and the light model's parameters through the last
     alternation's solve (the offset search and the observations' selection are not differentiated). On the CPU a
     batch is solved in chunks of one 8 × 400 × 400 capture's size, whose working set stays in the caches; on CUDA
-    in one piece. Either way each sample gets the answer it gets alone.
+    in one piece. Either way each sample is solved as it is alone (its own offset, selection and convergence
+    test), up to the rounding of batched operations (FFTs, multi-threaded sums round otherwise for another batch
+    size), which the alternations' discrete decisions can carry further: on a noisy 64 × 64 capture, 0.9 µm of
+    depth and one pixel's selection.
 
     Args:
         intensities: flat-fielded images :math:`(B, K, H, W)` (divided by the card under the same LEDs and

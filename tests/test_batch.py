@@ -149,9 +149,14 @@ class TestReconstructDataset:
 
     def test_near_light_fits_to_a_shadow_written_and_summarised(self, tree, tmp_path):
         """Near light's at_noise_floor flags reach the output folder (noise_floor.png, counted in outputs.json,
-        whatever the outputs chosen) and the summary (noise_floor_share); distant rows leave the cell empty."""
-        summary = reconstruct_dataset(tree / "lotA", tmp_path / "near", outputs="depth", score=False)
+        whatever the outputs chosen) and the summary (noise_floor_share); distant rows leave the cell empty.
+
+        One capture per batch, so that the batch solves what ``reconstruct`` solves: in a batch, near light's
+        answer moves with the rounding of batched operations (an FFT, a multi-threaded sum), which its alternation's
+        discrete decisions can carry to a pixel's selection (see ``solve_near_light``)."""
+        summary = reconstruct_dataset(tree / "lotA", tmp_path / "near", outputs="depth", score=False, batch_size=1)
         for row in summary["samples"]:
+            assert row["batch_size"] == 1
             expected = reconstruct(load_sample(tree / "lotA" / row["sample"]))
             flagged = expected.at_noise_floor & expected.mask
             assert row["solver"] == "near" and int(flagged.sum()) > 0
