@@ -1,0 +1,36 @@
+"""The statistics of ``benchmarks/fabric_recognition.py``, against their definitions and an independent
+implementation (scipy's exact binomial test)."""
+
+import math
+
+import pytest
+
+pytest.importorskip("sklearn", reason="the recognition benchmark needs the fabric extra (scikit-learn)")
+scipy_stats = pytest.importorskip("scipy.stats", reason="scipy (installed with scikit-learn) is the reference")
+
+from benchmarks.fabric_recognition import mcnemar_exact, wilson_interval  # noqa: E402
+
+Z95 = 1.959964
+
+
+@pytest.mark.parametrize("correct,total", [(211, 220), (63, 66), (1, 20), (0, 30), (30, 30), (81, 263)])
+def test_wilson_interval_inverts_the_score_test(correct, total):
+    """Each bound p is where the score statistic |p_hat - p| / sqrt(p (1 - p) / n) equals z (Wilson 1927)."""
+    low, high = wilson_interval(correct, total)
+    share = correct / total
+    assert 0 <= low <= share <= high <= 1
+    for bound in (low, high):
+        if 0 < bound < 1:
+            assert abs(share - bound) / math.sqrt(bound * (1 - bound) / total) == pytest.approx(Z95, rel=1e-9)
+        else:  # at 0 or n successes the interval closes on the observed share
+            assert bound == pytest.approx(share, abs=1e-12)
+
+
+@pytest.mark.parametrize("only_first,only_second", [(1, 7), (7, 1), (5, 5), (0, 9), (12, 3), (40, 22)])
+def test_mcnemar_exact_is_the_two_sided_binomial_test(only_first, only_second):
+    expected = scipy_stats.binomtest(only_first, only_first + only_second, 0.5).pvalue
+    assert mcnemar_exact(only_first, only_second) == pytest.approx(expected, rel=1e-12)
+
+
+def test_mcnemar_without_discordant_pairs_says_nothing():
+    assert mcnemar_exact(0, 0) == 1.0
