@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import collections
 import sys
-import time
 from pathlib import Path
 
 import torch
@@ -26,7 +25,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks._ledger import append_results, table  # noqa: E402
+from benchmarks._ledger import append_results, best_time, table  # noqa: E402
 from data_synth import make_fabric  # noqa: E402
 from data_synth.rig import RigConfig, render_capture, render_card  # noqa: E402
 from psmini import PhotometricStereo  # noqa: E402
@@ -68,22 +67,13 @@ class Census(TorchDispatchMode):
         return "(outside psmini)"
 
 
-def best_seconds(run, repeat: int = 3) -> float:
-    best = float("inf")
-    for _ in range(repeat):
-        start = time.perf_counter()
-        run()
-        best = min(best, time.perf_counter() - start)
-    return best
-
-
 def eager_prices(size: int) -> tuple[float, float]:
     """Seconds of one tiny operation (dispatch alone) and bytes per second of an element-wise product over one
-    capture's floats (two read, one written), best of 200 each."""
+    capture's floats (two read, one written): the best of five runs of 200 and of 50 calls."""
     x, y = torch.rand(8, size, size), torch.rand(8, size, size)
     out, one = torch.empty_like(x), x[0, 0, :1]
-    tiny = best_seconds(lambda: [torch.mul(one, 2.0) for _ in range(200)]) / 200
-    product = best_seconds(lambda: [torch.mul(x, y, out=out) for _ in range(50)]) / 50
+    tiny = best_time(lambda: [torch.mul(one, 2.0) for _ in range(200)]) / 200
+    product = best_time(lambda: [torch.mul(x, y, out=out) for _ in range(50)]) / 50
     return tiny, 3 * x.numel() * x.element_size() / product
 
 
@@ -105,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     for label, solver in (("distant pipeline", "distant"), ("near light", "near")):
         model = PhotometricStereo(capture.lights, 0.025, ReconstructionConfig(solver=solver))
         with torch.no_grad():
-            seconds = best_seconds(lambda: model(*inputs, card_albedo=0.8, saturation_level=1.0))
+            seconds = best_time(lambda: model(*inputs, card_albedo=0.8, saturation_level=1.0), repeat=3)
             census = Census()
             with census:
                 model(*inputs, card_albedo=0.8, saturation_level=1.0)
