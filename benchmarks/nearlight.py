@@ -215,9 +215,7 @@ def stability_only(size: int, pitch: float, device: torch.device, args: argparse
         near = PhotometricStereo(capture.lights, pitch, NEAR)
         a, b = (near(capture.images[None], reference, capture.dark[None], card.dark[None], card_albedo=CARD_ALBEDO,
                      saturation_level=1.0) for reference in (card.images[None], card.images[None] * (1 + 1e-7)))
-        both = a.mask & b.mask
-        chord = (a.normals.double() - b.normals.double()).norm(dim=1, keepdim=True)
-        moved = torch.rad2deg(2 * torch.asin((chord / 2).clamp(max=1)))[both]  # float64: acos near 1 cannot resolve it
+        moved = angular_error_deg(a.normals.double(), b.normals.double())[a.mask & b.mask]
         depth = (a.depth - b.depth).double()
         rows.append([name, f"{1e3 * float(depth.abs().max()):.1f}", f"{1e3 * float(depth.square().mean().sqrt()):.2f}",
                      f"{float(moved.mean()):.4f}", f"{int((moved > 1).sum())}", f"{int((a.mask != b.mask).sum())}",
