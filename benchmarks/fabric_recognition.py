@@ -150,6 +150,14 @@ def accuracy_cell(right: np.ndarray) -> str:
     return f"{right.mean():.1%} ({low:.1%}-{high:.1%})"
 
 
+def against_baseline(right: np.ndarray, baseline: np.ndarray, who: str) -> str:
+    """The accuracy difference of ``right`` over ``baseline`` (bool per test sample) in points, with the exact
+    McNemar p-value of their discordant samples, as a table cell."""
+    only, only_baseline = int((right & ~baseline).sum()), int((baseline & ~right).sum())
+    return (f"{100 * (right.mean() - baseline.mean()):+.1f} (exact McNemar p = {mcnemar_exact(only, only_baseline):.2g}: "
+            f"{only} test samples only {who} get right, {only_baseline} only the baseline)")
+
+
 def fit(x: np.ndarray, y: np.ndarray):
     from sklearn.linear_model import LogisticRegression
     from sklearn.pipeline import make_pipeline
@@ -227,11 +235,9 @@ def main(argv: list[str] | None = None) -> int:
     texture = fit(train_t, train_y)
     right_s, right_t = structure.predict(test_s) == test_y, texture.predict(test_t) == test_y
     acc_s, acc_t = float(right_s.mean()), float(right_t.mean())
-    only_s, only_t = int((right_s & ~right_t).sum()), int((right_t & ~right_s).sum())
     # what the relief adds to the image: the same classifier on both feature sets
     both = fit(np.hstack([train_s, train_t]), train_y)
     right_b = both.predict(np.hstack([test_s, test_t])) == test_y
-    only_b, only_t_vs_b = int((right_b & ~right_t).sum()), int((right_t & ~right_b).sum())
     classes = list(CLASSES)
     cm_s = confusion_matrix(test_y, structure.predict(test_s), labels=classes)
     cm_t = confusion_matrix(test_y, texture.predict(test_t), labels=classes)
@@ -259,13 +265,9 @@ def main(argv: list[str] | None = None) -> int:
         table(["features", "test accuracy (95% Wilson interval)"],
               [["structure descriptors (psmini.fabric)", accuracy_cell(right_s)],
                ["single LED image: GLCM + LBP (baseline)", accuracy_cell(right_t)],
-               ["difference (points)", f"{100 * (acc_s - acc_t):+.1f} (exact McNemar p = "
-                f"{mcnemar_exact(only_s, only_t):.2g}: {only_s} test samples only the descriptors get right, "
-                f"{only_t} only the baseline)"],
+               ["difference (points)", against_baseline(right_s, right_t, "the descriptors")],
                ["descriptors and the image's texture together", accuracy_cell(right_b)],
-               ["together against the baseline (points)", f"{100 * (right_b.mean() - acc_t):+.1f} (exact McNemar p = "
-                f"{mcnemar_exact(only_b, only_t_vs_b):.2g}: {only_b} only together, {only_t_vs_b} only the "
-                "baseline)"]]),
+               ["together against the baseline (points)", against_baseline(right_b, right_t, "both together")]]),
         "",
         "Descriptors that carry it (permutation importance on the test set, mean accuracy drop):",
         "",

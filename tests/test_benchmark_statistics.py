@@ -8,7 +8,9 @@ import pytest
 pytest.importorskip("sklearn", reason="the recognition benchmark needs the fabric extra (scikit-learn)")
 scipy_stats = pytest.importorskip("scipy.stats", reason="scipy (installed with scikit-learn) is the reference")
 
-from benchmarks.fabric_recognition import mcnemar_exact, wilson_interval  # noqa: E402
+import numpy as np  # noqa: E402
+
+from benchmarks.fabric_recognition import against_baseline, mcnemar_exact, wilson_interval  # noqa: E402
 
 Z95 = 1.959964
 
@@ -34,3 +36,12 @@ def test_mcnemar_exact_is_the_two_sided_binomial_test(only_first, only_second):
 
 def test_mcnemar_without_discordant_pairs_says_nothing():
     assert mcnemar_exact(0, 0) == 1.0
+
+
+def test_against_baseline_counts_the_discordant_samples():
+    # 10 samples: both right on 6, only the first on 1, only the baseline on 3
+    right = np.array([1, 1, 1, 1, 1, 1, 1, 0, 0, 0], dtype=bool)
+    baseline = np.array([1, 1, 1, 1, 1, 1, 0, 1, 1, 1], dtype=bool)
+    cell = against_baseline(right, baseline, "the descriptors")
+    assert cell.startswith("-20.0 (exact McNemar p = ")
+    assert f"p = {mcnemar_exact(1, 3):.2g}: 1 test samples only the descriptors get right, 3 only the baseline" in cell
