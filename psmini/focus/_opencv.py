@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -25,21 +26,24 @@ from torch import Tensor
 enabled = True
 """Use OpenCV for no-grad CPU frames (set False to force the torch path, e.g. to time it)."""
 
-_cv2 = None
+_available: bool | None = None  # whether OpenCV imports; None until the first measure asks
 _DTYPES = (torch.uint8, torch.uint16, torch.float32)
 _SCALE = {torch.uint8: 1.0 / 255.0, torch.uint16: 1.0 / 65535.0, torch.float32: 1.0}
 
 
-def _opencv():
-    global _cv2, enabled
-    if _cv2 is None:
+def _opencv() -> bool:
+    """Whether OpenCV imports (tried once). The functions below import it where they use it: after this first import,
+    ``import cv2`` is a lookup in ``sys.modules`` (about 0.1 µs), and the type checker sees OpenCV's own stubs."""
+    global _available, enabled
+    if _available is None:
         try:
-            import cv2
+            import cv2  # noqa: F401
         except ImportError:  # the torch path stays
             enabled = False
-            return None
-        _cv2 = cv2
-    return _cv2
+            _available = False
+        else:
+            _available = True
+    return _available
 
 
 def usable(region: Tensor) -> bool:
@@ -49,7 +53,7 @@ def usable(region: Tensor) -> bool:
         and region.device.type == "cpu"
         and region.dtype in _DTYPES
         and not (region.requires_grad and torch.is_grad_enabled())
-        and _opencv() is not None
+        and _opencv()
     )
 
 
@@ -119,7 +123,7 @@ def brenner(region: Tensor) -> Tensor:
     two reused buffers); the two columns per row whose right neighbour wraps into the next row are left out by
     the final norm's strided view. A strided region takes the same calls on 2-D views.
     """
-    cv2 = _cv2
+    import cv2
     out = []
     for f, s in _each(region):
         h, w = f.shape
@@ -163,12 +167,12 @@ def brenner_uint8_frames(frames: Tensor) -> Tensor | None:
             and not frames.requires_grad):
         return None
     batch, h, w = frames.shape
-    if batch == 0 or h < 3 or w < 3 or (_cv2 is None and _opencv() is None):
+    if batch == 0 or h < 3 or w < 3 or not _opencv():
         return None
     array = frames.numpy()
     if not array.flags.c_contiguous:
         return brenner(frames)
-    cv2 = _cv2
+    import cv2
     n = (h - 2) * w
     first, second = _buffers(n, array.dtype)
     wrapped = first.reshape(h - 2, w)[:, w - 2 :]
@@ -186,7 +190,7 @@ def brenner_uint8_frames(frames: Tensor) -> Tensor | None:
 
 def image_contrast(region: Tensor) -> Tensor:
     """Nanda & Cutler's 8-neighbour contrast: each unordered pair differenced once, two window sums each."""
-    cv2 = _cv2
+    import cv2
     out = []
     for f, s in _each(region):
         h, w = f.shape
@@ -202,7 +206,7 @@ def image_contrast(region: Tensor) -> Tensor:
 
 def _haar_rows(f: np.ndarray):
     """Sums and differences of horizontal neighbours, float32 (h, w-1), in reused buffers, and a third buffer."""
-    cv2 = _cv2
+    import cv2
     sums, diffs, spare = _scratch((f.shape[0], f.shape[1] - 1), 3)
     cv2.add(f[:, :-1], f[:, 1:], dst=sums, dtype=cv2.CV_32F)
     cv2.subtract(f[:, :-1], f[:, 1:], dst=diffs, dtype=cv2.CV_32F)
@@ -211,7 +215,7 @@ def _haar_rows(f: np.ndarray):
 
 def wavelet_sum(region: Tensor) -> Tensor:
     """Σ|LH| + |HL| + |HH| of the undecimated Haar transform, from row sums and differences."""
-    cv2 = _cv2
+    import cv2
     out = []
     for f, s in _each(region):
         h, w = f.shape
@@ -230,7 +234,7 @@ def _haar_moments(f: np.ndarray):
     the row sums and differences of a strip are still in cache when the norms read them; a uint8 frame's sums
     and differences are exact int16.
     """
-    cv2 = _cv2
+    import cv2
     h, w = f.shape
     # uint8 frames in int16: every sum and difference below is exact there, in half the bytes of float32
     exact = f.dtype == np.uint8
@@ -283,7 +287,7 @@ def _gaussian_taps(sigma: float):
 def _gaussian_gradients(f: np.ndarray, sigma: float, crop: bool = True):
     """Gaussian-derivative responses (correlation, as the torch path), float32; the valid grid, or the whole
     frame (border replicated) and the radius when ``crop`` is False."""
-    cv2 = _cv2
+    import cv2
     smooth, slope = _gaussian_taps(sigma)
     r = len(smooth) // 2
     gx, gy = _scratch(f.shape, 2)
@@ -295,7 +299,7 @@ def _gaussian_gradients(f: np.ndarray, sigma: float, crop: bool = True):
 
 
 def gaussian_derivative(region: Tensor, sigma: float) -> Tensor:
-    cv2 = _cv2
+    import cv2
     out = []
     for f, s in _each(region):
         gx, gy = _gaussian_gradients(f, sigma)
@@ -304,7 +308,7 @@ def gaussian_derivative(region: Tensor, sigma: float) -> Tensor:
 
 
 def _sobel(f: np.ndarray):
-    cv2 = _cv2
+    import cv2
     gx, gy = _scratch(f.shape, 2)
     cv2.Sobel(f, cv2.CV_32F, 1, 0, dst=gx, ksize=3)
     cv2.Sobel(f, cv2.CV_32F, 0, 1, dst=gy, ksize=3)
@@ -312,7 +316,7 @@ def _sobel(f: np.ndarray):
 
 
 def tenengrad(region: Tensor) -> Tensor:
-    cv2 = _cv2
+    import cv2
     out = []
     for f, s in _each(region):
         gx, gy = _sobel(f)
@@ -321,12 +325,14 @@ def tenengrad(region: Tensor) -> Tensor:
 
 
 def _variance(x: np.ndarray) -> float:
-    _, std = _cv2.meanStdDev(x)
+    import cv2
+
+    _, std = cv2.meanStdDev(x)
     return float(std[0, 0]) ** 2
 
 
 def tenengrad_variance(region: Tensor) -> Tensor:
-    cv2 = _cv2
+    import cv2
     out = []
     for f, s in _each(region):
         gx, gy, magnitude = _scratch(f.shape, 3)
@@ -338,7 +344,7 @@ def tenengrad_variance(region: Tensor) -> Tensor:
 
 
 def _laplacian(f: np.ndarray) -> np.ndarray:
-    cv2 = _cv2
+    import cv2
     (lap,) = _scratch(f.shape, 1)
     cv2.Laplacian(f, cv2.CV_32F, dst=lap, ksize=1)
     return lap[1:-1, 1:-1]
@@ -349,7 +355,7 @@ def variance_of_laplacian(region: Tensor) -> Tensor:
 
 
 def laplacian_energy(region: Tensor) -> Tensor:
-    cv2 = _cv2
+    import cv2
     out = []
     for f, s in _each(region):
         lap = _laplacian(f)
@@ -366,20 +372,40 @@ _DIAGONALS = (
 def modified_laplacian(region: Tensor, diagonal: bool) -> Tensor:
     """LAPM (threshold 0 only: the caller keeps the torch path otherwise) and LAPD, in row strips
     (:func:`_strip_l1`)."""
-    cv2 = _cv2
+    import cv2
     # integer frames are filtered as they are, into float32 (no converted copy)
-    filters = [(1.0, lambda src, dst: cv2.Sobel(src, cv2.CV_32F, 2, 0, dst=dst, ksize=1)),
+    filters: list[tuple[float, _Filter]] = [
+               (1.0, lambda src, dst: cv2.Sobel(src, cv2.CV_32F, 2, 0, dst=dst, ksize=1)),
                (1.0, lambda src, dst: cv2.Sobel(src, cv2.CV_32F, 0, 2, dst=dst, ksize=1))]
     if diagonal:
-        filters += [(math.sqrt(0.5), lambda src, dst, k=kernel: cv2.filter2D(src, cv2.CV_32F, k, dst=dst))
-                    for kernel in _DIAGONALS]
+        filters += [(math.sqrt(0.5), _filter2d(kernel)) for kernel in _DIAGONALS]
     return _out([_strip_l1(f, filters) * s / ((f.shape[0] - 2) * (f.shape[1] - 2)) for f, s in _each(region)])
 
 
-def _strip_l1(f: np.ndarray, filters: list) -> float:
+_Filter = Callable[[np.ndarray, np.ndarray], object]
+"""A filter of :func:`_strip_l1`: ``apply(src, dst)`` writes its float32 response to ``src`` into ``dst``."""
+
+
+def _filter2d(kernel: np.ndarray) -> _Filter:
+    """The 2-D correlation with ``kernel`` as a strip filter."""
+    import cv2
+
+    return lambda src, dst: cv2.filter2D(src, cv2.CV_32F, kernel, dst=dst)
+
+
+def _sep_filter2d(kx: np.ndarray, ky: np.ndarray) -> _Filter:
+    """The separable correlation with ``kx`` along rows and ``ky`` along columns as a strip filter."""
+    import cv2
+
+    return lambda src, dst: cv2.sepFilter2D(src, cv2.CV_32F, kx, ky, dst=dst)
+
+
+def _strip_l1(f: np.ndarray, filters: list[tuple[float, _Filter]]) -> float:
     """Sum over ``filters`` (weight, apply) of weight times the L1 norm of each 3 × 3 filter's response on the
     frame's interior, in row strips (see :data:`_STRIP_ROWS`): each strip filters its rows plus one on either
     side into one small reused buffer (``apply(src, dst)`` writes a float32 response)."""
+    import cv2
+
     h, w = f.shape
     (buffer,) = _scratch((min(_STRIP_ROWS, h - 2) + 2, w), 1)
     total = 0.0
@@ -389,12 +415,12 @@ def _strip_l1(f: np.ndarray, filters: list) -> float:
         interior = response[1 : n - 1, 1 : w - 1]
         for weight, apply in filters:
             apply(src, response)
-            total += weight * _cv2.norm(interior, _cv2.NORM_L1)
+            total += weight * cv2.norm(interior, cv2.NORM_L1)
     return total
 
 
 def normalized_variance(region: Tensor, eps: float) -> Tensor:
-    cv2 = _cv2
+    import cv2
     out = []
     for f, s in _each(region):
         mean, std = cv2.meanStdDev(f)
@@ -406,7 +432,7 @@ def normalized_variance(region: Tensor, eps: float) -> Tensor:
 
 
 def gradient_energy(region: Tensor) -> Tensor:
-    cv2 = _cv2
+    import cv2
     out = []
     for f, s in _each(region):
         centre = f[:-1, :-1]
@@ -417,7 +443,7 @@ def gradient_energy(region: Tensor) -> Tensor:
 
 def thresholded_gradient(region: Tensor) -> Tensor:
     """GRAT with threshold 0 (the caller keeps the torch path otherwise)."""
-    cv2 = _cv2
+    import cv2
     out = []
     for f, s in _each(region):
         centre = f[:-1, :-1]
@@ -428,7 +454,7 @@ def thresholded_gradient(region: Tensor) -> Tensor:
 
 def squared_gradient(region: Tensor) -> Tensor:
     """GRAS with threshold 0 (the caller keeps the torch path otherwise)."""
-    cv2 = _cv2
+    import cv2
     out = []
     for f, s in _each(region):
         centre = f[:-1, :-1]
@@ -438,7 +464,7 @@ def squared_gradient(region: Tensor) -> Tensor:
 
 
 def absolute_central_moment(region: Tensor) -> Tensor:
-    cv2 = _cv2
+    import cv2
     out = []
     for f, s in _each(region):
         if f.dtype == np.uint8:  # Shirvaikar's histogram form, exact for 256 levels
@@ -448,7 +474,8 @@ def absolute_central_moment(region: Tensor) -> Tensor:
             out.append(float(hist @ np.abs(levels - mean)) * s / f.size)
         else:
             mean = cv2.mean(f)[0]
-            out.append(cv2.norm(cv2.subtract(f, mean, dtype=cv2.CV_32F), cv2.NORM_L1) * s / f.size)
+            centred = cv2.subtract(f, mean, dtype=cv2.CV_32F)  # type: ignore[call-overload]  # a number is a scalar operand to OpenCV; its stubs list arrays only
+            out.append(cv2.norm(centred, cv2.NORM_L1) * s / f.size)
     return _out(out)
 
 
@@ -465,7 +492,7 @@ def gray_level_local_variance(region: Tensor, window: int) -> Tensor:
     (accumulated in double by OpenCV). Other frames are centred first (fewer digits lost in E[g²] - E[g]²);
     rounding can then leave a flat window's local variance at -1e-9 instead of the torch path's clamped 0, far
     below float32 resolution of the score."""
-    cv2 = _cv2
+    import cv2
     out = []
     r = window // 2
     n = window * window
@@ -483,7 +510,8 @@ def gray_level_local_variance(region: Tensor, window: int) -> Tensor:
             out.append(variance * (s / n) ** 4)
             continue
         src, mean, squares = _scratch(f.shape, 3)
-        cv2.subtract(f, cv2.mean(f)[0], dst=src, dtype=cv2.CV_32F)  # centred: fewer digits lost in E[g²] - E[g]²
+        # centred: fewer digits lost in E[g²] - E[g]²
+        cv2.subtract(f, cv2.mean(f)[0], dst=src, dtype=cv2.CV_32F)  # type: ignore[call-overload]  # a number is a scalar operand to OpenCV; its stubs list arrays only
         cv2.blur(src, (window, window), dst=mean, borderType=cv2.BORDER_REPLICATE)
         cv2.sqrBoxFilter(src, cv2.CV_32F, (window, window), dst=squares, borderType=cv2.BORDER_REPLICATE)
         local = cv2.subtract(squares, cv2.multiply(mean, mean, dst=src), dst=squares)
@@ -492,7 +520,7 @@ def gray_level_local_variance(region: Tensor, window: int) -> Tensor:
 
 
 def histogram_entropy(region: Tensor, bins: int) -> Tensor:
-    cv2 = _cv2
+    import cv2
     out = []
     for f, s in _each(region):
         if f.dtype == np.uint8 and bins == 256:
@@ -510,16 +538,18 @@ def histogram_entropy(region: Tensor, bins: int) -> Tensor:
 
 
 def histogram_range(region: Tensor) -> Tensor:
+    import cv2
+
     out = []
     for f, s in _each(region):
-        low, high, _, _ = _cv2.minMaxLoc(f)
+        low, high, _, _ = cv2.minMaxLoc(f)
         out.append((high - low) * s)
     return _out(out)
 
 
 def dct_energy_ratio(region: Tensor, block: int, eps: float) -> Tensor:
     """Tile means of g and g² by area resampling; AC/DC energy = σ²/μ² per tile (Parseval)."""
-    cv2 = _cv2
+    import cv2
     out = []
     for f, s in _each(region):
         nh, nw = f.shape[0] // block, f.shape[1] // block
@@ -563,16 +593,14 @@ _CURVATURE = (  # (row taps, column taps) of p0 = Σx g/6, p1 = Σy g/6, p2 = Σ
 def curvature(region: Tensor) -> Tensor:
     """Helmli & Scherer's four curvature coefficients, each a separable 3 × 3 filter, in row strips
     (:func:`_strip_l1`)."""
-    cv2 = _cv2
-    filters = [(1.0, lambda src, dst, kx=kx, ky=ky: cv2.sepFilter2D(src, cv2.CV_32F, kx, ky, dst=dst))
-               for kx, ky in _CURVATURE]
+    filters = [(1.0, _sep_filter2d(kx, ky)) for kx, ky in _CURVATURE]
     return _out([_strip_l1(f, filters) * s / ((f.shape[0] - 2) * (f.shape[1] - 2)) for f, s in _each(region)])
 
 
 def helmli_mean(region: Tensor, window: int, eps: float) -> Tensor:
     """max(μ, g) / max(min(μ, g), eps) - 1 where min(μ, g) > eps, as a masked mean, in row strips (see
     :data:`_STRIP_ROWS`): each strip reads its rows plus ``window // 2`` on either side and keeps the valid grid."""
-    cv2 = _cv2
+    import cv2
     out = []
     r = window // 2
     for f, s in _each(region):
@@ -590,7 +618,7 @@ def helmli_mean(region: Tensor, window: int, eps: float) -> Tensor:
             cv2.min(mean, src, dst=low)
             cv2.max(mean, src, dst=high)
             ratio = cv2.divide(high, cv2.max(low, eps, dst=mean), dst=high)
-            scored = cv2.compare(low[r : n - r, r : w - r], eps, cv2.CMP_GT, dst=masks[: b - a])
+            scored = cv2.compare(low[r : n - r, r : w - r], eps, cv2.CMP_GT, dst=masks[: b - a])  # type: ignore[call-overload]  # a number is a scalar operand to OpenCV; its stubs list arrays only
             count = cv2.countNonZero(scored)
             if count:  # 255 where min(μ, g) > eps
                 total += cv2.mean(ratio[r : n - r, r : w - r], mask=scored)[0] * count - count
@@ -602,7 +630,7 @@ def steerable_filters(region: Tensor, sigma: float) -> Tensor:
     """max(|gx|, |gy|, |gx + gy|/√2, |gx - gy|/√2) from u = |gx + gy| and v = |gx - gy|: max(|gx|, |gy|) is
     (u + v)/2 and max(u, v) is |gx| + |gy|. Row strips (see :data:`_STRIP_ROWS`): each strip filters its rows
     plus the kernel radius on either side and sums its valid grid."""
-    cv2 = _cv2
+    import cv2
     out = []
     half = math.sqrt(0.5)
     smooth, slope = _gaussian_taps(sigma)
@@ -630,7 +658,7 @@ def steerable_filters(region: Tensor, sigma: float) -> Tensor:
 
 
 def spatial_frequency(region: Tensor) -> Tensor:
-    cv2 = _cv2
+    import cv2
     out = []
     for f, s in _each(region):
         h, w = f.shape
@@ -641,11 +669,11 @@ def spatial_frequency(region: Tensor) -> Tensor:
 
 
 def vollath_f4(region: Tensor) -> Tensor:
-    cv2 = _cv2
+    import cv2
     out = []
     for f, s in _each(region):
         h, w = f.shape
-        g = cv2.subtract(f, cv2.mean(f)[0], dtype=cv2.CV_32F)
+        g = cv2.subtract(f, cv2.mean(f)[0], dtype=cv2.CV_32F)  # type: ignore[call-overload]  # a number is a scalar operand to OpenCV; its stubs list arrays only
         rows = cv2.sumElems(cv2.multiply(g[:, :-2], cv2.subtract(g[:, 1:-1], g[:, 2:])))[0] / (h * (w - 2))
         cols = cv2.sumElems(cv2.multiply(g[:-2], cv2.subtract(g[1:-1], g[2:])))[0] / ((h - 2) * w)
         out.append((rows + cols) * s * s)

@@ -102,20 +102,19 @@ def _mirror_plan(height: int, width: int, pitch: float, device: torch.device, dt
     ramps = torch.zeros(2, height, width, dtype=f64)
     ramps[0, 0], ramps[1, :, 0] = ramp_u - unit[0, 0, 0], ramp_v - unit[1, 0, :, 0]
     ramps = inverse_spectrum(ramps, transform)  # each lies on one row or one column of the spectrum
-    const = {"device": device, "dtype": dtype}
-    complex_const = {"device": device, "dtype": complex_dtype(dtype)}
+    complex_ = complex_dtype(dtype)
     reordered_scale = scale.flatten(2)[..., transform.order].view(1, 2, height, width)
     return _MirrorPlan(
         dct_plan(height, width, device, dtype),
-        scale.to(**const),
-        reordered_scale.to(**const),
-        _spectral_map(reference, height, width).to(**const),
-        _first_row_map(reference, width).to(**const),
-        ramps[0, 0].to(**complex_const),
-        ramps[1, :, 0].to(**complex_const),
-        transform.inverse[0, 0].to(**complex_const),
-        alternating.to(**const),
-        nyquist_mean.to(**const),
+        scale.to(device, dtype),
+        reordered_scale.to(device, dtype),
+        _spectral_map(reference, height, width).to(device, dtype),
+        _first_row_map(reference, width).to(device, dtype),
+        ramps[0, 0].to(device, complex_),
+        ramps[1, :, 0].to(device, complex_),
+        transform.inverse[0, 0].to(device, complex_),
+        alternating.to(device, dtype),
+        nyquist_mean.to(device, dtype),
     )
 
 
@@ -200,7 +199,8 @@ def _spectral_map(reference: _MirrorReference, height: int, width: int) -> Tenso
     own, partner = [], []
     for channel, unit in ((c, u) for c in range(2) for u in (1.0, 1j)):  # the planes' order in _solution_spectrum
         probes = torch.zeros(2, 2, height, k, dtype=torch.complex128)  # a plane at a time: 5 MB at 400^2
-        probes[0, channel, first], probes[1, channel, ~first] = unit, unit
+        # torch takes a Python complex into a complex tensor; its stubs list int | float | bool only
+        probes[0, channel, first], probes[1, channel, ~first] = unit, unit  # type: ignore[assignment]
         on, off = _reference_solution(probes, reference)[:, 0]
         own.append(torch.where(on_first, on, off))
         partner.append(torch.where(on_first, off, on))
@@ -285,7 +285,7 @@ def frankot_chellappa(
         0.1
     """
     tested = isinstance(mask, Tensor) and mask.dtype == torch.bool and mask.shape == p.shape
-    if tested and all_true(mask):
+    if tested and isinstance(mask, Tensor) and all_true(mask):
         mask = None  # an all-true mask: the same result without passes over it
     mask, pitch = check_gradients(p, q, mask, pixel_pitch_mm)
     if boundary not in _FC_BOUNDARIES:
