@@ -161,7 +161,8 @@ class AutofocusController:
     otherwise it ends at the last position of the range.
 
     Args:
-        positions: the sweep's positions, mm, strictly monotonic; or give ``start``, ``stop`` and ``step``.
+        positions: the sweep's positions, mm, strictly monotonic (a sequence or a 1-D tensor); or give ``start``,
+            ``stop`` and ``step``.
         start: first position, mm.
         stop: last position, mm.
         step: step, mm (> 0).
@@ -186,7 +187,7 @@ class AutofocusController:
         (0.1, True)
     """
 
-    def __init__(self, positions: Sequence[float] | None = None, *, start: float | None = None,
+    def __init__(self, positions: Sequence[float] | Tensor | None = None, *, start: float | None = None,
                  stop: float | None = None, step: float | None = None,
                  bounds: tuple[float, float] | None = None, measure: str | Callable[[Tensor], Tensor] = "brenner",
                  roi: Roi | str | None = None, patience: int = 5, margin: float = 0.02, prominence: float = 0.05,
@@ -278,7 +279,7 @@ class AutofocusController:
         )
 
 
-def _plan(positions: Sequence[float] | None, start: float | None, stop: float | None,
+def _plan(positions: Sequence[float] | Tensor | None, start: float | None, stop: float | None,
           step: float | None) -> list[float]:
     """The sweep's positions from an explicit list or from start/stop/step; strictly monotonic."""
     if positions is None:
@@ -314,7 +315,7 @@ def _check_bounds(bounds: tuple[float, float] | None, positions: list[float]) ->
 
 
 def autofocus_sweep(move_to: Callable[[float], object], grab: Callable[[], Tensor],
-                    positions: Sequence[float] | None = None, *, start: float | None = None,
+                    positions: Sequence[float] | Tensor | None = None, *, start: float | None = None,
                     stop: float | None = None, step: float | None = None,
                     bounds: tuple[float, float] | None = None,
                     measure: str | Callable[[Tensor], Tensor] = "brenner", roi: Roi | str | None = None,
@@ -346,9 +347,10 @@ def autofocus_sweep(move_to: Callable[[float], object], grab: Callable[[], Tenso
     """
     controller = AutofocusController(positions, start=start, stop=stop, step=step, bounds=bounds, measure=measure,
                                      roi=roi, patience=patience, margin=margin, prominence=prominence, refine=refine)
-    while not controller.done:
-        move_to(controller.position)
-        controller.step(grab())
+    position = controller.position
+    while position is not None:  # None once the sweep is done
+        move_to(position)
+        position = controller.step(grab())
     result = controller.result()
     if move_to_best:
         move_to(result.best_position)

@@ -52,13 +52,10 @@ _GRAY_BGR = np.array([0.1140, 0.5870, 0.2989], dtype=np.float32)
 
 def default_backend() -> str:
     """The backend name that exposes manual controls on this platform: v4l2, dshow or avfoundation."""
-    if sys.platform.startswith("linux"):
-        return "v4l2"
-    if sys.platform.startswith("win"):
-        return "dshow"
-    if sys.platform == "darwin":
-        return "avfoundation"
-    return "any"
+    # a table, not sys.platform tests in turn: mypy evaluates those for the platform it checks on, and would
+    # call every branch after the first unreachable
+    platforms = (("linux", "v4l2"), ("win", "dshow"), ("darwin", "avfoundation"))
+    return next((backend for prefix, backend in platforms if sys.platform.startswith(prefix)), "any")
 
 
 @dataclass(frozen=True)
@@ -423,7 +420,7 @@ class RigCamera:
             RigError: no frame; still stale after ``max_stale_frames`` reads (the last reason is named).
         """
         self.flush()
-        why = "no frame read"
+        why: str | None = "no frame read"
         for _ in range(self.max_stale_frames + 1):
             if keepalive is not None:
                 keepalive()

@@ -18,7 +18,7 @@ import importlib.metadata
 import logging
 import time
 from types import TracebackType
-from typing import Any
+from typing import Any, Protocol
 
 import serial
 
@@ -48,6 +48,25 @@ for _entry in importlib.metadata.entry_points(group="psmini.serial_url_handlers"
     if _entry.value not in serial.protocol_handler_packages:
         serial.protocol_handler_packages.append(_entry.value)
 
+class SerialPort(Protocol):
+    """What the controller asks of an open pyserial port. Every port class that :func:`serial.serial_for_url` returns
+    (pyserial's own, ``loop://``, a URL handler's) has it; their common base ``SerialBase`` declares neither
+    ``in_waiting`` nor ``reset_input_buffer``."""
+
+    @property
+    def in_waiting(self) -> int: ...
+
+    def read(self, size: int = 1, /) -> bytes: ...
+
+    def write(self, data: bytes, /) -> int | None: ...
+
+    def flush(self) -> None: ...
+
+    def reset_input_buffer(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
 #: Read slice, s: how long one read of the port may block while a deadline is watched.
 _POLL_S = 0.01
 
@@ -59,7 +78,7 @@ except ImportError:  # Windows
     _PORT_ERRORS = (serial.SerialException, OSError)
 
 
-def open_port(url: str, baudrate: int = BAUDRATE, write_timeout_s: float = 1.0) -> serial.SerialBase:
+def open_port(url: str, baudrate: int = BAUDRATE, write_timeout_s: float = 1.0) -> SerialPort:
     """Open ``url`` with :func:`serial.serial_for_url` (short read timeout: the controller keeps deadlines).
 
     Raises:
@@ -105,7 +124,7 @@ class LEDController:
 
     def __init__(
         self,
-        port: str | serial.SerialBase,
+        port: str | SerialPort,
         *,
         baudrate: int = BAUDRATE,
         handshake_timeout_s: float = 3.0,
@@ -130,7 +149,7 @@ class LEDController:
         self.watchdog_ms = watchdog_ms
         self.identity: Identity | None = None
         self.lit: int | str | None = None
-        self._serial: serial.SerialBase | None = None
+        self._serial: SerialPort | None = None
         self._buffer = bytearray()
         self._last_sent = 0.0
 
@@ -191,6 +210,8 @@ class LEDController:
 
     def _close_port(self) -> None:
         port, self._serial = self._serial, None
+        if port is None:
+            return
         try:
             port.close()
         except _PORT_ERRORS as error:  # a vanished device: nothing left to close
@@ -284,7 +305,7 @@ class LEDController:
 
     # ------------------------------------------------------------------------------------------ plumbing
 
-    def _port(self) -> serial.SerialBase:
+    def _port(self) -> SerialPort:
         if self._serial is None:
             raise RigError(f"the LED controller on {self.name} is not open; call open() or use it in a with block")
         return self._serial
@@ -292,7 +313,7 @@ class LEDController:
     def _handshake(self) -> Identity:
         port = self._port()
         deadline = time.monotonic() + self.handshake_timeout_s
-        seen: list[bytes] = []
+        seen: list[bytearray] = []
         while True:
             raw = self._read_line(port, deadline)
             if raw is None:
@@ -326,7 +347,7 @@ class LEDController:
         if identity.version.split(".")[0] != "1":
             raise RigError(f"the device on {self.name} runs {identity}, a protocol version this host does not speak (1.x)")
 
-    def _await_reply(self, port: serial.SerialBase, expected: str, text: str) -> Reply:
+    def _await_reply(self, port: SerialPort, expected: str, text: str) -> Reply:
         deadline = time.monotonic() + self.command_timeout_s
         while True:
             raw = self._read_line(port, deadline)
@@ -350,7 +371,7 @@ class LEDController:
                 return reply
             logger.debug("skipping a stale reply %r while waiting for %r", line, text)
 
-    def _read_line(self, port: serial.SerialBase, deadline: float) -> bytearray | None:
+    def _read_line(self, port: SerialPort, deadline: float) -> bytearray | None:
         """The next line without its end (``\\r`` removed), or None at the deadline."""
         while True:
             end = self._buffer.find(b"\n")
@@ -362,13 +383,13 @@ class LEDController:
                 return None
             self._buffer += self._read(port)
 
-    def _read(self, port: serial.SerialBase) -> bytes:
+    def _read(self, port: SerialPort) -> bytes:
         try:
             return port.read(max(1, port.in_waiting))
         except _PORT_ERRORS as error:
             raise RigError(f"LED controller on {self.name} disconnected: {error}") from error
 
-    def _write(self, port: serial.SerialBase, line: bytes) -> None:
+    def _write(self, port: SerialPort, line: bytes) -> None:
         try:
             port.write(line)
             port.flush()
@@ -378,7 +399,7 @@ class LEDController:
             raise RigError(f"LED controller on {self.name} disconnected: {error}") from error
         self._last_sent = time.monotonic()
 
-    def _discard_input(self, port: serial.SerialBase) -> None:
+    def _discard_input(self, port: SerialPort) -> None:
         self._buffer.clear()
         try:
             port.reset_input_buffer()
