@@ -100,24 +100,25 @@ def records_gradient(*tensors: Tensor | None) -> bool:
     return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)
 
 
-def check_out(out, shapes: tuple[tuple[int, ...], ...], names: tuple[str, ...], inputs: tuple[Tensor, ...]) -> None:
+def check_out(out, shapes: tuple[tuple[int, ...], ...], names: tuple[str, ...],
+              inputs: tuple[Tensor | None, ...]) -> None:
     """Refuse ``out`` tensors that cannot receive a result: not a tuple of ``len(shapes)`` tensors, another shape,
     dtype or device than ``inputs[0]``, memory shared between them, or an autograd graph to break (an out tensor
     that requires grad, or inputs that do while grad is enabled: out= writes are not differentiable). ``None``
     inputs (optional frames not given) are skipped."""
-    inputs = tuple(t for t in inputs if t is not None)
+    given = tuple(t for t in inputs if t is not None)
     if not isinstance(out, tuple) or len(out) != len(shapes) or not all(isinstance(t, Tensor) for t in out):
         raise InputError(f"out must be a tuple of {len(shapes)} tensors ({', '.join(names)}), got {out!r:.80}")
-    reference = inputs[0]
+    reference = given[0]
     for tensor, shape, name in zip(out, shapes, names):
         if tuple(tensor.shape) != tuple(shape) or tensor.dtype != reference.dtype or tensor.device != reference.device:
             raise ShapeError(f"out {name} must be a {reference.dtype} tensor of shape {tuple(shape)} on "
                              f"{reference.device}, got {tensor.dtype} {tuple(tensor.shape)} on {tensor.device}")
         if tensor.requires_grad:
             raise InputError(f"out {name} requires grad: out= writes are not differentiable; pass no out")
-    if records_gradient(*inputs):
+    if records_gradient(*given):
         raise InputError("out= writes are not differentiable, and an input requires grad: pass no out, or compute "
                          "under torch.no_grad()")
     pointers = [t.untyped_storage().data_ptr() for t in out]
-    if len(set(pointers)) != len(pointers) or any(t.untyped_storage().data_ptr() in pointers for t in inputs):
+    if len(set(pointers)) != len(pointers) or any(t.untyped_storage().data_ptr() in pointers for t in given):
         raise InputError(f"the out tensors ({', '.join(names)}) must not share memory with each other or the inputs")

@@ -161,8 +161,9 @@ def flatfield(
             return FlatFieldResult(signal, torch.ones_like(images, dtype=torch.bool), True)
         return FlatFieldResult(signal.mul_(unsaturated), unsaturated)
 
-    scale, trusted, all_trusted = _card_terms(reference, reference_dark, card_tensors, images, card_albedo,
-                                              min_reference, saturation_level, card_smoothing_px)
+    # card_tensors[0] is the caller's reference, which is not None here: mypy does not relate the two
+    scale, trusted, all_trusted = _card_terms(reference, reference_dark, card_tensors,  # type: ignore[arg-type]
+                                              images, card_albedo, min_reference, saturation_level, card_smoothing_px)
     ratio = signal.mul_(scale)
     valid = trusted.expand(shape)
     if unsaturated is not None:
@@ -345,6 +346,9 @@ class FlatField(nn.Module):
         >>> module(torch.rand(2, 8, 16, 16)).images.shape
         torch.Size([2, 8, 16, 16])
     """
+
+    reference: Tensor  # buffers
+    reference_dark: Tensor | None
 
     def __init__(
         self,

@@ -168,7 +168,7 @@ def _dot(vectors: Tensor, normals: Tensor) -> Tensor:
 
 
 def _shade(normals: Tensor, albedo: Tensor, specular: Tensor, shininess: Tensor, lights: Tensor, energy: Tensor,
-           half: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+           half: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """The model on pixel rows: normals (N, 3), maps (N, 1).
 
     Returns cosine E(n·u), where it is positive (0/1 floats), lit lobe E g^α, g = n·h, log g and the images, each
@@ -236,8 +236,8 @@ def blinn_phong_images(normals: Tensor, albedo: Tensor, specular: Tensor, shinin
     for b in range(sizes["B"]):  # a loop over images, not pixels
         rows = lights[b].to(normals).flatten(2).permute(2, 0, 1) if lights.ndim == 5 else lights[b]
         energy, half = _split_lights(rows)
-        maps = [x[b].flatten(1).T for x in (albedo, specular, shininess)]
-        images.append(_shade(normals[b].flatten(1).T, *maps, rows, energy, half)[-1].T)
+        rho, s, alpha = (x[b].flatten(1).T for x in (albedo, specular, shininess))
+        images.append(_shade(normals[b].flatten(1).T, rho, s, alpha, rows, energy, half)[-1].T)
     return torch.stack(images).view(sizes["B"], -1, sizes["H"], sizes["W"])
 
 
@@ -286,27 +286,30 @@ def _starts(values: Tensor, usable: Tensor, albedo: Tensor, normals: Tensor, lig
     tiny = torch.finfo(values.dtype).tiny
     most = _PEAK_RATIO * (usable * values / energy).amax(dim=1, keepdim=True)
     faint = [normals, albedo, _FAINT_LOBE * albedo, torch.full_like(albedo, math.log(_FAINT_SHININESS))]
-    best, best_cost = None, None
     peak = _brightest_half(values, usable, half)
     bisector = normals + peak
     bisector = bisector / bisector.norm(dim=1, keepdim=True).clamp_min(tiny)
-    for start_normals in (normals, peak, bisector):
-        for exponent in options.shininess:
-            log_alpha = torch.full_like(albedo, math.log(exponent))
-            cosine, _, lobe, _, _, _ = _shade(start_normals, albedo, albedo, log_alpha.exp(), lights, energy, half)
-            diffuse = cosine.clamp_min(0)
-            a, b, d, r1, r2 = [(usable * x * y).sum(dim=1, keepdim=True) for x, y in (
-                (diffuse, diffuse), (diffuse, lobe), (lobe, lobe), (diffuse, values), (lobe, values))]
-            specular = ((a * r2 - b * r1) / (a * d - b * b).clamp_min(tiny)).clamp_min(0).minimum(most)
-            rho = ((r1 - b * specular) / a.clamp_min(tiny)).clamp_min(0)
-            candidate = [start_normals, rho, specular, log_alpha]
-            cost = _cauchy_cost(values - rho * diffuse - specular * lobe, usable, sigma)
-            if best is None:
-                best, best_cost = candidate, cost
-                continue
-            better = cost < best_cost
-            best = [torch.where(better, new, old) for new, old in zip(candidate, best)]
-            best_cost = torch.where(better, cost, best_cost)
+
+    def candidate(start_normals: Tensor, exponent: float) -> tuple[list[Tensor], Tensor]:
+        """The state from one starting normal and exponent, and its Cauchy cost (N, 1)."""
+        log_alpha = torch.full_like(albedo, math.log(exponent))
+        cosine, _, lobe, _, _, _ = _shade(start_normals, albedo, albedo, log_alpha.exp(), lights, energy, half)
+        diffuse = cosine.clamp_min(0)
+        a, b, d, r1, r2 = [(usable * x * y).sum(dim=1, keepdim=True) for x, y in (
+            (diffuse, diffuse), (diffuse, lobe), (lobe, lobe), (diffuse, values), (lobe, values))]
+        specular = ((a * r2 - b * r1) / (a * d - b * b).clamp_min(tiny)).clamp_min(0).minimum(most)
+        rho = ((r1 - b * specular) / a.clamp_min(tiny)).clamp_min(0)
+        return [start_normals, rho, specular, log_alpha], _cauchy_cost(values - rho * diffuse - specular * lobe,
+                                                                       usable, sigma)
+
+    # options.shininess is never empty (NonLambertianOptions checks it)
+    starts = [(start_normals, exponent) for start_normals in (normals, peak, bisector) for exponent in options.shininess]
+    best, best_cost = candidate(*starts[0])
+    for start in starts[1:]:
+        state, cost = candidate(*start)
+        better = cost < best_cost
+        best = [torch.where(better, new, old) for new, old in zip(state, best, strict=True)]
+        best_cost = torch.where(better, cost, best_cost)
     return faint, best
 
 
@@ -386,11 +389,12 @@ def _fit_rows(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor, no
     top = math.log(options.max_shininess)
     faint, strong = _starts(values, usable, albedo, normals, lights, energy, half, sigma, options)
     race = min(_RACE, options.iterations)
-    both = [torch.cat(pair) for pair in ((values, values), (usable, usable), (sigma, sigma))]
-    per_row = [x if lights.ndim == 2 else torch.cat([x, x]) for x in (lights, energy, half)]
-    state = [torch.cat(pair) for pair in zip(faint, strong)]
+    # both starts' rows, one after the other; distant lights (K, 3) serve both as they are
+    values2, usable2, sigma2 = (torch.cat([x, x]) for x in (values, usable, sigma))
+    lights2, energy2, half2 = (x if lights.ndim == 2 else torch.cat([x, x]) for x in (lights, energy, half))
+    state = [torch.cat(pair) for pair in zip(faint, strong, strict=True)]
     damping = torch.full_like(state[1], 1e-2)
-    state, cost, damping = _iterate(*both, *per_row, state, damping, race, top)
+    state, cost, damping = _iterate(values2, usable2, sigma2, lights2, energy2, half2, state, damping, race, top)
     count = values.shape[0]
     first = cost[:count] <= cost[count:]
     state = [torch.where(first, x[:count], x[count:]) for x in state]
@@ -615,6 +619,8 @@ class NonLambertianNormals(nn.Module):
         >>> normals.shape
         torch.Size([1, 3, 4, 4])
     """
+
+    lights: Tensor  # a buffer
 
     def __init__(self, lights: Tensor, options: NonLambertianOptions | None = None) -> None:
         super().__init__()

@@ -9,6 +9,8 @@ observations) the normal equations :math:`(L^T W L) m = L^T W I` are solved per 
 
 from __future__ import annotations
 
+from typing import overload
+
 import torch
 from torch import Tensor, nn
 
@@ -83,6 +85,10 @@ def _check_results_out(out, intensities: Tensor, *inputs: Tensor | None) -> None
               (intensities, *inputs))
 
 
+@overload
+def _check_weights(weights: Tensor, shape: torch.Size) -> Tensor: ...
+@overload
+def _check_weights(weights: None, shape: torch.Size) -> None: ...
 def _check_weights(weights: Tensor | None, shape: torch.Size) -> Tensor | None:
     if weights is None:
         return None
@@ -264,7 +270,11 @@ def albedo_normals(
     weights = _check_weights(weights, intensities.shape)
     if out is not None:
         _check_results_out(out, intensities, lights, weights)
-    if weights is None and lights.ndim != 5:
+    solved: Tensor | None  # pixels solved; None: all of them
+    if lights.ndim == 5:
+        check_finite(intensities, "intensities")
+        m, solved = _weighted_solve(intensities, lights.to(intensities), weights)
+    elif weights is None:
         # one product with the pseudo-inverse: a NaN or infinite reading reaches its pixel's m (0 * NaN and
         # 0 * inf are NaN), so the K-image stack is scanned only when m is not finite (on DiLiGenT cat the scan
         # of the 96 images was a quarter of the solve's time)
@@ -273,10 +283,8 @@ def albedo_normals(
         if not bool(torch.isfinite(m.detach().sum())):
             check_finite(intensities, "intensities")
         return _unit_and_length(m, None if mask is None else mask.bool(), out)
-    check_finite(intensities, "intensities")
-    if lights.ndim == 5:
-        m, solved = _weighted_solve(intensities, lights.to(intensities), weights)
     else:
+        check_finite(intensities, "intensities")
         m, solved = _partially_weighted_solve(intensities, as_batched_lights(lights, sizes["B"], intensities), weights)
     if mask is not None:
         solved = mask.bool() if solved is None else solved & mask.bool()
@@ -296,6 +304,8 @@ class LeastSquaresNormals(nn.Module):
         >>> albedo.shape
         torch.Size([1, 1, 4, 4])
     """
+
+    lights: Tensor  # a buffer
 
     def __init__(self, lights: Tensor) -> None:
         super().__init__()

@@ -56,7 +56,7 @@ six products of light components, and the 3×3 systems are solved in closed form
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
@@ -533,10 +533,11 @@ def _solve_one(
     floor = _irls_floor(rows, method, options.l1_epsilon)
     padding = None if method == "l1" else _median_padding(kept > 0, rows.dtype)  # l1 takes no residual scale
     plain = options.iterations - min(options.shadow_iterations, options.iterations)
-    m, solved = _irls(rows, design, kept, padding, m, solved, method, options, floor, plain, attached=False)
+    tuning = _TUNING.get(method, 1.0) if options.tuning is None else options.tuning  # the method's own constant
+    m, solved = _irls(rows, design, kept, padding, m, solved, method, tuning, floor, plain, attached=False)
     if plain == options.iterations:
         return m, solved
-    m_attached, solved = _irls(rows, design, kept, padding, m, solved, method, options, floor,
+    m_attached, solved = _irls(rows, design, kept, padding, m, solved, method, tuning, floor,
                                options.iterations - plain, attached=True)
     # every reading the caller lets us use judges the two estimates
     usable = None if base is None else _median_padding(base > 0, rows.dtype)
@@ -578,7 +579,7 @@ def _band_ranks(count: Tensor, low: float, high: float, size: int) -> Tensor:
 
 
 def _irls(rows: Tensor, design: tuple[Tensor, Tensor], kept: Tensor, padding: Tensor | None, m: Tensor,
-          solved: Tensor, method: str, options: RobustOptions, floor: Tensor, iterations: int,
+          solved: Tensor, method: str, tuning: float, floor: Tensor, iterations: int,
           attached: bool) -> tuple[Tensor, Tensor]:
     r"""``iterations`` IRLS iterations from m (3, N) on the ``kept`` readings (N, K) (``padding`` of
     :func:`_median_padding` for them, None for l1); with ``attached``, each iteration
@@ -589,11 +590,11 @@ def _irls(rows: Tensor, design: tuple[Tensor, Tensor], kept: Tensor, padding: Te
         lit = None
         if attached:  # prediction rows - residuals > 0, written as 0/1 floats (2.5x cheaper than a bool result)
             lit = torch.gt(rows.detach(), residuals.detach(), out=torch.empty_like(rows, requires_grad=False))
-        if attached and method != "l1":  # l1 takes no scale, and the readings in attached shadow get weight 0
-            # the scale is that of the clamped model on the kept readings: in attached shadow the residual is the
-            # reading itself (one median over a fixed set of readings, whatever the estimate puts in shadow)
-            residuals = torch.where(lit > 0, residuals, rows)
-        weights = _irls_weights(residuals, padding, method, options.tuning, floor)
+            if method != "l1":  # l1 takes no scale, and the readings in attached shadow get weight 0
+                # the scale is that of the clamped model on the kept readings: in attached shadow the residual is
+                # the reading itself (one median over a fixed set of readings, whatever the estimate puts in shadow)
+                residuals = torch.where(lit > 0, residuals, rows)
+        weights = _irls_weights(residuals, padding, method, tuning, floor)
         if _tracked(weights, kept):
             weights = weights * kept if lit is None else weights * kept * lit
         else:
@@ -675,7 +676,6 @@ def robust_normals(
     if not isinstance(options, RobustOptions):
         raise InputError(f"options must be a RobustOptions, got {type(options).__name__}")
     base = None if weights is None else _check_weights(weights, intensities.shape).to(intensities.dtype)
-    options = replace(options, tuning=options.tuning or _TUNING.get(method, 1.0))  # the method's own constant
 
     batch_m, batch_solved = [], []
     for b in range(sizes["B"]):  # a loop over images, not pixels: each image's masked pixels are one set of columns
@@ -722,6 +722,8 @@ class RobustNormals(nn.Module):
         >>> albedo.shape
         torch.Size([1, 1, 4, 4])
     """
+
+    lights: Tensor  # a buffer
 
     def __init__(self, lights: Tensor, method: str = "robust", options: RobustOptions | None = None) -> None:
         super().__init__()
