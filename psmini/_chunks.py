@@ -10,6 +10,8 @@ temporary in the heap and in the caches; devices, whose allocators cache, take t
 
 from __future__ import annotations
 
+from typing import overload
+
 from torch import Tensor
 
 from psmini.errors import ShapeError
@@ -28,6 +30,12 @@ def chunks(batch: Tensor) -> list[slice]:
     return [slice(start, min(start + size, items)) for start in range(0, items, size)]
 
 
+@overload
+def batch_part(x: Tensor, images: Tensor, part: slice, name: str) -> Tensor: ...
+@overload
+def batch_part(x: None, images: Tensor, part: slice, name: str) -> None: ...
+@overload
+def batch_part(x: Tensor | None, images: Tensor, part: slice, name: str) -> Tensor | None: ...
 def batch_part(x: Tensor | None, images: Tensor, part: slice, name: str) -> Tensor | None:
     """``x[part]`` when ``x`` is a 4-D tensor with an item per item of the batch ``images``, ``x`` itself otherwise
     (``None``, or one frame or stack broadcast over the batch).

@@ -9,6 +9,8 @@ batched, differentiable and device-agnostic.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch import Tensor, nn
 
@@ -165,27 +167,32 @@ class PhotometricStereo(nn.Module):
         config = self.config
         sizes = check_shape(images, ["B", "K", "H", "W"], "images")
         mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
-        frames = {"images": images, "reference": reference, "dark": dark, "reference_dark": reference_dark,
-                  "mask": mask}
         # the distant solver's light matrix once per call, not once per chunk (0.14 ms a chunk: 1.1 of 51 ms for a
-        # batch of 8 x 400^2 on one thread of the 2-core Xeon)
-        matrix = None if self.solver == "near" else distant_light_matrix(self.lights, reference is not None, images)
-        pinv = None
-        if matrix is not None:  # the distant solver's pseudo-inverse, also once per call (an SVD: 0.1 ms a chunk)
+        # batch of 8 x 400^2 on one thread of the 2-core Xeon), and its pseudo-inverse (an SVD: 0.1 ms a chunk)
+        matrices = None
+        if self.solver != "near":
+            matrix = distant_light_matrix(self.lights, reference is not None, images)
             check_same_size(matrix.shape[0], sizes["K"], "the number of lights", "lights", "images")
-            pinv = torch.linalg.pinv(check_spans_3d(matrix))
+            matrices = (matrix, torch.linalg.pinv(check_spans_3d(matrix)))
         # the flat-fielded images, the solver's largest temporaries, one capture at a time on the CPU (see
         # psmini._chunks); only what a solver returns is assembled
         workspace: list[Tensor] = []  # the first chunk's flat-fielded images, a buffer for the next chunks'
 
-        def solve(part: slice, into: tuple[Tensor, Tensor] | None = None):
-            return self._solve_normals(*(batch_part(x, images, part, name) for name, x in frames.items()),
-                                       card_albedo, saturation_level, card_height_mm, (matrix, pinv), into, workspace)
+        def frames(part: slice) -> tuple[Tensor, Tensor | None, Tensor | None, Tensor | None, Tensor | None]:
+            """The images, reference, dark, reference dark and mask of one chunk."""
+            return (batch_part(images, images, part, "images"), batch_part(reference, images, part, "reference"),
+                    batch_part(dark, images, part, "dark"), batch_part(reference_dark, images, part, "reference_dark"),
+                    batch_part(mask, images, part, "mask"))
 
         parts = chunks(images)
-        if self.solver == "near":
-            results = [solve(part) for part in parts]
+        if matrices is None:  # near light
+            results = [self._solve_near(*frames(part), card_albedo, saturation_level, card_height_mm)
+                       for part in parts]
             return results[0] if len(results) == 1 else NearLightResult.concatenate(results)
+
+        def solve(part: slice, into: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+            return self._solve_distant(*frames(part), card_albedo, saturation_level, matrices, into, workspace)
+
         albedo, normals, p, q = _assemble(parts, solve)  # p, q 0 where not solved: the normal there is (0, 0, 1)
         # least squares' albedo is a length (finite, >= 0): its cast to bool is the test > 0, in 0.22 ms where the
         # comparison took 0.76 ms on a batch of 8 x 400^2 (one thread); other estimators' fitted albedo is compared
@@ -194,34 +201,40 @@ class PhotometricStereo(nn.Module):
         depth = integrate(p, q, integrator, self.pixel_pitch_mm or 1.0, solved, **config.integrator_options)
         return Reconstruction(albedo, normals, p, q, depth, solved)
 
-    def _solve_normals(self, images: Tensor, reference: Tensor | None, dark: Tensor | None,
-                       reference_dark: Tensor | None, mask: Tensor | None, card_albedo: float,
-                       saturation_level: float | None, card_height_mm: float,
-                       matrices: tuple[Tensor | None, Tensor | None], into: tuple[Tensor, Tensor] | None = None,
-                       workspace: list[Tensor] | None = None) -> NearLightResult | tuple[Tensor, Tensor]:
-        """Flat-field and solve one chunk of the batch: the whole near-light result, or the distant solver's albedo
-        and normals with ``matrices``, the light matrix (:func:`distant_light_matrix`) and its pseudo-inverse
-        (``None`` for near light), written into ``into`` (albedo, normals) where least squares can write them there
-        (no gradient to record).
+    def _solve_near(self, images: Tensor, reference: Tensor | None, dark: Tensor | None,
+                    reference_dark: Tensor | None, mask: Tensor | None, card_albedo: float,
+                    saturation_level: float | None, card_height_mm: float) -> NearLightResult:
+        """Flat-field and solve one chunk of the batch with near light."""
+        config = self.config
+        if self.pixel_pitch_mm is None:  # refused by __init__, unless the attribute was set to None since
+            raise InputError("the near-light solver needs the pixel pitch (mm per pixel on the cloth); got None")
+        flat = flatfield(images, reference, dark, reference_dark, card_albedo, config.min_reference, saturation_level,
+                         card_smoothing_px=config.card_smoothing_px)
+        card_height = card_height_mm if reference is not None else None
+        return solve_near_light(flat.images, self.lights, self.pixel_pitch_mm, card_height, flat.valid, mask,
+                                config.near_options(mask is not None), flat.gain)
 
-        With distant least squares and no gradient to record, the flat-fielded images go into ``workspace[0]``
-        (the first chunk's, kept there; least squares returns nothing that aliases them): a fresh 5 MB tensor
-        per capture was page-faulted in on first touch, and the dark subtraction writing it measured 1.3-1.7 ms per
-        capture in profiles of a batch of 8 x 400^2 on one thread, against 0.57 ms into the reused buffer.
+    def _solve_distant(self, images: Tensor, reference: Tensor | None, dark: Tensor | None,
+                       reference_dark: Tensor | None, mask: Tensor | None, card_albedo: float,
+                       saturation_level: float | None, matrices: tuple[Tensor, Tensor],
+                       into: tuple[Tensor, Tensor] | None, workspace: list[Tensor]) -> tuple[Tensor, Tensor]:
+        """Flat-field and solve one chunk of the batch with the distant solver: its albedo and normals with
+        ``matrices``, the light matrix (:func:`distant_light_matrix`) and its pseudo-inverse, written into ``into``
+        (albedo, normals) where least squares can write them there (no gradient to record).
+
+        With least squares and no gradient to record, the flat-fielded images go into ``workspace[0]`` (the first
+        chunk's, kept there; least squares returns nothing that aliases them): a fresh 5 MB tensor per capture was
+        page-faulted in on first touch, and the dark subtraction writing it measured 1.3-1.7 ms per capture in
+        profiles of a batch of 8 x 400^2 on one thread, against 0.57 ms into the reused buffer.
         """
         config = self.config
         matrix, pinv = matrices
-        reusable = (workspace is not None and self.solver == "distant" and self.estimator == "lstsq"
-                    and not records_gradient(images, reference, dark, reference_dark))
+        reusable = self.estimator == "lstsq" and not records_gradient(images, reference, dark, reference_dark)
         buffer = workspace[0][: images.shape[0]] if reusable and workspace else None
         flat = flatfield(images, reference, dark, reference_dark, card_albedo, config.min_reference, saturation_level,
                          card_smoothing_px=config.card_smoothing_px, out=buffer)
         if reusable and not workspace:
             workspace.append(flat.images)
-        if self.solver == "near":
-            card_height = card_height_mm if reference is not None else None
-            return solve_near_light(flat.images, self.lights, self.pixel_pitch_mm, card_height, flat.valid, mask,
-                                    config.near_options(mask is not None), flat.gain)
         all_valid = flat.all_valid if flat.all_valid is not None else all_true(flat.valid)
         weights = None if all_valid else flat.valid
         if self.estimator == "lstsq":
@@ -233,7 +246,8 @@ class PhotometricStereo(nn.Module):
         return NORMAL_ESTIMATORS[self.estimator](flat.images, matrix, mask, weights, config.estimator_options)
 
 
-def _assemble(parts: list[slice], solve) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def _assemble(parts: list[slice], solve: Callable[[slice, tuple[Tensor, Tensor] | None], tuple[Tensor, Tensor]]
+              ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Albedo, normals and slopes p, q (:func:`~psmini.normals.normals_to_gradients`) of a batch solved chunk by
     chunk, ``solve(part)`` giving a chunk's albedo and normals.
 
@@ -245,18 +259,16 @@ def _assemble(parts: list[slice], solve) -> tuple[Tensor, Tensor, Tensor, Tensor
     of each chunk's results cost 0.3-0.4 ms per capture. Writes into slices are differentiable like a
     concatenation.
     """
+    first_albedo, first_normals = solve(parts[0], None)
     if len(parts) == 1:
-        albedo, normals = solve(parts[0])
-        return albedo, normals, *_slopes_of(normals)
-    albedo = normals = slopes = None
-    for part in parts:
-        into = None if albedo is None else (albedo[part], normals[part])
-        chunk_albedo, chunk_normals = solve(part, into)
-        if albedo is None:
-            batch = parts[-1].stop
-            albedo = chunk_albedo.new_empty((batch, *chunk_albedo.shape[1:]))
-            normals = chunk_normals.new_empty((batch, *chunk_normals.shape[1:]))
-            slopes = chunk_normals.new_empty((batch, 2, *chunk_normals.shape[2:]))
+        return first_albedo, first_normals, *_slopes_of(first_normals)
+    batch = parts[-1].stop
+    albedo = first_albedo.new_empty((batch, *first_albedo.shape[1:]))
+    normals = first_normals.new_empty((batch, *first_normals.shape[1:]))
+    slopes = first_normals.new_empty((batch, 2, *first_normals.shape[2:]))
+    for index, part in enumerate(parts):
+        into = None if index == 0 else (albedo[part], normals[part])
+        chunk_albedo, chunk_normals = (first_albedo, first_normals) if into is None else solve(part, into)
         if into is None or chunk_albedo.data_ptr() != into[0].data_ptr():
             albedo[part], normals[part] = chunk_albedo, chunk_normals
         if records_gradient(chunk_normals):
