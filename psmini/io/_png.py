@@ -60,7 +60,8 @@ def decode_png(data: bytes | memoryview | np.ndarray) -> np.ndarray | None:
     """
     if _ISAL is None:
         return None
-    view = memoryview(data).cast("B")
+    # an ndarray is a buffer; numpy's stubs declare its __buffer__ for Python 3.12 on only
+    view = memoryview(data).cast("B")  # type: ignore[arg-type]
     header = _header(view)
     if header is None:
         return None

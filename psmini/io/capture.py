@@ -17,11 +17,11 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeGuard
 
 import numpy as np
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from psmini.errors import DataFormatError, InputError, PsminiError
 from psmini.io._atomic import atomic_folder
@@ -99,7 +99,7 @@ def _fail(folder: Path, reason: str) -> DataFormatError:
     return DataFormatError(f"capture {folder / MANIFEST_NAME}: {reason}")
 
 
-def _is_number(x: Any) -> bool:
+def _is_number(x: Any) -> TypeGuard[float]:
     return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
 
@@ -434,7 +434,7 @@ def _gt_manifest(target: Path, gt: Mapping[str, Any], height: int, width: int) -
     (target / "gt").mkdir()
     for key, value in gt.items():
         if key == "lights":
-            entries["lights"] = lights_to_dict(value) if isinstance(value, nn.Module) else dict(value)
+            entries["lights"] = dict(value) if isinstance(value, Mapping) else lights_to_dict(value)
             continue
         array = _as_image(value, f"gt[{key!r}]", 3 if key == "normals" else 2)
         expected = (3, height, width) if key == "normals" else (height, width)
@@ -448,7 +448,7 @@ def _gt_manifest(target: Path, gt: Mapping[str, Any], height: int, width: int) -
 def write_capture(
     folder: str | Path,
     images: Tensor | np.ndarray,
-    lights: nn.Module | Mapping[str, Any] | None,
+    lights: LightModel | Mapping[str, Any] | None,
     *,
     pixel_pitch_mm: float,
     kind: str = "sample",
@@ -514,16 +514,21 @@ def write_capture(
     lights_entry = None
     if lights is not None:
         # a JSON object goes through the module too: validated and normalised like a module's
-        module = lights if isinstance(lights, nn.Module) else lights_from_dict(lights)
-        lights_entry = lights_to_dict(module)
+        module = lights_from_dict(lights) if isinstance(lights, Mapping) else lights
+        lights_entry = lights_to_dict(module)  # InputError for anything but a light model
         if module.count != count:
             raise InputError(f"{count} images but {module.count} lights; they must be equal")
     elif kind != "focus":
         raise InputError(f"lights are required for a {kind!r} capture")
-    if kind == "flatfield" and (not _is_number(card_albedo) or card_albedo <= 0):
-        raise InputError(f"a flatfield capture needs card_albedo, a positive number; got {card_albedo!r}")
-    if kind == "focus" and (positions_mm is None or len(positions_mm) != count):
-        raise InputError(f"a focus capture needs positions_mm with {count} numbers, got {positions_mm!r}")
+    kind_fields: dict[str, Any] = {}  # the manifest's fields of this kind of capture
+    if kind == "flatfield":
+        if not _is_number(card_albedo) or card_albedo <= 0:
+            raise InputError(f"a flatfield capture needs card_albedo, a positive number; got {card_albedo!r}")
+        kind_fields["card_albedo"] = float(card_albedo)
+    if kind == "focus":
+        if positions_mm is None or len(positions_mm) != count:
+            raise InputError(f"a focus capture needs positions_mm with {count} numbers, got {positions_mm!r}")
+        kind_fields["positions_mm"] = [float(p) for p in positions_mm]
     dark_codes = None
     if dark is not None:
         dark_codes = _quantise(_as_image(dark, "dark", 2), bit_depth, "dark")
@@ -554,10 +559,7 @@ def write_capture(
         "software": _software(),
         "metadata": dict(metadata or {}),
     }
-    if kind == "flatfield":
-        manifest["card_albedo"] = float(card_albedo)
-    if kind == "focus":
-        manifest["positions_mm"] = [float(p) for p in positions_mm]
+    manifest.update(kind_fields)
     with atomic_folder(folder, overwrite) as target:
         for name, frame in zip(names, codes):
             write_image(target / name, frame)

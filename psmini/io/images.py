@@ -216,7 +216,9 @@ def read_image_stack(
         raise DataFormatError("no image files to read: the list is empty")
     if max_value is not None and not (isinstance(max_value, (int, np.integer)) and max_value > 0):
         raise InputError(f"max_value must be a positive integer code, got {max_value!r}")
-    first_path, stack, first_bits, first_shape = Path(paths[0]), None, 0, ()
+    stack: np.ndarray | None = None
+    first_shape: tuple[int, ...] = ()
+    first_path, first_bits = Path(paths[0]), 0
     for index, path in enumerate(paths):
         image, bits = read_image_raw(path)
         if index == 0:
@@ -242,6 +244,8 @@ def read_image_stack(
         if stack is None:
             stack = np.empty((len(paths), *out.shape), dtype=np.float32)
         stack[index] = out  # integers become float32 in this copy
+    if stack is None:  # paths is not empty (checked above): the loop filled a stack
+        raise DataFormatError("no image files to read: the list is empty")
     if transform is None:
         stack *= np.float32(1.0 / largest)
     return stack, first_bits
@@ -281,13 +285,13 @@ def write_image(path: str | Path, pixels: np.ndarray) -> None:
     elif pixels.ndim != 2:
         raise InputError(f"pixels must have shape (H, W), (H, W, 3) or (H, W, 4), got {pixels.shape}")
     try:
-        ok, encoded = cv2.imencode(path.suffix, np.ascontiguousarray(pixels))
+        ok, buffer = cv2.imencode(path.suffix, np.ascontiguousarray(pixels))
     except cv2.error as error:
         raise DataFormatError(f"cannot encode {path} ({pixels.dtype}, shape {pixels.shape}): {error}") from error
     if not ok:
         raise DataFormatError(f"cannot encode {path} ({pixels.dtype}, shape {pixels.shape})")
     try:
-        encoded.tofile(path)
+        buffer.tofile(path)
     except OSError as error:
         raise DataFormatError(f"cannot write {path}: {error}") from error
     logger.debug("wrote %s (%s, %s)", path, pixels.dtype, pixels.shape)

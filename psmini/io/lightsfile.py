@@ -14,11 +14,12 @@ import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
-
-from torch import nn
+from typing import TYPE_CHECKING, Any
 
 from psmini.errors import DataFormatError, InputError, PsminiError
+
+if TYPE_CHECKING:
+    from psmini.lights import LightModel
 
 __all__ = ["LIGHTS_FORMAT", "LIGHTS_VERSION", "LightsFile", "write_lights_file", "read_lights_file", "with_lights_file"]
 
@@ -37,7 +38,7 @@ class LightsFile:
         path: the file it was read from, or None.
     """
 
-    lights: nn.Module
+    lights: LightModel
     leds: list[dict[str, Any]] = field(default_factory=list)
     provenance: dict[str, Any] = field(default_factory=dict)
     path: Path | None = None
@@ -50,7 +51,7 @@ class LightsFile:
 
 def write_lights_file(
     path: str | Path,
-    lights: nn.Module | Mapping[str, Any],
+    lights: LightModel | Mapping[str, Any],
     *,
     leds: Sequence[Mapping[str, Any]] | None = None,
     provenance: Mapping[str, Any] | None = None,
@@ -83,7 +84,7 @@ def write_lights_file(
 
     path = Path(path)
     try:
-        module = lights if isinstance(lights, nn.Module) else lights_from_dict(lights)
+        module = lights_from_dict(lights) if isinstance(lights, Mapping) else lights
         entry = lights_to_dict(module)
     except PsminiError as error:
         raise InputError(f"not a valid light model: {error}") from error
@@ -153,8 +154,12 @@ def read_lights_file(path: str | Path) -> LightsFile:
         raise DataFormatError(f"lights file {path}: version must be a positive integer, got {version!r}")
     if version > LIGHTS_VERSION:
         raise DataFormatError(f"lights file {path}: version {version} is newer than this psmini reads ({LIGHTS_VERSION})")
+    entry = document.get("lights")
+    if not isinstance(entry, Mapping):
+        raise DataFormatError(f"lights file {path}: lights must be a JSON object (a light model), got "
+                              f"{type(entry).__name__}")
     try:
-        lights = lights_from_dict(document.get("lights"))
+        lights = lights_from_dict(entry)
     except PsminiError as error:
         raise DataFormatError(f"lights file {path}: bad light model: {error}") from error
     leds = document.get("leds") or []

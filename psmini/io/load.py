@@ -78,6 +78,8 @@ def _capture_sample(path: Path, with_flatfield: bool, with_ground_truth: bool) -
             )
         reference, reference_dark = card.images, card.dark
     gt = capture.gt
+    # the card's albedo comes with its folder (a capture without one: no card, and the flat-field takes none)
+    card_albedo = capture.card_albedo if capture.flatfield_path is not None and capture.card_albedo is not None else 1.0
     return Sample(
         name=path.name,
         images=capture.images,
@@ -86,7 +88,7 @@ def _capture_sample(path: Path, with_flatfield: bool, with_ground_truth: bool) -
         dark=capture.dark,
         reference=reference,
         reference_dark=reference_dark,
-        card_albedo=capture.card_albedo if capture.flatfield_path is not None else 1.0,
+        card_albedo=card_albedo,
         pixel_pitch_mm=capture.pixel_pitch_mm,
         normals_gt=gt.get("normals"),
         depth_gt=gt.get("depth"),

@@ -120,4 +120,6 @@ def load_rig_calibration_mat(path: str | Path, reference_depth_mm: float = 0.0) 
     positions = positions * flip + np.array([0.0, 0.0, float(reference_depth_mm)])
     directions = directions * flip
     gray = phi @ np.asarray(_GRAY_WEIGHTS) if phi.shape[1] == 3 else phi[:, 0]
-    return LEDLights(*(torch.as_tensor(a, dtype=torch.float32) for a in (positions, directions, gray, mu)))
+    positions_t, directions_t, gray_t, mu_t = (torch.as_tensor(a, dtype=torch.float32)
+                                               for a in (positions, directions, gray, mu))
+    return LEDLights(positions_t, directions_t, gray_t, mu_t)
