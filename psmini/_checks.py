@@ -87,8 +87,9 @@ def check_mask(mask: Tensor | None, batch: int, height: int, width: int, name: s
     return mask.expand(batch, 1, height, width)
 
 
-def check_positive(value: float, name: str) -> float:
-    """Raise :class:`InputError` unless ``value`` is a finite positive number."""
+def check_positive(value: object, name: str) -> float:
+    """Raise :class:`InputError` unless ``value`` is a finite positive number (anything else may come: an
+    optional argument's None, a string from a file); return it as a float."""
     if not (isinstance(value, (int, float)) and value > 0 and value == value and value != float("inf")):
         raise InputError(f"{name} must be a positive finite number, got {value!r}")
     return float(value)

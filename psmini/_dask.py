@@ -24,7 +24,7 @@ logger = logging.getLogger(__name__)
 _INSTALL = "pip install 'psmini[dask]'"
 
 
-def parse_scheduler(scheduler: str) -> int | None:
+def parse_scheduler(scheduler: str | None) -> int | None:
     """The worker count of ``"local"`` / ``"local:N"`` (``"local"``: the CPU count), or None for an address.
 
     Raises:

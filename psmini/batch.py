@@ -246,8 +246,8 @@ class _Cards:
         except PsminiError as error:
             return error
         logger.info("decoded flat-field card %s once for every sample of this process that references it", path)
-        on = dict(device=self.device, dtype=self.dtype)
-        return card.images.to(**on).unsqueeze(0), None if card.dark is None else card.dark.to(**on).unsqueeze(0)
+        images = card.images.to(self.device, self.dtype).unsqueeze(0)
+        return images, None if card.dark is None else card.dark.to(self.device, self.dtype).unsqueeze(0)
 
 
 def _content_stamp(path: str) -> tuple[int, int]:
@@ -430,7 +430,7 @@ def _dask_chunks(root: Path, out: Path, folders: Sequence[Path], settings: _Sett
     task = partial(_run_chunk, str(out.absolute()), settings=settings)
     for index, records, error in _dask.map_chunks(task, chunks, scheduler=scheduler, client=client,
                                                   timeout_s=timeout_s):
-        if error is not None:
+        if records is None:  # the task raised (error), or its worker died
             message = f"{type(error).__name__}: {error}"
             logger.warning("a Dask task of %d samples failed: %s", len(chunks[index]), message)
             records = [BatchRecord(rel, "failed", batch_size=len(chunks[index]), error=message)

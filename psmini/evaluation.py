@@ -6,8 +6,9 @@
 
 from __future__ import annotations
 
-import torch
+from typing import Any
 
+import torch
 from torch import Tensor
 
 from psmini.config import ReconstructionConfig
@@ -93,7 +94,7 @@ def score_reconstruction(result: Reconstruction, sample) -> dict[str, float | in
     return scores
 
 
-def evaluate_sample(sample, config: ReconstructionConfig | None = None) -> dict[str, float | int | str]:
+def evaluate_sample(sample, config: ReconstructionConfig | None = None) -> dict[str, Any]:
     """Reconstruct ``sample`` with ``config`` (:func:`psmini.pipeline.reconstruct`) and score it
     (:func:`score_reconstruction`); the result also says which solver, estimator and integrator ran (``config``:
     the resolved :meth:`~psmini.config.ReconstructionConfig.to_dict`).
@@ -109,6 +110,6 @@ def evaluate_sample(sample, config: ReconstructionConfig | None = None) -> dict[
         64
     """
     config = ReconstructionConfig() if config is None else config
-    scores = score_reconstruction(reconstruct(sample, config), sample)
+    scores: dict[str, Any] = score_reconstruction(reconstruct(sample, config), sample)
     scores["config"] = config.resolved(sample.lights, sample.mask is not None).to_dict()
     return scores

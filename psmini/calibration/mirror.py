@@ -154,12 +154,13 @@ def triangulate_leds(placements: Sequence[SphereCalibration]) -> tuple[Tensor, T
     """
     if len(placements) < 2:
         raise CalibrationError(f"LED positions need at least 2 sphere placements, got {len(placements)}")
-    if any(p.points_mm is None for p in placements):
+    points = [p.points_mm for p in placements if p.points_mm is not None]
+    if len(points) != len(placements):
         raise CalibrationError("LED positions need perspective placements (intrinsics and the sphere's radius)")
     counts = {int(p.directions.shape[0]) for p in placements}
     if len(counts) != 1:
         raise CalibrationError(f"the sphere placements count different LEDs: {sorted(counts)}")
-    origins = torch.stack([p.points_mm for p in placements], dim=1)
+    origins = torch.stack(points, dim=1)
     directions = torch.stack([p.directions for p in placements], dim=1)
     return triangulate_rays(origins, directions)
 
@@ -174,6 +175,7 @@ def card_distance_from_spheres(placements: Sequence[SphereCalibration]) -> float
         >>> card_distance_from_spheres([first, second])  # doctest: +SKIP
         40.0
     """
-    if not placements or any(p.centre_mm is None for p in placements):
+    spheres = [(p.centre_mm, p.radius_mm) for p in placements if p.centre_mm is not None and p.radius_mm is not None]
+    if not placements or len(spheres) != len(placements):
         raise CalibrationError("the card's distance follows only from perspective placements")
-    return float(sum(p.radius_mm - float(p.centre_mm[2]) for p in placements) / len(placements))
+    return float(sum(radius - float(centre[2]) for centre, radius in spheres) / len(spheres))

@@ -363,9 +363,11 @@ def find_sphere(image: Tensor | None = None, mask: Tensor | None = None) -> Sphe
         >>> [round(c, 1) for c in sphere.centre_px.tolist()], round(float(sphere.radius_px), 1)
         ([30.3, 33.6], 15.0)
     """
-    if image is None and mask is None:
-        raise InputError("find_sphere needs an image or a mask of the sphere")
-    if mask is not None:
+    if mask is None:
+        if image is None:
+            raise InputError("find_sphere needs an image or a mask of the sphere")
+        mask = segment_sphere(image)
+    else:
         if not isinstance(mask, Tensor) or mask.ndim != 2:
             raise ShapeError(f"mask must be a 2-D (H, W) tensor, got {getattr(mask, 'shape', type(mask).__name__)}")
         mask = mask != 0
@@ -373,8 +375,6 @@ def find_sphere(image: Tensor | None = None, mask: Tensor | None = None) -> Sphe
             raise CalibrationError("sphere not found: the mask is empty")
         if bool(mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any()):
             raise CalibrationError("the sphere's mask touches the image border: the whole sphere must be in view")
-    else:
-        mask = segment_sphere(image)
     edges = silhouette_edges(mask, image)
     if image is None:
         edges = edges.to(torch.get_default_dtype())

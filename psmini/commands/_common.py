@@ -92,7 +92,9 @@ def config_from_args(args: argparse.Namespace):
     return ReconstructionConfig(
         solver=args.solver, estimator=args.estimator, integrator=args.integrator,
         integrator_options=_options(args.integrator_option, "--integrator-option"),
-        near=_options(args.near_option, "--near-option"), min_reference=args.min_reference,
+        # near's JSON form, which __post_init__ turns into NearLightOptions (naming a bad key as an InputError)
+        near=_options(args.near_option, "--near-option"),  # type: ignore[arg-type]
+        min_reference=args.min_reference,
         card_smoothing_px=args.card_smoothing_px, device=args.device,
         dtype=args.dtype,
     )

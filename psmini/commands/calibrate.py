@@ -144,7 +144,7 @@ def run_sphere(args: argparse.Namespace) -> int:
     from psmini.calibration import calibrate_sphere, card_distance_from_spheres, triangulate_leds
     from psmini.io import write_lights_file
     from psmini.errors import DataFormatError, InputError
-    from psmini.lights import DirectionalLights, PointLights
+    from psmini.lights import DirectionalLights, LightModel, PointLights
 
     start = time.perf_counter()
     masks = args.mask or []
@@ -184,7 +184,7 @@ def run_sphere(args: argparse.Namespace) -> int:
         if card_distance is None:
             card_distance = card_distance_from_spheres(calibrations)
         positions = positions + torch.tensor([0.0, 0.0, card_distance], dtype=positions.dtype)
-        lights = PointLights(positions.float())
+        lights: LightModel = PointLights(positions.float())
     else:
         lights = DirectionalLights(first.directions.float())
     leds = []
@@ -195,7 +195,7 @@ def run_sphere(args: argparse.Namespace) -> int:
             "highlights_px": [c.highlights.positions_px[k].tolist() for c in calibrations],
             "highlight_snr": [float(c.highlights.snr[k]) for c in calibrations],
         }
-        if positions is not None:
+        if positions is not None and residuals is not None:  # set together
             led["position_mm"] = positions[k].tolist()
             led["residual_mm"] = float(residuals[k])
         leds.append(led)
@@ -225,7 +225,7 @@ def run_sphere(args: argparse.Namespace) -> int:
     if args.json:
         payload: dict[str, Any] = {"out": str(args.out), "model": first.model,
                                    "directions": first.directions.tolist(), "time_s": elapsed}
-        if positions is not None:
+        if positions is not None and residuals is not None:  # set together
             payload["positions_mm"] = positions.tolist()
             payload["residuals_mm"] = residuals.tolist()
         emit_json(payload)

@@ -162,8 +162,8 @@ def _figure(target: Path, height, mask, pitch: float, entry: dict) -> None:
     from psmini.fabric.surface import SurfaceOptions
 
     options = StructureOptions()
-    power, step = structure_spectrum(height, pitch, mask, options)
-    power = power[0, 0].double().cpu().numpy()
+    spectrum, step = structure_spectrum(height, pitch, mask, options)
+    power = spectrum[0, 0].double().cpu().numpy()
     n = power.shape[0]
     surface, _ = scale_limited_surface(height, pitch, mask, SurfaceOptions(form_degree=2, l_cutoff_mm=2.5))
     z = surface[0, 0].double().cpu().numpy() * 1000

@@ -60,7 +60,7 @@ def _read_frames(files: list[Path]):
     from psmini.errors import DataFormatError
     from psmini.io.images import read_gray, read_image_raw
 
-    frames = []
+    frames: list[tuple[np.ndarray, int]] = []  # pixels and bit depth (0: float gray in [0, 1])
     for path in files:
         pixels, bits = read_image_raw(path)
         if pixels.ndim == 3:
