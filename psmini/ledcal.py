@@ -36,7 +36,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -420,8 +420,14 @@ class _Unknowns(nn.Module):
     def project(self) -> None:
         """Constraints after a step: unit principal directions, mu >= 0 (intensities are positive by design)."""
         with torch.no_grad():
-            self.direction /= self.direction.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            self.direction.div_(self.direction.norm(dim=-1, keepdim=True).clamp_min(1e-12))
             self.mu.clamp_(min=0.0)
+
+
+def _led_lights(tensors: Iterable[Tensor]) -> LEDLights:
+    """The LED model of its four parameters in order: positions, principal directions, intensities, mu."""
+    positions, directions, intensities, mu = tensors
+    return LEDLights(positions, directions, intensities, mu)
 
 
 def _run_stage(stage: str, unknowns: _Unknowns, data: tuple[Tensor, Tensor, Tensor], huber_delta: float,
@@ -454,7 +460,9 @@ def _run_stage(stage: str, unknowns: _Unknowns, data: tuple[Tensor, Tensor, Tens
     previous = math.inf
     iterations = 0
     while iterations < max_steps:
-        loss = float(opt.step(closure).detach())  # one sync per step, to stop at convergence
+        # one sync per step, to stop at convergence; step() returns the closure's loss tensor, where torch's stubs
+        # type closures and results as floats
+        loss = float(opt.step(closure).detach())  # type: ignore[arg-type, attr-defined]
         unknowns.project()
         iterations += chunk
         if optimizer == "lbfgs" and abs(previous - loss) <= tolerance * abs(loss):
@@ -595,8 +603,8 @@ def fit_leds(
     distance = options.nominal_distance_mm if options.nominal_distance_mm is not None else math.hypot(
         NOMINAL_RING_DIAMETER_MM / 2, NOMINAL_LED_HEIGHT_MM)
     lights = _start_lights(init, leds, distance, options.mu_init)
-    start = LEDLights(*(t.detach().clone() for t in (lights.positions_mm, lights.principal_directions,
-                                                     lights.intensities, lights.mu)))
+    start = _led_lights(t.detach().clone() for t in (lights.positions_mm, lights.principal_directions,
+                                                     lights.intensities, lights.mu))
 
     device = images.device
     work = images.to(torch.float64)
@@ -650,8 +658,8 @@ def _result(lights: LEDLights, data: tuple[Tensor, Tensor, Tensor], image_scale:
         def rms(dims: tuple[int, ...]) -> Tensor:
             return ((residuals.square() * weights).sum(dims) / weights.sum(dims).clamp_min(1)).sqrt()
 
-        fitted = LEDLights(*(t.detach().to(dtype).clone() for t in (
-            lights.positions_mm, lights.principal_directions, lights.intensities / scale, lights.mu)))
+        fitted = _led_lights(t.detach().to(dtype).clone() for t in (
+            lights.positions_mm, lights.principal_directions, lights.intensities / scale, lights.mu))
     return LEDFit(
         lights=fitted,
         residual_rms=float(rms((0, 1, 2, 3))),
@@ -660,6 +668,6 @@ def _result(lights: LEDLights, data: tuple[Tensor, Tensor, Tensor], image_scale:
         gain=gain.to(dtype),
         heights_mm=heights.to(device=images.device, dtype=dtype),
         stages=records,
-        start=LEDLights(*(t.to(device=images.device, dtype=dtype) for t in (
-            start.positions_mm, start.principal_directions, start.intensities, start.mu))),
+        start=_led_lights(t.to(device=images.device, dtype=dtype) for t in (
+            start.positions_mm, start.principal_directions, start.intensities, start.mu)),
     )

@@ -168,7 +168,8 @@ class LightModel(nn.Module):
         """The model of a JSON light object; see :func:`lights_from_dict`."""
         if not isinstance(data, Mapping):
             raise DataFormatError(f"a light model must be a JSON object, got {type(data).__name__}")
-        cls = LightModel._KINDS.get(data.get("model"))
+        model = data.get("model")
+        cls = LightModel._KINDS.get(model) if isinstance(model, str) else None
         if cls is None:
             raise DataFormatError(f"light model must be one of {sorted(LightModel._KINDS)}, got {data.get('model')!r}")
         dtype = dtype or torch.get_default_dtype()
@@ -308,7 +309,7 @@ class PointLights(LightModel):
 
     kind = "point"
     is_near = True
-    _FIELDS = (("positions_mm", 2, False), ("intensities", 1, True))
+    _FIELDS: ClassVar[tuple[tuple[str, int, bool], ...]] = (("positions_mm", 2, False), ("intensities", 1, True))
 
     def __init__(self, positions_mm: Tensor, intensities: Tensor | None = None, learnable: bool = False) -> None:
         super().__init__()

@@ -267,7 +267,7 @@ def render(
     if specular is not None:
         radiance = radiance + specular[:, None] * _blinn_phong(directions, normals, cosine, shininess)
     images = irradiance * radiance
-    if shadows:
+    if shadows and pixel_pitch_mm is not None:  # (shadows without a pitch were refused above)
         images = images * cast_shadows(points[:, 2:3], directions, pixel_pitch_mm)
     return images.squeeze(2)
 

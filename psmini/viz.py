@@ -220,7 +220,7 @@ def hillshade(depth: Any, pixel_pitch_mm: float = 1.0, *, azimuth_deg: float = 3
         gy = np.zeros_like(z)
     else:
         g_row, g_col = np.gradient(z, pixel_pitch_mm)
-        gx, gy = g_col, -g_row  # x right along columns, y up against rows
+        gx, gy = np.asarray(g_col), -np.asarray(g_row)  # x right along columns, y up against rows
     azimuth, altitude = math.radians(azimuth_deg), math.radians(altitude_deg)
     light = np.array([math.sin(azimuth) * math.cos(altitude), math.cos(azimuth) * math.cos(altitude),
                       math.sin(altitude)], dtype=z.dtype)
@@ -265,7 +265,7 @@ def _colours(values: np.ndarray, limits: tuple[float, float], dtype: type) -> np
     if not high > low:
         raise InputError(f"limits must be increasing (low < high), got {limits}")
     table = _viridis_table(dtype)
-    v = np.nan_to_num(values.astype(dtype, copy=False), nan=low)
+    v: np.ndarray = np.nan_to_num(values.astype(dtype, copy=False), nan=low)
     np.clip(v, low, high, out=v)  # before scaling: an infinite value cannot overflow
     position = (v - low) * ((len(table) - 1) / (high - low))
     position += 0.5
@@ -278,7 +278,7 @@ def _hatch(shape: tuple[int, int], period: int = 6, dtype: type = np.float64) ->
     it)."""
     rows, cols = np.indices(shape)
     stripe = ((rows + cols) // max(1, period // 2)) % 2 == 0
-    pattern = np.where(stripe[..., None], _HATCH[0], _HATCH[1]).astype(dtype)
+    pattern: np.ndarray = np.where(stripe[..., None], _HATCH[0], _HATCH[1]).astype(dtype)
     pattern.flags.writeable = False
     return pattern
 

@@ -122,9 +122,8 @@ def _frames(frames: Tensor, roi: Roi | str | None, min_size: int, name: str) -> 
 
 
 def _number(name: str, label: str, value: object, minimum: float = 0.0, strict: bool = False) -> float:
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-    ok = ok and (value > minimum if strict else value >= minimum)
-    if not ok:
+    if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            and (value > minimum if strict else value >= minimum)):
         relation = ">" if strict else "≥"
         raise InputError(f"{name}: {label} must be a number {relation} {minimum:g}, got {value!r}")
     return float(value)
@@ -1126,7 +1125,8 @@ def _volume(code: str, g: Tensor, window: int, params: dict) -> Tensor:
         if code == "WAVS":
             return boxed(lh.abs() + hl.abs() + hh.abs(), 0)
         if code == "WAVV":
-            return sum(_local_variance(_place(band, 0, 0, height, width), window) for band in (lh, hl, hh))
+            first, second, third = (_local_variance(_place(band, 0, 0, height, width), window) for band in (lh, hl, hh))
+            return first + second + third
         high = boxed(lh.square() + hl.square() + hh.square(), 0)
         return high / boxed(ll.square(), 0).clamp_min(_tiny(g))
     if code == "ACMO":

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import inspect
+from collections.abc import Callable
 from typing import Any
 
 import torch  # noqa: F401  (the docstring example uses it)
@@ -15,7 +16,7 @@ from psmini.integrate.least_squares import masked_least_squares
 
 __all__ = ["integrate", "METHODS", "method_options"]
 
-METHODS = {
+METHODS: dict[str, Callable[..., Tensor]] = {
     "fc": frankot_chellappa,
     "dct": dct_poisson,
     "masked": masked_least_squares,

@@ -142,7 +142,7 @@ class _Bilateral(torch.autograd.Function):
     """Forward: re-weighted least squares. Backward: implicit differentiation at the fixed point."""
 
     @staticmethod
-    def forward(ctx, gu, gv, mask, k, max_iterations, tol, cg_tol):  # type: ignore[override]
+    def forward(ctx, gu, gv, mask, k, max_iterations, tol, cg_tol):
         grid = _Grid(mask)
         z, hierarchy = _irls(gu, gv, grid, k, max_iterations, tol, cg_tol)
         ctx.grid, ctx.hierarchy, ctx.k, ctx.max_iterations, ctx.cg_tol = grid, hierarchy, k, max_iterations, cg_tol
@@ -150,7 +150,7 @@ class _Bilateral(torch.autograd.Function):
         return z
 
     @staticmethod
-    def backward(ctx, grad_z):  # type: ignore[override]
+    def backward(ctx, grad_z):
         gu, gv, z = ctx.saved_tensors
         grid, hierarchy, k = ctx.grid, ctx.hierarchy, ctx.k
         active = hierarchy.fine.active

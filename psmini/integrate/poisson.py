@@ -108,10 +108,9 @@ class _Level:
             return torch.zeros_like(r) if x is None else x
         scale, weights = self.jacobi
         start = r * scale
+        if x is None:  # the first sweep from zero
+            x, sweeps = start, sweeps - 1
         for _ in range(sweeps):
-            if x is None:
-                x = start
-                continue
             x = _add_neighbours(torch.add(start, x, alpha=1 - _JACOBI_OMEGA), weights, x, 1)
         return x
 
@@ -240,7 +239,7 @@ class _WeightedPoisson(torch.autograd.Function):
     """Solve the weighted edge least squares; backward by implicit differentiation (one more solve)."""
 
     @staticmethod
-    def forward(ctx, wu, wv, tu, tv, inside, x0, tol, maxiter):  # type: ignore[override]
+    def forward(ctx, wu, wv, tu, tv, inside, x0, tol, maxiter):
         hierarchy = _Hierarchy(wu, wv, inside)
         b = torch.where(hierarchy.fine.active, divergence(wu * tu, wv * tv), torch.zeros_like(x0))
         z = _pcg(hierarchy, b, torch.where(hierarchy.fine.active, x0, torch.zeros_like(x0)), tol, maxiter)
@@ -249,7 +248,7 @@ class _WeightedPoisson(torch.autograd.Function):
         return z
 
     @staticmethod
-    def backward(ctx, grad_z):  # type: ignore[override]
+    def backward(ctx, grad_z):
         wu, wv, tu, tv, z = ctx.saved_tensors
         active = ctx.hierarchy.fine.active
         rhs = torch.where(active, grad_z, torch.zeros_like(grad_z))
