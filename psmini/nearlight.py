@@ -302,13 +302,13 @@ class NearLightResult(Reconstruction):
         and changes the largest over the chunks, converged when every chunk converged."""
         tensors = {name: torch.cat([getattr(part, name) for part in parts])
                    for name in ("albedo", "normals", "p", "q", "depth", "mask", "weights", "offset_mm", "tilt")}
-        floors = [part.at_noise_floor for part in parts]
-        tensors["at_noise_floor"] = None if any(f is None for f in floors) else torch.cat(floors)
+        floors = [part.at_noise_floor for part in parts if part.at_noise_floor is not None]
+        at_noise_floor = torch.cat(floors) if len(floors) == len(parts) else None
         longest = max(len(part.changes_deg) for part in parts)
         changes = tuple(max(part.changes_deg[i] for part in parts if i < len(part.changes_deg))
                         for i in range(longest))
-        return cls(**tensors, iterations=max(part.iterations for part in parts), changes_deg=changes,
-                   converged=all(part.converged for part in parts))
+        return cls(**tensors, at_noise_floor=at_noise_floor, iterations=max(part.iterations for part in parts),
+                   changes_deg=changes, converged=all(part.converged for part in parts))
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -334,7 +334,7 @@ class _LightField:
         self.x, self.y = x, y  # mm, x right and y up (the plane of the tilt)
         self.shape = x.shape
         self.fast = isinstance(model, PointLights)
-        if self.fast:
+        if isinstance(model, PointLights):
             positions = model.positions_mm.to(like)
             self.ox = positions[:, 0, None, None] - x  # (K, h, w)
             self.oy = positions[:, 1, None, None] - y
@@ -342,7 +342,7 @@ class _LightField:
             self.rxy2 = self.ox.square() + self.oy.square()
             self.phi = model.intensities.to(like)[:, None, None]
             self.led = isinstance(model, LEDLights)
-            if self.led:
+            if isinstance(model, LEDLights):
                 axis = model.principal_directions.to(like)
                 axis = axis / axis.norm(dim=-1, keepdim=True)
                 self.axy = self.ox * axis[:, 0, None, None] + self.oy * axis[:, 1, None, None]
@@ -670,7 +670,7 @@ def _kept(source: Tensor, what: tuple, compute):
         if entry is None:
             if len(_kept_gains) >= _KEPT_GAINS:
                 del _kept_gains[0]
-            entry = _Kept(key, weakref.ref(owner, lambda _, key=key: _forget_gain(key)), {})
+            entry = _Kept(key, weakref.ref(owner, lambda _: _forget_gain(key)), {})
             _kept_gains.append(entry)
         entry.results[what] = result
     return result
@@ -881,10 +881,11 @@ class _Rejection:
             # shot noise grows with the signal: scaled by the square root of the prediction over the pixel's mean
             shot = positive * self.noise_scale
             level = (shot * weight).sum(dim=1, keepdim=True) / count.clamp_min(1)
-            sigma = shot.div_(level.clamp_min(1e-12)).sqrt_().mul_(self.relative_noise * scale)
+            # relative_noise: set by settle_relative_noise, which the highlight rounds run first
+            sigma = shot.div_(level.clamp_min(1e-12)).sqrt_().mul_(self.relative_noise * scale)  # type: ignore[operator]
         else:
             s = self.noise_scale
-            floor_sq, gain = self.noise
+            floor_sq, gain = self.noise  # type: ignore[misc]  # set by settle_noise_model, which runs first
             sigma = (gain * positive).mul_(s).add_(floor_sq * s**2).sqrt_()
         leverage = _leverage(lx, ly, lz, matrix)
         # residuals of each observation against the fit of the others: r / (1 - h) for the observations in the
@@ -935,7 +936,7 @@ class _Rejection:
         return _choose(enough, proposal, fallback)
 
 
-def _select(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], used: Tensor, fit: tuple,
+def _select(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, Tensor, Tensor, Tensor], used: Tensor, fit: tuple,
             albedo: Tensor, normals: Tensor, mask: Tensor | None, updates: int,
             highlight_rounds: int | None = None) -> tuple[Tensor, tuple, Tensor, Tensor]:
     """Highlight rounds (at most ``highlight_rounds``, K - 3 by default, each dropping at most one observation per
@@ -968,7 +969,7 @@ def _owned(state):
     return tuple(_owned(x) for x in state) if isinstance(state, tuple) else state.clone()
 
 
-def _rounds(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], mask: Tensor | None, state: tuple,
+def _rounds(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, Tensor, Tensor, Tensor], mask: Tensor | None, state: tuple,
             rounds: int, highlights_only: bool) -> None:
     """Up to ``rounds`` updates of the selection of one phase of :func:`_select`, re-solving after each change, the
     state ``(used, fit, albedo, normals)`` written in place; stops at the first round that changes nothing."""
@@ -993,7 +994,7 @@ def _rounds(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], 
     pixels.put(state, sub_state)
 
 
-def _first_update(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, ...], state: tuple,
+def _first_update(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, Tensor, Tensor, Tensor], state: tuple,
                   highlights_only: bool) -> Tensor:
     """The update of every pixel's selection from the state's fits, band by band of rows (:func:`_row_bands`)."""
     bands = _row_bands(images)
@@ -1009,14 +1010,14 @@ def _first_update(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, 
     return torch.cat(proposals, dim=-2)
 
 
-def _solve_selection(images: Tensor, vectors: tuple[Tensor, ...], mask: Tensor | None,
+def _solve_selection(images: Tensor, vectors: tuple[Tensor, Tensor, Tensor, Tensor], mask: Tensor | None,
                      selection: Tensor) -> tuple[Tensor, tuple, Tensor, Tensor]:
     """The state ``(selection, fit, albedo, normals)`` of the fit (:func:`_fit`) with ``selection``."""
     fit = _fit(images, *vectors[:3], selection)
     return (selection, fit, *_split(*fit[:2], mask))
 
 
-def _resolve(images: Tensor, vectors: tuple[Tensor, ...], mask: Tensor | None, state: tuple,
+def _resolve(images: Tensor, vectors: tuple[Tensor, Tensor, Tensor, Tensor], mask: Tensor | None, state: tuple,
              selection: Tensor) -> None:
     """The state (written in place) of :func:`_solve_selection` with ``selection``, re-solving only the pixels where
     it differs from the state's."""
@@ -1293,7 +1294,7 @@ def estimate_height_offset(
         images, used = intensities[..., ::s, ::s], weights[..., ::s, ::s].to(intensities)
         depth = (relative_depth - mean)[..., ::s, ::s]
         centre = torch.zeros(sizes["B"], device=intensities.device, dtype=intensities.dtype)
-        best = _search_offset(field, images, used, depth, centre, tuple(search_mm), tolerance_mm)
+        best = _search_offset(field, images, used, depth, centre, (search_mm[0], search_mm[1]), tolerance_mm)
     return best.view(-1, 1, 1, 1) - mean
 
 
@@ -1426,7 +1427,8 @@ def _fill(p: Tensor, q: Tensor, confidence: Tensor) -> tuple[Tensor, Tensor]:
     (normalised convolution over :data:`_FILL_SIZE` pixels: the ratio of two box means, whose border counts
     cancel)."""
     den = _box(confidence).clamp_min(1e-6)
-    return tuple(confidence * g + (1 - confidence) * _box(g * confidence) / den for g in (p, q))
+    filled_p, filled_q = (confidence * g + (1 - confidence) * _box(g * confidence) / den for g in (p, q))
+    return filled_p, filled_q
 
 
 def _integrate(p: Tensor, q: Tensor, confidence: Tensor, domain: Tensor, method: str, pitch: float,
@@ -1489,7 +1491,8 @@ def _check_valid(valid: Tensor | None, intensities: Tensor) -> Tensor:
 
 def _check_gain(gain: Tensor | None, intensities: Tensor) -> Tensor | None:
     """The flat-field's gain checked as the flat-field checks its frames (broadcastable, finite), and >= 0."""
-    gain = _check_frame(gain, *intensities.shape, "gain")
+    batch, count, height, width = intensities.shape
+    gain = _check_frame(gain, batch, count, height, width, "gain")
     if gain is None:
         return None
     if bool((gain < 0).any()):
@@ -1621,7 +1624,9 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, light_model: nn.M
             state = _State(depth=F.interpolate(coarse.depth, size=size, mode="bilinear", align_corners=False),
                            offset=coarse.offset, tilt=coarse.tilt, changes=coarse.changes,
                            iterations=coarse.iterations,
-                           relative=F.interpolate(coarse.relative, size=size, mode="bilinear", align_corners=False))
+                           # (the coarse level's alternations set its relative depth)
+                           relative=F.interpolate(coarse.relative,  # type: ignore[arg-type]
+                                                  size=size, mode="bilinear", align_corners=False))
             scan, first = _FINE_SEARCH_MM, False  # pooling biases the coarse level's offset: scan again
         else:
             scan, first = options.search_mm, True
@@ -1634,19 +1639,21 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, light_model: nn.M
         field = _LightField(light_model, height, width, pitch, card_height, images)
     if state.fit is None or learnable or torch.is_grad_enabled() and images.requires_grad:
         vectors = field(state.depth)
-        state.fit = _fit(images, *vectors[:3], state.used)
-    albedo, normals = _split(*state.fit[:2], mask)
+        # used and at_noise_floor below: set by the alternations, of which there is at least one
+        state.fit = _fit(images, *vectors[:3], state.used)  # type: ignore[arg-type]
+    albedo, normals = _split(state.fit[0], state.fit[1], mask)
     p, q = normals_to_gradients(normals)
     depth = state.depth
     if options.integrator == "masked" and mask is None:
         # the edge equations' trapezoidal rule flattens the finest relief (a silk's threads to a third): restored
         # on the rectangle, where the integration ran
         depth = _undo_edge_averaging(depth)
-    return NearLightResult(albedo, normals, p, q, depth, albedo > 0, weights=state.used & (albedo > 0),
+    return NearLightResult(albedo, normals, p, q, depth, albedo > 0,
+                           weights=state.used & (albedo > 0),  # type: ignore[operator]
                            offset_mm=_masked_mean(state.depth, domain).view(-1), tilt=state.tilt,
                            iterations=state.iterations,
                            changes_deg=tuple(state.changes), converged=state.converged,
-                           at_noise_floor=state.at_noise_floor & (albedo > 0))
+                           at_noise_floor=state.at_noise_floor & (albedo > 0))  # type: ignore[operator]
 
 
 @dataclass
@@ -1745,8 +1752,9 @@ def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tenso
         if active.numel() == batch:
             state.depth, state.offset, state.relative, state.tilt = placed
         else:
+            # (state.relative: set by the first alternation, in which every item is active)
             state.depth, state.offset, state.relative, state.tilt = (
-                whole.index_copy(0, active, part)
+                whole.index_copy(0, active, part)  # type: ignore[union-attr]
                 for whole, part in zip((state.depth, state.offset, state.relative, state.tilt), placed))
     state.fit = (last_m, last_posed) if state.converged else None
     state.at_noise_floor = _at_noise_floor(rejection, used)
@@ -1790,7 +1798,7 @@ def _place(images: Tensor, used: Tensor, relative: Tensor, domain: Tensor, coars
     relative = relative - _masked_mean(relative, domain)
     if tilt is not None:
         tilt_field, slopes = tilt
-        planed = relative + _plane(images.shape[-2:], domain, slopes, tilt_field.pitch)
+        planed = relative + _plane((images.shape[-2], images.shape[-1]), domain, slopes, tilt_field.pitch)
     else:
         planed = relative
     if options.estimate_offset:
@@ -1802,7 +1810,7 @@ def _place(images: Tensor, used: Tensor, relative: Tensor, domain: Tensor, coars
     t = tilt_field.stride
     slopes = _tilt_step(tilt_field, images[..., ::t, ::t], used[..., ::t, ::t].to(images),
                         planed[..., ::t, ::t] + offset.view(-1, 1, 1, 1), slopes)
-    plane = _plane(images.shape[-2:], domain, slopes, tilt_field.pitch)
+    plane = _plane((images.shape[-2], images.shape[-1]), domain, slopes, tilt_field.pitch)
     return relative + plane + offset.view(-1, 1, 1, 1), offset, relative, slopes
 
 
