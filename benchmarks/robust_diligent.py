@@ -40,9 +40,9 @@ from benchmarks._ledger import SHARED_DATA, append_results, best_time, table  # 
 from benchmarks.diligent import object_folders  # noqa: E402
 from psmini.io import load_sample  # noqa: E402
 from psmini.metrics import mean_angular_error, median_angular_error  # noqa: E402
+from psmini.nonlambertian import NonLambertianOptions, nonlambertian_normals  # noqa: E402
 from psmini.normals import albedo_normals  # noqa: E402
 from psmini.pipeline import distant_light_matrix  # noqa: E402
-from psmini.nonlambertian import NonLambertianOptions, nonlambertian_normals  # noqa: E402
 from psmini.robust import RECOMMENDED_ROBUST_METHOD, ROBUST_METHODS, RobustOptions, robust_normals  # noqa: E402
 
 # Mean angular error (degrees) on ball / cat, DiLiGenT benchmark (Shi et al., TPAMI 2019, Table 2).

@@ -11,45 +11,90 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
+from psmini import (
+    fabric,  # the subpackage: ISO 25178-2 parameters, yarn structure, descriptors
+    integrate,  # the package, callable as psmini.integrate.integrate
+)
+from psmini.autofocus import AutofocusController, AutofocusResult, autofocus_sweep, best_of_scores, refine_peak
+from psmini.calibration import calibrate_sphere, card_reference, triangulate_leds
+from psmini.config import ReconstructionConfig
 from psmini.errors import CalibrationError, DataFormatError, InputError, PsminiError, RigError, ShapeError
-from psmini import integrate  # the package, callable as psmini.integrate.integrate
+from psmini.evaluation import evaluate_sample, score_reconstruction
+from psmini.flatfield import FlatField, FlatFieldResult, flatfield
+from psmini.focus import (
+    FOCUS_MEASURES,
+    FOCUS_OPERATORS,
+    FocusMeasure,
+    FocusVolume,
+    brenner,
+    focus_measure,
+    focus_volume,
+    gaussian_derivative,
+    image_contrast,
+    normalized_variance,
+    tenengrad,
+    variance_of_laplacian,
+    wavelet_sum,
+)
+from psmini.geometry import depth_to_points, pixel_grid_mm, point_cloud
 from psmini.integrate import METHODS as INTEGRATION_METHODS
 from psmini.integrate import (
     BilateralIntegration,
     DCTPoisson,
     FrankotChellappa,
     MaskedLeastSquares,
+    bilateral_integration,
     dct_poisson,
     frankot_chellappa,
-    bilateral_integration,
     integrate_normals,
     masked_least_squares,
 )
-from psmini.evaluation import evaluate_sample, score_reconstruction
-from psmini import fabric  # the subpackage: ISO 25178-2 parameters, yarn structure, descriptors
-from psmini.flatfield import FlatField, FlatFieldResult, flatfield
-from psmini.autofocus import AutofocusController, AutofocusResult, autofocus_sweep, best_of_scores, refine_peak
-from psmini.focus import (FOCUS_MEASURES, FOCUS_OPERATORS, FocusMeasure, FocusVolume, brenner, focus_measure,
-                          focus_volume, gaussian_derivative, image_contrast, normalized_variance, tenengrad,
-                          variance_of_laplacian, wavelet_sum)
-from psmini.sff import DepthFromFocus, SFFConfig, depth_from_focus
-from psmini.geometry import depth_to_points, pixel_grid_mm, point_cloud
-from psmini.lights import (DirectionalLights, LEDLights, LightModel, PointLights, as_batched_lights, check_spans_3d,
-                           lights_from_dict, lights_to_dict, ring_lights)
+from psmini.ledcal import LEDFit, LEDFitOptions, fit_leds
+from psmini.lights import (
+    DirectionalLights,
+    LEDLights,
+    LightModel,
+    PointLights,
+    as_batched_lights,
+    check_spans_3d,
+    lights_from_dict,
+    lights_to_dict,
+    ring_lights,
+)
 from psmini.metrics import angular_error_deg, depth_error, mean_angular_error, median_angular_error
-from psmini.nearlight import (NearLightOptions, NearLightResult, RefineOptions, estimate_height_offset, near_light_vectors,
-                              refine_depth, robust_near_light_normals, solve_near_light)
+from psmini.nearlight import (
+    NearLightOptions,
+    NearLightResult,
+    RefineOptions,
+    estimate_height_offset,
+    near_light_vectors,
+    refine_depth,
+    robust_near_light_normals,
+    solve_near_light,
+)
+from psmini.nonlambertian import (
+    BlinnPhongFit,
+    NonLambertianNormals,
+    NonLambertianOptions,
+    blinn_phong_images,
+    fit_blinn_phong,
+    nonlambertian_normals,
+)
 from psmini.normals import LeastSquaresNormals, albedo_normals, normals_to_gradients
-from psmini.nonlambertian import (BlinnPhongFit, NonLambertianNormals, NonLambertianOptions, blinn_phong_images,
-                                  fit_blinn_phong, nonlambertian_normals)
-from psmini.robust import (RECOMMENDED_ROBUST_METHOD, ROBUST_METHODS, RobustNormals, RobustOptions, rank_trim_weights,
-                           robust_normals, threshold_weights)
-from psmini.config import ReconstructionConfig
 from psmini.pipeline import NORMAL_ESTIMATORS, PhotometricStereo, Reconstruction, distant_light_matrix, reconstruct
+
 # psmini.render is the function once the package is imported; reach the module by `from psmini.render import ...`
 from psmini.render import Renderer, cast_shadows, normals_from_height, render, render_lambertian
-from psmini.calibration import calibrate_sphere, card_reference, triangulate_leds
-from psmini.ledcal import LEDFit, LEDFitOptions, fit_leds
+from psmini.robust import (
+    RECOMMENDED_ROBUST_METHOD,
+    ROBUST_METHODS,
+    RobustNormals,
+    RobustOptions,
+    rank_trim_weights,
+    robust_normals,
+    threshold_weights,
+)
+from psmini.sff import DepthFromFocus, SFFConfig, depth_from_focus
 
 __all__ = [
     "__version__",

@@ -48,7 +48,7 @@ def check_shape(x: Tensor, dims: Sequence[str], name: str) -> dict[str, int]:
     if x.ndim != len(dims):
         raise ShapeError(f"{name} must have shape {expected}, got {tuple(x.shape)}")
     sizes: dict[str, int] = {}
-    for dim, size in zip(dims, x.shape):
+    for dim, size in zip(dims, x.shape, strict=True):
         if dim.isdigit():
             if size != int(dim):
                 raise ShapeError(f"{name} must have shape {expected}, got {tuple(x.shape)}")
@@ -111,7 +111,7 @@ def check_out(out, shapes: tuple[tuple[int, ...], ...], names: tuple[str, ...],
     if not isinstance(out, tuple) or len(out) != len(shapes) or not all(isinstance(t, Tensor) for t in out):
         raise InputError(f"out must be a tuple of {len(shapes)} tensors ({', '.join(names)}), got {out!r:.80}")
     reference = given[0]
-    for tensor, shape, name in zip(out, shapes, names):
+    for tensor, shape, name in zip(out, shapes, names, strict=True):
         if tuple(tensor.shape) != tuple(shape) or tensor.dtype != reference.dtype or tensor.device != reference.device:
             raise ShapeError(f"out {name} must be a {reference.dtype} tensor of shape {tuple(shape)} on "
                              f"{reference.device}, got {tensor.dtype} {tuple(tensor.shape)} on {tensor.device}")

@@ -18,6 +18,7 @@ References: J. F. Brenner et al. (1976); the seed paper's stop rule; S. Pertuz e
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -293,7 +294,7 @@ def _plan(positions: Sequence[float] | Tensor | None, start: float | None, stop:
     values = [float(p) for p in positions]
     if not values or not all(math.isfinite(p) for p in values):
         raise InputError(f"positions must be a non-empty list of finite numbers, got {list(positions)!r}")
-    steps = [b - a for a, b in zip(values, values[1:])]
+    steps = [b - a for a, b in itertools.pairwise(values)]
     if not (all(d > 0 for d in steps) or all(d < 0 for d in steps)):
         raise InputError("positions must be strictly increasing or strictly decreasing (one sweep direction)")
     return values

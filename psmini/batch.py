@@ -42,8 +42,8 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
-from psmini.errors import DataFormatError, InputError, PsminiError
 from psmini.config import ReconstructionConfig
+from psmini.errors import DataFormatError, InputError, PsminiError
 from psmini.result import Reconstruction
 
 __all__ = [

@@ -627,7 +627,7 @@ def fit_leds(
     data = (pooled, points, weights)
     records = [_run_stage(stage, unknowns, data, options.huber_delta, max_steps, options.optimizer,
                           options.learning_rate, options.tolerance)
-               for stage, max_steps in zip(STAGES, options.iterations)]
+               for stage, max_steps in zip(STAGES, options.iterations, strict=True)]
     with torch.no_grad():
         lights = unknowns.lights()
     return _result(lights, data, float(scale), heights, start, records, images.dtype)

@@ -86,7 +86,7 @@ def median_angular_error(normals: Tensor, normals_gt: Tensor, mask: Tensor | Non
     """
     errors = angular_error_deg(normals, normals_gt)
     keep = _masked(errors, check_mask(mask, *(errors.shape[0], errors.shape[2], errors.shape[3])))
-    return torch.stack([e[k].median() for e, k in zip(errors, keep)])
+    return torch.stack([e[k].median() for e, k in zip(errors, keep, strict=True)])
 
 
 def depth_error(depth: Tensor, depth_gt: Tensor, mask: Tensor | None = None, align: str = "offset") -> dict[str, Tensor]:
@@ -121,7 +121,7 @@ def depth_error(depth: Tensor, depth_gt: Tensor, mask: Tensor | None = None, ali
     if align == "offset":
         aligned = depth + masked_mean(depth_gt - depth)
     elif align == "scale":
-        ratios = [(g[k] / d[k]).median() for d, g, k in zip(depth, depth_gt, keep)]
+        ratios = [(g[k] / d[k]).median() for d, g, k in zip(depth, depth_gt, keep, strict=True)]
         aligned = depth * torch.stack(ratios).view(-1, 1, 1, 1)
     elif align == "none":
         aligned = depth

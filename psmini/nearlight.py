@@ -507,7 +507,7 @@ def _fit(intensities: Tensor, lx: Tensor, ly: Tensor, lz: Tensor, used: Tensor) 
     matrix = _adjugate(lx, ly, lz, used)
     (c00, c01, c02, c11, c12, c22), det = matrix
     signal = (used * intensities).unbind(1)
-    r0, r1, r2 = (_sum_of_products(signal, l.unbind(1)) for l in (lx, ly, lz))
+    r0, r1, r2 = (_sum_of_products(signal, component.unbind(1)) for component in (lx, ly, lz))
     m = torch.cat([c00 * r0 + c01 * r1 + c02 * r2, c01 * r0 + c11 * r1 + c12 * r2,
                    c02 * r0 + c12 * r1 + c22 * r2], dim=1) / det
     return m, torch.isfinite(det), matrix
@@ -519,7 +519,7 @@ def _sum_of_products(a: tuple[Tensor, ...], b: tuple[Tensor, ...]) -> Tensor:
     once (a product and then a sum writes and reads back a (B, K, H, W) temporary: 1.1 against 0.5 ms on
     8 × 400²; planes sliced afresh for every sum cost 30% more than these)."""
     total = a[0] * b[0]
-    for x, y in zip(a[1:], b[1:]):
+    for x, y in zip(a[1:], b[1:], strict=True):
         total.addcmul_(x, y)
     return total.unsqueeze(1)
 
@@ -608,7 +608,7 @@ def _first_and_third(x: Tensor) -> tuple[Tensor, Tensor]:
 
 def _median(values: Tensor, usable: Tensor) -> Tensor:
     """Median of ``values`` over the ``usable`` pixels of each batch item, (B, 1, 1, 1); 0 where none."""
-    medians = [v.masked_select(u).median() if bool(u.any()) else v.new_zeros(()) for v, u in zip(values, usable)]
+    medians = [v.masked_select(u).median() if bool(u.any()) else v.new_zeros(()) for v, u in zip(values, usable, strict=True)]
     return torch.stack(medians).view(-1, 1, 1, 1)
 
 
@@ -1057,7 +1057,7 @@ class _Pixels:
         """Write the packed ``part`` (:meth:`take`'s shape) into the pixels of ``whole`` (a (B, C, H, W) tensor, or
         nested tuples of them, the same nesting), in place."""
         if isinstance(whole, tuple):
-            for w, p in zip(whole, part):
+            for w, p in zip(whole, part, strict=True):
                 self.put(w, p)
             return
         whole[self.batch, :, self.y, self.x] = part.view(part.shape[1], -1).t()
@@ -1351,7 +1351,7 @@ def _tilt_step(field: _LightField, images: Tensor, used: Tensor, depth: Tensor, 
     curvature = (used * jacobian.square()).sum(dim=1, keepdim=True)
     phi = (torch.ones_like(slope), field.x.expand_as(slope), field.y.expand_as(slope))
     # the normal equations' six entries and the right-hand side's three, summed over each lattice and over all
-    entries = torch.cat([curvature * phi[i] * phi[j] for i, j in zip(_ROWS, _COLS)]
+    entries = torch.cat([curvature * phi[i] * phi[j] for i, j in zip(_ROWS, _COLS, strict=True)]
                         + [slope * f for f in phi], dim=1)
     sums = _phase_sums(entries).double()  # (B, 9, P²)
     sums = torch.cat([sums, sums.sum(dim=2, keepdim=True)], dim=2).transpose(1, 2)  # (B, P² + 1, 9)
@@ -1755,7 +1755,7 @@ def _alternate(images: Tensor, valid: Tensor, mask: Tensor | None, domain: Tenso
             # (state.relative: set by the first alternation, in which every item is active)
             state.depth, state.offset, state.relative, state.tilt = (
                 whole.index_copy(0, active, part)  # type: ignore[union-attr]
-                for whole, part in zip((state.depth, state.offset, state.relative, state.tilt), placed))
+                for whole, part in zip((state.depth, state.offset, state.relative, state.tilt), placed, strict=True))
     state.fit = (last_m, last_posed) if state.converged else None
     state.at_noise_floor = _at_noise_floor(rejection, used)
     return field
@@ -1824,7 +1824,7 @@ def _changes(difference: Tensor, region: Tensor, percentile: float) -> Tensor:
     degrees, per batch item (B,) (2 asin(|a - b| / 2)); 0 for an item with no pixel in the region."""
     chord = difference.square().sum(dim=1, keepdim=True).sqrt()
     largest = []
-    for c, r in zip(chord, region):
+    for c, r in zip(chord, region, strict=True):
         values = c.masked_select(r)
         rank = min(values.numel(), max(1, math.ceil(percentile * values.numel())))
         largest.append(float(values.kthvalue(rank).values) if values.numel() else 0.0)
@@ -1923,7 +1923,9 @@ def refine_depth(
         parameter = small.clone().requires_grad_(True)
         optimizer = torch.optim.LBFGS([parameter], max_iter=steps, line_search_fn="strong_wolfe")
 
-        def closure() -> Tensor:
+        # (this scale's tensors bound as defaults, not read from the loop's variables when the optimiser calls it)
+        def closure(optimizer: torch.optim.Optimizer = optimizer, images: Tensor = images,
+                    parameter: Tensor = parameter, scale: int = scale, used: Tensor = used) -> Tensor:
             optimizer.zero_grad()
             loss = _rendering_loss(images, light_model, parameter, pixel_pitch_mm * scale, used, card_height_mm,
                                    norm, huber_delta)

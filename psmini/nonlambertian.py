@@ -56,8 +56,16 @@ from psmini._checks import check_finite, check_mask, check_shape, check_tensor
 from psmini.errors import InputError, ShapeError
 from psmini.lights import as_batched_lights
 from psmini.normals import _check_lights, _check_weights, albedo_normals
-from psmini.robust import (RobustOptions, _float_mask, _median, _median_padding, _scatter, _tracked,
-                           robust_normals, threshold_weights)
+from psmini.robust import (
+    RobustOptions,
+    _float_mask,
+    _median,
+    _median_padding,
+    _scatter,
+    _tracked,
+    robust_normals,
+    threshold_weights,
+)
 
 __all__ = ["BlinnPhongFit", "NonLambertianNormals", "NonLambertianOptions", "blinn_phong_images", "fit_blinn_phong", "nonlambertian_normals"]
 
@@ -365,7 +373,7 @@ def _iterate(values: Tensor, usable: Tensor, sigma: Tensor, lights: Tensor, ener
                                                   half)[-1], usable, sigma)
         better = trial_cost < cost  # per pixel: accept and trust the model more, or reject and damp
         normals, albedo, specular, log_alpha = [torch.where(better, new, old) for new, old in
-                                                zip(trial, (normals, albedo, specular, log_alpha))]
+                                                zip(trial, (normals, albedo, specular, log_alpha), strict=True)]
         cost = torch.where(better, trial_cost, cost)
         damping = torch.where(better, damping / 3, damping * 4).clamp(1e-7, 1e7)
     return [normals, albedo, specular, log_alpha], cost, damping
@@ -459,7 +467,7 @@ def _fit_chunked(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor,
         return [albedo, normals, albedo, albedo]
     # the test of the lobe takes one noise level for the whole image: all blocks first, then the choice
     albedo_fit, normals_fit, specular, shininess, albedo_start, normals_start, statistics = [torch.cat(x)
-                                                                                             for x in zip(*parts)]
+                                                                                             for x in zip(*parts, strict=True)]
     lobe = _keep_lobe(statistics, options.significance)[:, None]
     maps = [torch.where(lobe, albedo_fit, albedo_start), torch.where(lobe, normals_fit, normals_start),
             torch.where(lobe, specular, torch.zeros_like(specular)),
@@ -519,10 +527,7 @@ def fit_blinn_phong(
             start = replace(RobustOptions(), shadow=options.shadow, saturation=options.saturation)
             init = robust_normals(intensities, lights, "robust", mask, base, start)
     start_albedo, start_normals = _check_init(init, sizes)
-    if lights.ndim == 5:
-        lights = lights.to(intensities)
-    else:
-        lights = as_batched_lights(lights, sizes["B"], intensities)
+    lights = lights.to(intensities) if lights.ndim == 5 else as_batched_lights(lights, sizes["B"], intensities)
 
     maps = []
     for b in range(sizes["B"]):  # a loop over images, not pixels: each image's pixels are one set of columns
@@ -541,7 +546,7 @@ def fit_blinn_phong(
         shininess_map = torch.where(solved[None], _scatter(fitted[3], solved, total), ones)
         maps.append([_scatter(fitted[0], solved, total), normals, _scatter(fitted[2], solved, total), shininess_map])
     albedo, normals, specular_map, shininess_map = (torch.stack(parts).view(sizes["B"], -1, sizes["H"], sizes["W"])
-                                                    for parts in zip(*maps))
+                                                    for parts in zip(*maps, strict=True))
     return BlinnPhongFit(albedo, normals, specular_map, shininess_map)
 
 

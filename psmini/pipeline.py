@@ -14,8 +14,15 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
-from psmini._checks import (all_true, check_mask, check_positive, check_same_size, check_shape, check_tensor,
-                             records_gradient)
+from psmini._checks import (
+    all_true,
+    check_mask,
+    check_positive,
+    check_same_size,
+    check_shape,
+    check_tensor,
+    records_gradient,
+)
 from psmini._chunks import batch_part, chunks
 from psmini.config import ReconstructionConfig
 from psmini.errors import InputError
@@ -26,8 +33,8 @@ from psmini.lights import DirectionalLights, LightModel, check_spans_3d
 from psmini.nearlight import NearLightResult, solve_near_light
 from psmini.nonlambertian import nonlambertian_normals
 from psmini.normals import _slopes_of, _solve_with_pinv, albedo_normals
-from psmini.robust import ROBUST_METHODS, robust_normals
 from psmini.result import Reconstruction
+from psmini.robust import ROBUST_METHODS, robust_normals
 
 __all__ = ["NORMAL_ESTIMATORS", "Reconstruction", "PhotometricStereo", "distant_light_matrix", "reconstruct"]
 

@@ -32,8 +32,8 @@ import torch  # noqa: E402
 
 import psmini  # noqa: E402
 from data_synth import CARD_ALBEDO, make_fabric  # noqa: E402
-from psmini import viz  # noqa: E402
 from data_synth.rig import RigConfig, focus_stack, render_capture, render_card, rig_lights  # noqa: E402
+from psmini import viz  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 PITCH_MM = 0.025  # the rig's pixel pitch: the fabrics are shown at the camera's resolution (a --size crop)

@@ -257,6 +257,7 @@ def VOLA(g):
 
 OPERATORS = {
     name: globals()[name]
-    for name in ("GDER GRAE GRAT GRAS TENG TENV LAPE LAPM LAPV LAPD WAVS WAVV WAVR ACMO GLVA GLLV GLVN HISE HISR "
-                 "DCTE DCTR BREN CONT CURV HELM SFIL SFRQ VOLA").split()
+    for name in ["GDER", "GRAE", "GRAT", "GRAS", "TENG", "TENV", "LAPE", "LAPM", "LAPV", "LAPD", "WAVS", "WAVV",
+                 "WAVR", "ACMO", "GLVA", "GLLV", "GLVN", "HISE", "HISR", "DCTE", "DCTR", "BREN", "CONT", "CURV",
+                 "HELM", "SFIL", "SFRQ", "VOLA"]
 }

@@ -14,9 +14,9 @@ from psmini.batch import iter_reconstructions, parse_outputs, reconstruct_datase
 from psmini.cli import main
 from psmini.config import ReconstructionConfig
 from psmini.errors import InputError
-from tests._captures import DISTANT, GOOD, write_capture_tree
 from psmini.io import load_sample
 from psmini.pipeline import reconstruct
+from tests._captures import DISTANT, GOOD, write_capture_tree
 
 ALL = sorted(GOOD + ["lotC/broken"])
 

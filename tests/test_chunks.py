@@ -1,8 +1,7 @@
 import pytest
 import torch
 
-from psmini import ShapeError
-from psmini import _chunks
+from psmini import ShapeError, _chunks
 from psmini._chunks import CPU_CHUNK_ELEMENTS, batch_part, chunks
 
 

@@ -16,7 +16,7 @@ def test_every_fabric_is_well_formed_and_reproducible(name):
         assert bool(torch.isfinite(field).all())
     assert fabric.mask.dtype == torch.bool and fabric.mask.shape == (1, 1, 96, 96)
     assert float(fabric.height_mm.min()) >= 0.0  # the cloth rests on the card plane
-    assert 0.0 <= float(fabric.albedo.min()) and float(fabric.albedo.max()) <= 1.0
+    assert float(fabric.albedo.min()) >= 0.0 and float(fabric.albedo.max()) <= 1.0
     assert float(fabric.height_mm.max()) > 0.0
     assert fabric.params["seed"] == 3 and fabric.pixel_pitch_mm == 0.025
     again = make_fabric(name, size=96, seed=3)

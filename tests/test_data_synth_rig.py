@@ -15,9 +15,9 @@ from data_synth.rig import (
     rig_lights,
     write_synthetic_capture,
 )
+from psmini.config import ReconstructionConfig
 from psmini.errors import DataFormatError, InputError
 from psmini.metrics import angular_error_deg, mean_angular_error
-from psmini.config import ReconstructionConfig
 from psmini.pipeline import PhotometricStereo
 
 IDEAL = dict(noise=False, bit_depth=16, vignetting=0.0, ambient=0.0)

@@ -10,9 +10,20 @@ import pytest
 import torch
 
 from psmini.errors import DataFormatError, InputError, ShapeError
-from psmini.fabric import (FabricClassifier, StructureOptions, SurfaceOptions, autocorrelation, describe,
-                           descriptor_vector, fabric_structure, gaussian_filter, iso25178, remove_form,
-                           scale_limited_surface, structure_row)
+from psmini.fabric import (
+    FabricClassifier,
+    StructureOptions,
+    SurfaceOptions,
+    autocorrelation,
+    describe,
+    descriptor_vector,
+    fabric_structure,
+    gaussian_filter,
+    iso25178,
+    remove_form,
+    scale_limited_surface,
+    structure_row,
+)
 from tests.conftest import BaseTester
 
 PITCH = 0.025

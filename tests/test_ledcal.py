@@ -11,16 +11,15 @@ import pytest
 import torch
 
 from data_synth.rig import RigConfig, render_card, rig_lights
-from psmini.io import load_rig_calibration_mat, read_lights_file
 from psmini.commands._calibrate_leds import register_leds
 from psmini.errors import CalibrationError, DataFormatError, InputError, ShapeError
-from psmini.io import lights_from_dict, read_mat, write_capture
+from psmini.io import lights_from_dict, load_rig_calibration_mat, read_lights_file, read_mat, write_capture
 from psmini.ledcal import (
     LEDFit,
+    LEDFitOptions,
     card_loss,
     card_shading,
     eliminate_gain,
-    LEDFitOptions,
     fit_leds,
     nominal_leds,
 )

@@ -4,11 +4,12 @@ import numpy as np
 import pytest
 import torch
 
-from psmini import InputError, LEDLights, PointLights, ShapeError, ring_lights
+from psmini import InputError, LEDLights, PointLights, ShapeError, _chunks, ring_lights
+from psmini.config import ReconstructionConfig
+from psmini.flatfield import flatfield
 from psmini.geometry import depth_to_points
 from psmini.integrate import integrate
-from psmini.flatfield import flatfield
-from psmini import _chunks
+from psmini.metrics import angular_error_deg
 from psmini.nearlight import (
     NearLightOptions,
     NearLightResult,
@@ -24,9 +25,7 @@ from psmini.nearlight import (
     robust_near_light_normals,
     solve_near_light,
 )
-from psmini.metrics import angular_error_deg
 from psmini.normals import albedo_normals, normals_to_gradients
-from psmini.config import ReconstructionConfig
 from psmini.pipeline import PhotometricStereo
 from psmini.render import normals_from_height, render
 from tests.conftest import BaseTester
@@ -406,7 +405,6 @@ class TestSolveNearLight(BaseTester):
             self.assert_close(both.normals[item : item + 1], alone[item].normals, rtol=0, atol=1e-9)
 
     def test_cpu_chunks_give_the_batch_answer(self, monkeypatch):
-        import psmini.nearlight as nearlight
 
         a = _capture(size=32, offset_mm=0.2, dtype=torch.float64)
         b = _capture(size=32, offset_mm=0.8, dtype=torch.float64)

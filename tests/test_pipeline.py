@@ -3,13 +3,11 @@ import math
 import pytest
 import torch
 
-from psmini import _chunks
-from psmini import CalibrationError, DirectionalLights, InputError, LEDLights, ShapeError, ring_lights
-from psmini.flatfield import flatfield
-from psmini.integrate import frankot_chellappa
-from psmini.normals import albedo_normals, normals_to_gradients
+from psmini import CalibrationError, DirectionalLights, InputError, LEDLights, ShapeError, _chunks, ring_lights
 from psmini.config import ReconstructionConfig
-from psmini.integrate import masked_least_squares
+from psmini.flatfield import flatfield
+from psmini.integrate import frankot_chellappa, masked_least_squares
+from psmini.normals import albedo_normals, normals_to_gradients
 from psmini.pipeline import NORMAL_ESTIMATORS, PhotometricStereo, distant_light_matrix
 from tests._analytic import analytic_sphere, render
 from tests.conftest import BaseTester

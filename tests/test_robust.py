@@ -429,8 +429,8 @@ class TestStressSet(BaseTester):
         assert float(directions[:, 2].min()) > 0.7  # DiLiGenT's lights lie within ~45° of the view
 
     def test_errors(self, tmp_path):
-        from psmini.errors import DataFormatError
         from data_synth.stress import diligent_directions, make_stress_case
+        from psmini.errors import DataFormatError
 
         lights = _ring_dome()
         with pytest.raises(InputError, match="scene"):

@@ -169,7 +169,7 @@ class TestCommand:
                                   "--metric", "teng", "--median", "3")
         assert status == 0 and "7 frames" in out
         depth = np.load(tmp_path / "d.npy")
-        assert 0 <= depth.min() and depth.max() <= 6
+        assert depth.min() >= 0 and depth.max() <= 6
         status, _, err = self.run(capsys, "sff", tmp_path / "s.npy", "--out", tmp_path / "d.npy", "--positions", "1,2")
         assert status == 1 and "2 positions for 7 frames" in err
         status, _, err = self.run(capsys, "sff", tmp_path / "missing.npy", "--out", tmp_path / "d.npy")
@@ -203,9 +203,9 @@ def test_docstring_examples():
 def test_rig_full_sweep_keeps_every_frame_for_sff(tmp_path, capsys):
     """The rig's focus sweep with full_sweep=True writes every position's frame; psmini sff reads that folder."""
     from data_synth.rig import RigConfig
+    from data_synth.simulated_rig import SimulatedRig
     from psmini.cli import main
     from psmini.io import read_capture
-    from data_synth.simulated_rig import SimulatedRig
     from psmini.rig import CaptureSession
     from tests.rig.test_session import open_rig
 
@@ -219,5 +219,5 @@ def test_rig_full_sweep_keeps_every_frame_for_sff(tmp_path, capsys):
     assert read_capture(tmp_path / "focus").positions_mm == positions
     assert main(["sff", str(tmp_path / "focus"), "--out", str(tmp_path / "d.npy"), "--window", "5"]) == 0
     depth = np.load(tmp_path / "d.npy")
-    assert depth.shape == (32, 32) and -1.2 <= depth.min() and depth.max() <= 0.8
+    assert depth.shape == (32, 32) and depth.min() >= -1.2 and depth.max() <= 0.8
     assert "position of best focus" in capsys.readouterr().out

@@ -55,8 +55,8 @@ def run(args: argparse.Namespace) -> int:
 
     from data_synth.rig import write_synthetic_capture
     from psmini.evaluation import score_reconstruction
-    from psmini.nearlight import NearLightOptions
     from psmini.io import load_sample, write_outputs
+    from psmini.nearlight import NearLightOptions
     from psmini.pipeline import reconstruct
 
     config = config_from_args(args)

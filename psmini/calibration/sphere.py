@@ -323,7 +323,7 @@ def segment_sphere(image: Tensor, min_radius_px: float = 5.0) -> Tensor:
         labels = _label(region.unsqueeze(0))[0]
         border = torch.cat([labels[0], labels[-1], labels[:, 0], labels[:, -1]]).unique()
         ids, counts = labels[labels > 0].unique(return_counts=True)
-        for label, count in zip(ids.tolist(), counts.tolist()):
+        for label, count in zip(ids.tolist(), counts.tolist(), strict=True):
             if count < min_area or count <= best_area or label in border.tolist():
                 continue
             candidate = _fill_holes(labels == label)

@@ -14,7 +14,6 @@ from psmini.commands._calibrate_leds import register_leds
 from psmini.commands._common import add_json_flag, emit_json
 
 
-
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "calibrate",
@@ -142,8 +141,8 @@ def run_sphere(args: argparse.Namespace) -> int:
     import torch
 
     from psmini.calibration import calibrate_sphere, card_distance_from_spheres, triangulate_leds
-    from psmini.io import write_lights_file
     from psmini.errors import DataFormatError, InputError
+    from psmini.io import write_lights_file
     from psmini.lights import DirectionalLights, LightModel, PointLights
 
     start = time.perf_counter()
@@ -239,13 +238,13 @@ def run_flatfield(args: argparse.Namespace) -> int:
     import torch
 
     from psmini.calibration import card_reference
-    from psmini.io import read_lights_file, write_flatfield_capture
     from psmini.errors import DataFormatError, InputError
+    from psmini.io import read_lights_file, write_flatfield_capture
 
     start = time.perf_counter()
     repeats = [_read_folder(folder) for folder in args.folders]
     first = repeats[0]
-    for folder, data in zip(args.folders[1:], repeats[1:]):
+    for folder, data in zip(args.folders[1:], repeats[1:], strict=True):
         if data["images"].shape != first["images"].shape:
             raise DataFormatError(f"{folder} holds images {tuple(data['images'].shape)} (K, H, W) but "
                                   f"{args.folders[0]} holds {tuple(first['images'].shape)}; repeats must match")

@@ -177,7 +177,8 @@ def _figure(target: Path, height, mask, pitch: float, entry: dict) -> None:
     for peak in entry.get("peaks", [])[:24]:
         for sign in (1, -1):
             left.plot(sign * peak["fx_per_mm"], sign * peak["fy_per_mm"], "o", mfc="none", mec="cyan", ms=6)
-    for d, a in zip(density, entry.get("thread_angles_deg") or []):
+    # no angles (no structure found): nothing to draw; a yarn system without an angle is not drawn either
+    for d, a in zip(density, entry.get("thread_angles_deg") or [], strict=False):
         across = math.radians(a - 90)
         f = d / 10
         left.plot([f * math.cos(across), -f * math.cos(across)], [f * math.sin(across), -f * math.sin(across)],
@@ -190,7 +191,9 @@ def _figure(target: Path, height, mask, pitch: float, entry: dict) -> None:
     fig.colorbar(image, ax=right, label="height (um)")
     cx, cy = w * pitch / 2, h * pitch / 2
     length = 0.4 * min(h, w) * pitch
-    for (d, a), colour in zip(zip(density, entry.get("thread_angles_deg") or []), ("tab:red", "tab:blue")):
+    # as above; one colour per yarn system (at most two)
+    systems = zip(density, entry.get("thread_angles_deg") or [], strict=False)
+    for (d, a), colour in zip(systems, ("tab:red", "tab:blue"), strict=False):
         t = math.radians(a)
         right.plot([cx - length * math.cos(t), cx + length * math.cos(t)],
                    [cy - length * math.sin(t), cy + length * math.sin(t)], color=colour, lw=2,
@@ -242,7 +245,7 @@ def run(args: argparse.Namespace) -> int:
     entry = describe(height, pitch, mask, albedo)[0]
     if model is not None:
         probabilities = model.predict_proba(descriptor_vector(entry))[0]
-        entry["class_probabilities"] = {c: float(p) for c, p in zip(model.classes, probabilities)}
+        entry["class_probabilities"] = {c: float(p) for c, p in zip(model.classes, probabilities, strict=True)}
         entry["class"] = model.classes[int(np.argmax(probabilities))]
     entry["name"] = name
     entry["time_s"] = time.perf_counter() - start

@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     result = best_of_scores(_scores(frames, args.metric, roi, device), positions)
     unit = "mm" if positions is not None else "(index)"
     sampled = result.positions[result.best_index]
-    for i, (path, z, s) in enumerate(zip(files, result.positions, result.scores)):
+    for i, (path, z, s) in enumerate(zip(files, result.positions, result.scores, strict=True)):
         mark = "  <- best" if i == result.best_index else ""
         print(f"{i:4d}  {path.name:<32s}  z={z:10.4f}  {args.metric}={s:.6g}{mark}")
     print(f"best index {result.best_index} ({files[result.best_index].name}), sampled position {sampled:g} {unit}, "

@@ -276,7 +276,7 @@ def structure_row(reconstruction: Any, pixel_pitch_mm: float | None) -> dict[str
            "thread_angle_2_deg": angles[1], "weave_repeat": entry["weave_repeat"], "crimp_um": entry["crimp_um"],
            "openness": entry["openness"], "structure_found": entry["structure_found"],
            "structure_reason": entry["structure_reason"]}
-    for key, column in zip(ISO_PARAMETERS, iso_columns):
+    for key, column in zip(ISO_PARAMETERS, iso_columns, strict=True):
         row[column] = entry["iso25178"][key]
     return row
 

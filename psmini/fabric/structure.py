@@ -273,20 +273,22 @@ def _refine(surface: Tensor, weight: Tensor, freqs: Tensor, step: float, rounds:
         iy, ix = (best // 5).clamp(1, 3), (best % 5).clamp(1, 3)
         k = torch.arange(f.shape[0], device=f.device)
         centre = logp[k, iy, ix]
-
-        def vertex(lo: Tensor, hi: Tensor) -> Tensor:
-            den = lo - 2 * centre + hi
-            return torch.where(den < 0, 0.5 * (lo - hi) / torch.where(den < 0, den, -torch.ones_like(den)),
-                               torch.zeros_like(den)).clamp(-1, 1)
-
-        dx = vertex(logp[k, iy, ix - 1], logp[k, iy, ix + 1])
-        dy = vertex(logp[k, iy - 1, ix], logp[k, iy + 1, ix])
+        dx = _vertex(logp[k, iy, ix - 1], centre, logp[k, iy, ix + 1])
+        dy = _vertex(logp[k, iy - 1, ix], centre, logp[k, iy + 1, ix])
         f = torch.stack([fx[k, ix] + dx * step, fy[k, iy] + dy * step], dim=1)
         step = step / 2
     ex = torch.exp(-2j * math.pi * f[:, :1] * cols).to(z.dtype)  # (K, W)
     ey = torch.exp(-2j * math.pi * f[:, 1:] * rows_up).to(z.dtype)  # (K, H)
     value = torch.einsum("kh,hw,kw->k", ey, z, ex)
     return f, value.abs().square()
+
+
+def _vertex(lo: Tensor, centre: Tensor, hi: Tensor) -> Tensor:
+    """The parabola's vertex through three equally spaced values, as an offset in [-1, 1] steps from the centre
+    (0 where the three are not concave)."""
+    den = lo - 2 * centre + hi
+    return torch.where(den < 0, 0.5 * (lo - hi) / torch.where(den < 0, den, -torch.ones_like(den)),
+                       torch.zeros_like(den)).clamp(-1, 1)
 
 
 def _angle_between(a: np.ndarray, b: np.ndarray) -> float:

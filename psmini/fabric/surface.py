@@ -102,10 +102,9 @@ def _check_height(height: Tensor, mask: Tensor | None, pixel_pitch_mm: float) ->
     sizes = check_shape(height, ["B", "1", "H", "W"], "height")
     if not (isinstance(pixel_pitch_mm, (int, float)) and 0 < pixel_pitch_mm < math.inf):
         raise InputError(f"pixel_pitch_mm must be a positive number (mm per pixel), got {pixel_pitch_mm!r}")
-    if mask is not None:
-        if not isinstance(mask, Tensor) or tuple(mask.shape) != tuple(height.shape):
-            got = tuple(mask.shape) if isinstance(mask, Tensor) else type(mask).__name__
-            raise ShapeError(f"mask must be a tensor of the height's shape {tuple(height.shape)}, got {got}")
+    if mask is not None and (not isinstance(mask, Tensor) or tuple(mask.shape) != tuple(height.shape)):
+        got = tuple(mask.shape) if isinstance(mask, Tensor) else type(mask).__name__
+        raise ShapeError(f"mask must be a tensor of the height's shape {tuple(height.shape)}, got {got}")
     valid = valid_pixels(height, mask)
     empty = ~valid.flatten(1).any(dim=1)
     if bool(empty.any()):

@@ -345,8 +345,8 @@ def _gaussian_taps(sigma: float) -> tuple[list[float], list[float]]:
     smooth = [math.exp(-0.5 * (x / sigma) ** 2) for x in offsets]
     total = sum(smooth)
     smooth = [v / total for v in smooth]
-    slope = [x * v for x, v in zip(offsets, smooth)]
-    ramp_response = sum(x * v for x, v in zip(offsets, slope))
+    slope = [x * v for x, v in zip(offsets, smooth, strict=True)]
+    ramp_response = sum(x * v for x, v in zip(offsets, slope, strict=True))
     return smooth, [v / ramp_response for v in slope]
 
 

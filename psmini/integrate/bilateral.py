@@ -125,7 +125,9 @@ def _irls(gu: Tensor, gv: Tensor, grid: _Grid, k: float, max_iterations: int, to
     # Energy changes below rounding of the data's own energy count as converged (exact data has energy ~0).
     floor = torch.finfo(gu.dtype).eps * grid.energy(torch.zeros_like(gu), gu, gv, conf, su, sv)
     previous = None
-    for iteration in range(1, max_iterations + 1):
+    iterations = 0
+    for _ in range(max_iterations):
+        iterations += 1
         z, _ = _solve(grid.system(gu, gv, conf, su, sv), grid, z, max(cg_tol, _INNER_TOL))
         energy = grid.energy(z, gu, gv, conf, su, sv)
         if previous is not None and bool(((previous - energy).abs() <= tol * previous + floor).all()):
@@ -134,7 +136,7 @@ def _irls(gu: Tensor, gv: Tensor, grid: _Grid, k: float, max_iterations: int, to
         su, sv = grid.shares(z, conf, k)
     else:
         logger.info("bilateral integration: %d iterations without reaching tol=%.1e", max_iterations, tol)
-    logger.debug("bilateral integration: %d re-weighting iterations", iteration)
+    logger.debug("bilateral integration: %d re-weighting iterations", iterations)
     return _solve(grid.system(gu, gv, conf, su, sv), grid, z, cg_tol)
 
 

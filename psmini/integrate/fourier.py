@@ -13,8 +13,17 @@ from torch import Tensor, nn
 from psmini._checks import all_true, records_gradient
 from psmini.errors import InputError
 from psmini.integrate._common import centred_grid, check_gradients, masked_mean
-from psmini.integrate._dct import (Plan, complex_dtype, dct2, from_reordered_spectrum, half_spectra, halves, idct2,
-                                   inverse_spectrum, reordered_spectrum)
+from psmini.integrate._dct import (
+    Plan,
+    complex_dtype,
+    dct2,
+    from_reordered_spectrum,
+    half_spectra,
+    halves,
+    idct2,
+    inverse_spectrum,
+    reordered_spectrum,
+)
 from psmini.integrate._dct import plan as dct_plan
 
 __all__ = ["frankot_chellappa", "FrankotChellappa", "dct_poisson", "DCTPoisson"]

@@ -25,7 +25,6 @@ from psmini.integrate._common import check_gradients
 from psmini.integrate._dct import dct2, idct2
 from psmini.integrate.poisson import solve_weighted_poisson
 
-
 __all__ = ["masked_least_squares", "MaskedLeastSquares"]
 
 

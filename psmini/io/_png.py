@@ -157,7 +157,7 @@ def _unfilter(rows: np.ndarray, pixel_bytes: int) -> np.ndarray:
     filtered = torch.from_numpy(rows)[:, 1:]
     out = torch.empty(height, row_bytes, dtype=torch.uint8)
     # uint8 sums wrap modulo 256, as the filters' byte arithmetic does; torch's cumsum measured 3.5x numpy's here
-    for start, stop in zip([0, *starts.tolist()], [*starts.tolist(), height]):
+    for start, stop in zip([0, *starts.tolist()], [*starts.tolist(), height], strict=True):
         kind, part = int(kinds[start]), filtered[start:stop]
         if kind == _NONE:
             out[start:stop] = part
@@ -174,7 +174,7 @@ def _unfilter(rows: np.ndarray, pixel_bytes: int) -> np.ndarray:
 def encode_png(pixels: np.ndarray) -> bytes | None:
     """The PNG file of ``uint8``/``uint16`` pixels :math:`(H, W)`, :math:`(H, W, 3)` RGB or :math:`(H, W, 4)` RGBA;
     None without ISA-L or for other arrays (then OpenCV encodes)."""
-    if _ISAL is None or pixels.dtype not in (np.uint8, np.uint16) or not 0 < pixels.size:
+    if _ISAL is None or pixels.dtype not in (np.uint8, np.uint16) or not pixels.size > 0:
         return None
     channels = 1 if pixels.ndim == 2 else (pixels.shape[2] if pixels.ndim == 3 and pixels.shape[2] > 1 else 0)
     colour = {1: 0, 3: 2, 4: 6}.get(channels)

@@ -561,7 +561,7 @@ def write_capture(
     }
     manifest.update(kind_fields)
     with atomic_folder(folder, overwrite) as target:
-        for name, frame in zip(names, codes):
+        for name, frame in zip(names, codes, strict=True):
             write_image(target / name, frame)
         if dark_codes is not None:
             write_image(target / "dark.png", dark_codes)

@@ -200,7 +200,7 @@ def scan_samples(root: str | Path) -> SampleScan:
             else:
                 continue
             stack.append((path, above | {real}))
-    for path, message in problems.items():
+    for message in problems.values():
         logger.warning("%s", message)
     return SampleScan(root, sorted(found), problems)
 

@@ -3,9 +3,8 @@ import torch
 
 from data_synth.rig import RigConfig, render_card
 from psmini.calibration import card_reference, polynomial_surface
-from psmini.io import write_flatfield_capture
 from psmini.errors import InputError, ShapeError
-from psmini.io import read_capture
+from psmini.io import read_capture, write_flatfield_capture
 from psmini.lights import DirectionalLights, ring_lights
 
 CONFIG = RigConfig(size=96, pixel_pitch_mm=0.1)  # the rig's 10 mm field at a coarser pitch

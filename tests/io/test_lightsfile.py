@@ -3,9 +3,8 @@ import json
 import pytest
 import torch
 
-from psmini.io import read_lights_file, with_lights_file, write_lights_file
 from psmini.errors import DataFormatError, InputError
-from psmini.io import Sample
+from psmini.io import Sample, read_lights_file, with_lights_file, write_lights_file
 from psmini.lights import DirectionalLights, PointLights, ring_lights
 
 

@@ -7,10 +7,10 @@ import time
 import pytest
 import serial
 
+from data_synth.simulated_rig import PtyLink, SimulatedDevice, serve_url
 from psmini.errors import RigError
 from psmini.rig.controller import LEDController
 from psmini.rig.protocol import Identity
-from data_synth.simulated_rig import PtyLink, SimulatedDevice, serve_url
 
 FAST = {"handshake_timeout_s": 0.5, "command_timeout_s": 0.2}
 
@@ -41,15 +41,13 @@ def test_handshake_and_commands_over_a_pty(pty_device):
 
 def test_leds_off_on_exit_error_and_ctrl_c(pty_device):
     device, path = pty_device
-    with pytest.raises(ZeroDivisionError):
-        with LEDController(path, **FAST) as leds:
-            leds.on(3)
-            1 / 0
+    with pytest.raises(ZeroDivisionError), LEDController(path, **FAST) as leds:
+        leds.on(3)
+        1 / 0
     assert device.lit is None
-    with pytest.raises(KeyboardInterrupt):
-        with LEDController(path, **FAST) as leds:
-            leds.on(4)
-            raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt), LEDController(path, **FAST) as leds:
+        leds.on(4)
+        raise KeyboardInterrupt
     assert device.lit is None
 
 

@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 import serial
 
+from data_synth.simulated_rig import SimulatedCapture, SimulatedRig
 from psmini.errors import RigError
 from psmini.rig import LEDController, RigCamera
 from psmini.rig.protocol import MAX_LINE, WATCHDOG_DEFAULT_MS
 from psmini.rig.session import CaptureSession
-from data_synth.simulated_rig import SimulatedCapture, SimulatedRig
 from tests.rig._avr_emulator import (
     EmulatedBoard,
     build_bridge,

@@ -10,9 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from psmini.rig import firmware_path
-from psmini.rig import protocol
 from data_synth.simulated_rig import SimulatedDevice
+from psmini.rig import firmware_path, protocol
 
 SKETCH = firmware_path()
 HOST = Path(__file__).parent / "firmware_host"

@@ -11,12 +11,12 @@ import torch
 
 from data_synth import CARD_ALBEDO
 from data_synth.rig import RigConfig, focus_stack, write_synthetic_capture
+from data_synth.simulated_rig import SimulatedRig
 from psmini.autofocus import best_of_scores
 from psmini.errors import DataFormatError, RigError
 from psmini.evaluation import evaluate_sample
 from psmini.focus import brenner
 from psmini.io import load_sample, read_capture
-from data_synth.simulated_rig import SimulatedRig
 from psmini.rig import CaptureSession, LEDController, RigCamera, led_azimuths, nominal_ring_lights, write_with_card
 
 FAST = {"handshake_timeout_s": 0.5, "command_timeout_s": 0.2}

@@ -9,9 +9,16 @@ import numpy as np
 import pytest
 import serial
 
+from data_synth.simulated_rig import (
+    PtyLink,
+    SimulatedCapture,
+    SimulatedDevice,
+    SimulatedScene,
+    device_for_url,
+    serve_url,
+)
 from psmini.errors import RigError
 from psmini.rig.protocol import MAX_LINE
-from data_synth.simulated_rig import PtyLink, SimulatedCapture, SimulatedDevice, SimulatedScene, device_for_url, serve_url
 
 
 class Clock:
