@@ -4,8 +4,20 @@ import math
 import pytest
 import torch
 
-from psmini import (CalibrationError, DataFormatError, DirectionalLights, InputError, LEDLights, LightModel, PointLights,
-                    ShapeError, check_spans_3d, lights_from_dict, lights_to_dict, ring_lights)
+from psmini import (
+    CalibrationError,
+    DataFormatError,
+    DirectionalLights,
+    InputError,
+    LEDLights,
+    LightModel,
+    PointLights,
+    ShapeError,
+    check_spans_3d,
+    lights_from_dict,
+    lights_to_dict,
+    ring_lights,
+)
 from tests.conftest import BaseTester
 
 
@@ -143,5 +155,10 @@ class TestLightModel:
             lights_from_dict({"model": "laser", "directions": [[0, 0, 1]]})
         with pytest.raises(DataFormatError, match="lacks 'principal_directions'"):
             lights_from_dict({"model": "led", "positions_mm": [[0, 0, 10]] * 3})
+        # a model name that is not a string (a JSON list or object) is refused as unknown, not by a TypeError of
+        # the lookup in the kinds' dict (unhashable)
+        for model in (["led"], {"kind": "led"}):
+            with pytest.raises(DataFormatError, match="must be one of"):
+                lights_from_dict({"model": model, "positions_mm": [[0, 0, 10]] * 3})
         with pytest.raises(InputError, match="got Linear"):
             lights_to_dict(torch.nn.Linear(2, 2))

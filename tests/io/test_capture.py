@@ -171,6 +171,9 @@ class TestWriteErrors:
             ({"images": [[0.0]]}, "torch.Tensor or numpy"),
             ({"lights": DirectionalLights(ring_lights(4, 55.0))}, "8 images but 4 lights"),
             ({"lights": None}, "lights are required"),
+            # a tensor of directions is not a light model: an argument error, not a file format one
+            ({"lights": ring_lights(K, 55.0)}, "DirectionalLights, PointLights or LEDLights"),
+            ({"gt": {"lights": ring_lights(K, 55.0)}}, "DirectionalLights, PointLights or LEDLights"),
             ({"kind": "calibration"}, "kind must be one of"),
             ({"bit_depth": 14}, "bit_depth must be one of"),
             ({"pixel_pitch_mm": 0}, "pixel_pitch_mm"),
@@ -274,6 +277,7 @@ class TestReadErrors:
             ({"images": ["led_00.png"] * (K - 1)}, "7 images but the light model has 8 lights"),
             ({"lights": None}, "lights must be a light model"),
             ({"lights": {"model": "spot", "directions": [[0, 0, 1]] * K}}, "light model must be one of"),
+            ({"lights": {"model": ["directional"], "directions": [[0, 0, 1]] * K}}, "light model must be one of"),
             ({"bit_depth": 14}, "bit_depth must be one of"),
             ({"pixel_pitch_mm": -1}, "pixel_pitch_mm must be a positive number"),
             ({"pixel_pitch_mm": _DELETE}, "pixel_pitch_mm must be a positive number"),
