@@ -185,7 +185,7 @@ def confusion_png(path: Path, classes, matrices: dict[str, np.ndarray]) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, len(matrices), figsize=(6.2 * len(matrices), 5.4))
-    for ax, (title, matrix) in zip(np.atleast_1d(axes), matrices.items()):
+    for ax, (title, matrix) in zip(np.atleast_1d(axes), matrices.items(), strict=True):
         ax.imshow(matrix, cmap="Blues")
         for i in range(len(classes)):
             for j in range(len(classes)):

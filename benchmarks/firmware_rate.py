@@ -53,7 +53,8 @@ def round_trips(board: EmulatedBoard, count: int = 200) -> tuple[list[float], fl
     received = [cycle for cycle, line in board.received_lines(start)][:count]  # the command's stop bit
     replies = [line for line in board.lines(start) if line.data.startswith(b"OK ON")][:count]
     trips = []
-    for cycle, line, reply in zip(received, range(count), replies):
+    # at most count of each; a command the board did not echo is not timed (stops at the shortest)
+    for cycle, line, reply in zip(received, range(count), replies, strict=False):
         command_bytes = len(b"ON %d\n" % (line % 8))
         first_start_bit = cycle - command_bytes * BYTE_CYCLES
         trips.append(ms(reply.end + 10 * HZ / 117647 - first_start_bit))  # the reply's stop bit, at the AVR's baud

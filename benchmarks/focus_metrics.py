@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -209,14 +210,14 @@ def speed_section() -> tuple[str, dict]:
             agree = max(abs(impl[name](frames[0]) - expected) / max(abs(expected), 1e-12)
                         for impl in (numpy_impl, opencv_impl))
             calls = 200 if name in ("brenner", "wavelet", "contrast") else 20
-            t_single = per_call(lambda: func(single), calls)
+            t_single = per_call(partial(func, single), calls)
             threads = torch.get_num_threads()
             torch.set_num_threads(1)
-            t_one_thread = per_call(lambda: func(single), calls)
+            t_one_thread = per_call(partial(func, single), calls)
             torch.set_num_threads(threads)
-            t_batch = per_call(lambda: func(batch), max(2, calls // 16)) / len(frames)
-            t_numpy = per_call(lambda: numpy_impl[name](frames[0]), max(2, calls // 4))
-            t_opencv = per_call(lambda: opencv_impl[name](frames[0]), calls)
+            t_batch = per_call(partial(func, batch), max(2, calls // 16)) / len(frames)
+            t_numpy = per_call(partial(numpy_impl[name], frames[0]), max(2, calls // 4))
+            t_opencv = per_call(partial(opencv_impl[name], frames[0]), calls)
             baselines = {"NumPy": t_numpy, "OpenCV": t_opencv}
             if name == "brenner":
                 agree = max(agree, abs(opencv_brenner_norm(frames[0]) - expected) / expected)
@@ -359,7 +360,7 @@ def plot_curves(scores: dict, true_mm: float, fabric: str, path: Path) -> None:
         v = np.asarray(values)
         v = (v - v.min()) / max(v.max() - v.min(), 1e-300)
         colour = COLOURS[k % len(COLOURS)][::-1]  # RGB → BGR
-        points = np.array([[px(z), py(s)] for z, s in zip(GRID_MM, v)], np.int32)
+        points = np.array([[px(z), py(s)] for z, s in zip(GRID_MM, v, strict=True)], np.int32)
         cv2.polylines(canvas, [points], False, colour, 2, cv2.LINE_AA)
         cv2.line(canvas, (x1 + 20, y1 + 20 + 26 * k), (x1 + 50, y1 + 20 + 26 * k), colour, 3, cv2.LINE_AA)
         cv2.putText(canvas, name, (x1 + 58, y1 + 25 + 26 * k), font, 0.55, (0, 0, 0), 1, cv2.LINE_AA)

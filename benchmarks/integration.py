@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -78,14 +79,15 @@ def diligent_depth(root: Path, device: torch.device) -> tuple[list[list[object]]
         row: list[object] = [name]
         mask_np = mask[0, 0].numpy()
         for method in METHODS:
-            depth, seconds = timed(lambda: integrate_normals(normals, method, mask_d, intrinsics=k_d), device,
+            depth, seconds = timed(partial(integrate_normals, normals, method, mask_d, intrinsics=k_d), device,
                                    1 if method in SLOW else 3)
             error = aligned_error(depth[0, 0].cpu().numpy(), depth_gt, mask_np)
             means[method] += error / len(found)
             row += [error, seconds]
         gu, gv, scale = (t.cpu().numpy()[0, 0] for t in perspective_log_gradients(normals, k_d))
         depth = np.exp(numpy_naive_fc(gu * mask_np, gv * mask_np) / scale)
-        seconds = best_time(lambda: numpy_naive_fc(gu * mask_np, gv * mask_np), repeat=3, warmup=0)
+        seconds = best_time(lambda gu=gu, gv=gv, mask_np=mask_np: numpy_naive_fc(gu * mask_np, gv * mask_np),
+                            repeat=3, warmup=0)
         error = aligned_error(depth, depth_gt, mask_np)
         means["numpy naive fc"] += error / len(found)
         row += [error, seconds, PUBLISHED_BILATERAL[name]]
@@ -119,7 +121,7 @@ def analytic(device: torch.device) -> list[list[object]]:
         z, p, q = (t.expand(1, 1, height, width) * (size if t is z else 1.0) for t in (z, p, q))
         sel = torch.ones_like(z, dtype=torch.bool) if mask is None else mask
 
-        def rel(est: torch.Tensor) -> float:
+        def rel(est: torch.Tensor, z: torch.Tensor = z, sel: torch.Tensor = sel) -> float:  # this case's
             d = (est.cpu() - z)[sel]
             return float((d - d.mean()).pow(2).mean().sqrt() / (z[sel].max() - z[sel].min()))
 

@@ -54,7 +54,7 @@ def numpy_pipeline(images, reference, dark, lights, min_reference=0.02, min_nz=1
     card = reference - dark[0]
     trusted = card > min_reference * card.max(axis=(1, 2), keepdims=True)
     depths = []
-    for sample, sample_dark in zip(images, dark):
+    for sample, sample_dark in zip(images, dark, strict=True):
         signal = np.clip(sample - sample_dark, 0, None)
         flat = np.where(trusted, CARD_ALBEDO * signal / np.where(trusted, card, 1), 0)
         m = np.tensordot(pinv, flat, axes=(1, 0))
@@ -112,7 +112,7 @@ def torch_stages(model, tensors: dict, repeat: int) -> dict[str, float]:
     parts = chunks(images)
     flat = [flatfield(images[part], reference, dark[part], dark[:1], CARD_ALBEDO).images for part in parts]
     matrix = distant_light_matrix(model.lights, True, images)
-    albedo, normals = (torch.cat(x) for x in zip(*(albedo_normals(chunk, matrix) for chunk in flat)))
+    albedo, normals = (torch.cat(x) for x in zip(*(albedo_normals(chunk, matrix) for chunk in flat), strict=True))
     p, q = normals_to_gradients(normals)
     solved = albedo > 0
 

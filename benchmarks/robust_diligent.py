@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -260,7 +261,7 @@ def loop_time(method, values_np, lights_np, start, ours):
         rho0, n0 = start
         fits = [loop_nonlambertian(values_np[:, i], lights_np, rho0[i], n0[:, i]) for i in range(values_np.shape[1])]
         lobe = lobe_test(np.stack([f[2] for f in fits]))
-        loop_m = np.stack([f[0] if keep else f[1] for f, keep in zip(fits, lobe)], 1)
+        loop_m = np.stack([f[0] if keep else f[1] for f, keep in zip(fits, lobe, strict=True)], 1)
     else:
         loop_m = np.stack([loop_pixel(values_np[:, i], lights_np, method) for i in range(values_np.shape[1])], 1)
     per_pixel = (time.perf_counter() - begin) / values_np.shape[1]
@@ -339,7 +340,7 @@ def main(argv: list[str] | None = None) -> int:
         for method in methods:
             # the non-Lambertian fit takes seconds: time it once (its first run is the timed one)
             repeat, warmup = (1, 0) if method == "nonlambertian" else (args.repeat, 1)
-            seconds = best_time(lambda: torch_normals(images, lights, mask, method), repeat, warmup, args.device)
+            seconds = best_time(partial(torch_normals, images, lights, mask, method), repeat, warmup, args.device)
             normals = torch_normals(images, lights, mask, method)
             ours = normals[0][:, mask[0, 0]].double().cpu().numpy()
             if method == "rpca":

@@ -57,7 +57,7 @@ def reconstruct(name: str, size: int, pitch: float) -> tuple:
 def fabrics_figure(size: int, out: Path) -> str:
     fig, axes = plt.subplots(len(FABRICS), 4, figsize=(11, 2.6 * len(FABRICS)), constrained_layout=True)
     lines = []
-    for row, name in zip(axes, FABRICS):
+    for row, name in zip(axes, FABRICS, strict=True):
         capture, _, result, pitch = reconstruct(name, size, PITCH_MM)
         error = float(psmini.mean_angular_error(result.normals, capture.normals[None], capture.mask[None])[0])
         row[0].imshow(capture.images[0], cmap="gray", vmin=0, vmax=1, interpolation="nearest")
@@ -89,7 +89,7 @@ def nearlight_figure(size: int, out: Path) -> str:
             "near light (LED model)": near}
     fig, axes = plt.subplots(1, 3, figsize=(11, 3.4), constrained_layout=True)
     lines = []
-    for ax, (name, result) in zip(axes, runs.items()):
+    for ax, (name, result) in zip(axes, runs.items(), strict=True):
         error = psmini.angular_error_deg(result.normals, capture.normals[None])
         mean = float(psmini.mean_angular_error(result.normals, capture.normals[None], capture.mask[None])[0])
         viz.plot_angular_error(ax, error, capture.mask, limits=(0.0, 30.0), title=f"{name}: {mean:.1f}°")
@@ -135,7 +135,7 @@ def diligent_figure(data_root: Path, out: Path) -> str:
     fig, axes = plt.subplots(1, 3, figsize=(11, 3.8), constrained_layout=True)
     viz.plot_normals(axes[0], truth[:, window[0], window[1]], inside[window], title="cat: ground-truth normals")
     lines = []
-    for ax, method in zip(axes[1:], ("lstsq", "robust")):
+    for ax, method in zip(axes[1:], ("lstsq", "robust"), strict=True):
         result = psmini.reconstruct(sample, psmini.ReconstructionConfig(estimator=method))
         score = psmini.score_reconstruction(result, sample)["mean_angular_error_deg"]
         error = psmini.angular_error_deg(result.normals, truth[None])[0, 0]

@@ -21,7 +21,7 @@ def latest_sections(text: str) -> list[tuple[str, str]]:
     """``(title, body)`` of the last section of each ``## title`` in ``text``, in order of first appearance."""
     parts = re.split(r"^## (.+)$", text, flags=re.MULTILINE)
     latest: dict[str, str] = {}
-    for title, body in zip(parts[1::2], parts[2::2]):
+    for title, body in zip(parts[1::2], parts[2::2], strict=True):
         latest[title.strip()] = body.strip()
     order = list(dict.fromkeys(t.strip() for t in parts[1::2]))
     return [(title, latest[title]) for title in order]

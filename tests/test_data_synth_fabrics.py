@@ -79,7 +79,10 @@ def test_orientation_rotates_the_weave():
     straight = make_fabric("cotton", size=64, randomness=0.0, orientation_deg=0.0)
     turned = make_fabric("cotton", size=64, randomness=0.0, orientation_deg=90.0)
     # a quarter turn maps rows to columns (up to the weave's own phase): compare the row/column spectra
-    spectrum = lambda h, dim: torch.fft.rfft(h[0, 0].mean(dim=dim).double() - h.mean()).abs()
+
+    def spectrum(h, dim):
+        return torch.fft.rfft(h[0, 0].mean(dim=dim).double() - h.mean()).abs()
+
     assert torch.allclose(spectrum(straight.height_mm, 0), spectrum(turned.height_mm, 1), rtol=0.05, atol=1e-3)
 
 

@@ -283,7 +283,7 @@ def structure_errors(result, truth):
     assert len(result.threads_per_cm) == 2
     assert result.threads_per_cm[0] >= result.threads_per_cm[1]  # the denser first
     worst_d = worst_a = 0.0
-    for density, angle in zip(result.threads_per_cm, result.thread_angles_deg):
+    for density, angle in zip(result.threads_per_cm, result.thread_angles_deg, strict=True):
         best = min(truth, key=lambda t: abs((angle - t[1] + 90) % 180 - 90) / 10 + abs(density / t[0] - 1))
         worst_d = max(worst_d, abs(density / best[0] - 1))
         worst_a = max(worst_a, abs((angle - best[1] + 90) % 180 - 90))
@@ -344,7 +344,7 @@ class TestStructure:
         assert found.weave_repeat == 1
         assert found.threads_per_cm == pytest.approx([courses, wales], rel=0.01)  # the denser first
         expected = [orientation % 180, (orientation + 90) % 180]  # courses run along u, wales along v
-        for got, want in zip(found.thread_angles_deg, expected):
+        for got, want in zip(found.thread_angles_deg, expected, strict=True):
             assert abs((got - want + 90) % 180 - 90) < 0.5
 
     def test_repeat_ignores_incommensurate_peaks(self, device, dtype):

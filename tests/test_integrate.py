@@ -358,12 +358,12 @@ class TestMaskedLeastSquares(BaseTester):
         padded = F.pad(z, (1, 1, 1, 1))
         shifted = (padded[..., 1:-1, :-2], padded[..., 1:-1, 2:], padded[..., :-2, 1:-1], padded[..., 2:, 1:-1])
         applied = level.diag * z
-        for weight, neighbour in zip(level.neighbours, shifted):
+        for weight, neighbour in zip(level.neighbours, shifted, strict=True):
             applied.addcmul_(weight, neighbour, value=-1)
         assert torch.equal(level.apply(z), applied)
         scale, weights = level.jacobi
         swept = torch.add(r * scale, z, alpha=1 - _JACOBI_OMEGA)
-        for weight, neighbour in zip(weights, shifted):
+        for weight, neighbour in zip(weights, shifted, strict=True):
             swept.addcmul_(weight, neighbour)
         assert torch.equal(level.smooth(z, r, 1), swept)
         zeroed = torch.where(level.active, r, torch.zeros_like(r))

@@ -147,7 +147,7 @@ class TestLightModel:
         for model in self.models():
             back = lights_from_dict(json.loads(json.dumps(lights_to_dict(model))), dtype=torch.float64)
             assert type(back) is type(model)
-            for got, want in zip(back(points), model(points)):
+            for got, want in zip(back(points), model(points), strict=True):
                 torch.testing.assert_close(got, want)
 
     def test_bad_json_raises(self):

@@ -720,7 +720,7 @@ class TestKeptLightFields:
         assert again is first
         depth = torch.full((1, 1, 12, 10), 0.4)
         fresh = nearlight._LightField(_rig(), 24, 20, PITCH, 0.0, like, 2)
-        for kept, expected in zip(first(depth), fresh(depth)):
+        for kept, expected in zip(first(depth), fresh(depth), strict=True):
             assert torch.equal(kept, expected)
 
     def test_every_nth_pixel_equals_the_field_at_that_stride(self):
@@ -742,7 +742,7 @@ class TestKeptLightFields:
             sub = nearlight._LightField(model, 24, 20, PITCH, 0.0, like, 2).every(2)
             direct = nearlight._LightField(model, 24, 20, PITCH, 0.0, like, 4)
             assert sub.shape == direct.shape and sub.stride == 4
-            for a, b in zip(sub(depth), direct(depth)):
+            for a, b in zip(sub(depth), direct(depth), strict=True):
                 assert torch.equal(a, b)
         assert nearlight._noise_sample(torch.zeros(1, 8, 362, 362))(like) is like  # 131,044 pixels: all
         assert nearlight._noise_sample(torch.zeros(1, 8, 400, 400))(like).shape == (1, 8, 12, 10)

@@ -64,7 +64,7 @@ class TestAlbedoNormals(BaseTester):
     def test_module_equals_functional(self, device, dtype):
         lights = ring_lights(8, 55.0, device=device, dtype=dtype)
         images = torch.rand(2, 8, 5, 5, device=device, dtype=dtype)
-        for a, b in zip(LeastSquaresNormals(lights)(images), albedo_normals(images, lights)):
+        for a, b in zip(LeastSquaresNormals(lights)(images), albedo_normals(images, lights), strict=True):
             self.assert_close(a, b)
 
     @pytest.mark.parametrize("case", ["plain", "masked", "weighted", "zero pixel"])
@@ -97,7 +97,7 @@ class TestAlbedoNormals(BaseTester):
         mask = torch.rand(2, 1, 6, 5, device=device) > 0.3
         for m in (None, mask):
             for got, expected in zip(_solve_with_pinv(images, torch.linalg.pinv(lights), m),
-                                     albedo_normals(images, lights, m)):
+                                     albedo_normals(images, lights, m), strict=True):
                 self.assert_close(got, expected, rtol=1e-6 if dtype == torch.float32 else 1e-12, atol=1e-7)
 
     def test_bad_out_raise(self):

@@ -144,7 +144,10 @@ class TestRobustNormals(BaseTester):
         # where every light sees the surface, the glint is the only outlier
         lit = inside & (torch.einsum("kc,bchw->bkhw", lights, normals) > 0.05).all(1, keepdim=True)
         assert int(lit.sum()) > 100
-        error = lambda n: float(torch.rad2deg(torch.acos((n * normals).sum(1).clamp(-1, 1)))[lit[:, 0]].mean())
+
+        def error(n):
+            return float(torch.rad2deg(torch.acos((n * normals).sum(1).clamp(-1, 1)))[lit[:, 0]].mean())
+
         assert error(plain) > 5.0
         assert error(robust) < (0.05 if method == "tukey" else 0.3) * error(plain)
 
@@ -249,7 +252,10 @@ class TestRpca(BaseTester):
 
     def test_recovers_sparse_corruption(self, device, dtype):
         normals, albedo, lights, images = self._corrupted(device, dtype)
-        error = lambda n: angular_error_deg(n, normals)
+
+        def error(n):
+            return angular_error_deg(n, normals)
+
         assert float(error(albedo_normals(images, lights)[1]).mean()) > 10.0
         est_albedo, est = robust_normals(images, lights, "rpca")
         # measured: mean 0.004° and 1 pixel of 512 above 0.5° (several of its readings corrupted) in float64; mean
@@ -363,7 +369,10 @@ class TestCastShadows(BaseTester):
     def test_attached_shadow_stage_survives_cast_shadows(self, folds):
         """Measured (64 px, 48 lights): tukey 3.72°, without the attached-shadow stage 4.96°, trimmed 5.60°,
         least squares 8.34°, nonlambertian 2.05°."""
-        error = lambda n: float(mean_angular_error(n, folds.normals, folds.mask)[0])
+
+        def error(n):
+            return float(mean_angular_error(n, folds.normals, folds.mask)[0])
+
         args = (folds.images, folds.lights)
         plain = error(albedo_normals(*args, folds.mask)[1])
         trimmed = error(robust_normals(*args, "trimmed", folds.mask)[1])

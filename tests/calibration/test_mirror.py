@@ -32,7 +32,7 @@ def _true_directions(render):
 
 
 def test_perspective_directions_within_0_2_deg(placements):
-    for render, calibration in zip(*placements):
+    for render, calibration in zip(*placements, strict=True):
         assert calibration.model == "perspective"
         assert float(angle_deg(calibration.directions, _true_directions(render)).max()) < 0.2
 
@@ -45,7 +45,7 @@ def test_orthographic_directions_are_degrees_off(placements):
 
 
 def test_sphere_centre_in_space(placements):
-    for render, calibration in zip(*placements):
+    for render, calibration in zip(*placements, strict=True):
         truth = render.centre_mm.double() - render.camera_centre_mm.double()
         assert float((calibration.centre_mm.double() - truth).norm()) < 0.05
 

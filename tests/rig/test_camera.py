@@ -143,10 +143,10 @@ def test_read_fresh_discards_buffered_and_stale_frames():
 
 def test_read_fresh_gives_up_naming_the_reason():
     capture = FakeCapture([coded_frame(10)])
-    with RigCamera(0, backend="v4l2", flush_frames=2, max_stale_frames=3, open_capture=opener(capture)) as camera:
-        with pytest.raises(RigError, match="stale frame for LED 4: after discarding 2 buffered frames, 4 more were "
-                                           "still stale \\(still dark\\)"):
-            camera.read_fresh(lambda f: "still dark", "LED 4")
+    stale = "stale frame for LED 4: after discarding 2 buffered frames, 4 more were still stale \\(still dark\\)"
+    with (RigCamera(0, backend="v4l2", flush_frames=2, max_stale_frames=3, open_capture=opener(capture)) as camera,
+          pytest.raises(RigError, match=stale)):
+        camera.read_fresh(lambda f: "still dark", "LED 4")
 
 
 def side_lit(azimuth, size=32, level=0.5, dark=0.02):

@@ -43,7 +43,7 @@ def test_leds_off_on_exit_error_and_ctrl_c(pty_device):
     device, path = pty_device
     with pytest.raises(ZeroDivisionError), LEDController(path, **FAST) as leds:
         leds.on(3)
-        1 / 0
+        raise ZeroDivisionError("an error inside the block")
     assert device.lit is None
     with pytest.raises(KeyboardInterrupt), LEDController(path, **FAST) as leds:
         leds.on(4)
@@ -186,10 +186,10 @@ def test_faults_over_a_pty_end_in_a_rig_error_with_leds_off(fault, cause):
     device = SimulatedDevice(boot_s=0.02, fault=fault, fault_after=1)
     with PtyLink(device) as link:
         start = time.monotonic()
-        with pytest.raises(RigError, match=cause):
-            with LEDController(link.path, handshake_timeout_s=0.2, command_timeout_s=0.2) as leds:
-                leds.on(0)
-                leds.on(1)
+        with (pytest.raises(RigError, match=cause),
+              LEDController(link.path, handshake_timeout_s=0.2, command_timeout_s=0.2) as leds):
+            leds.on(0)
+            leds.on(1)
         assert time.monotonic() - start < 2.0
     assert device.lit is None
 

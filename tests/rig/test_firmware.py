@@ -109,7 +109,7 @@ def test_sketch_answers_like_the_simulated_device(host_firmware):
     firmware = result.stdout.splitlines()
     simulated = simulate(SCRIPT)
     assert len(firmware) == len(simulated)
-    for index, (ours, theirs) in enumerate(zip(firmware, simulated)):
+    for index, (ours, theirs) in enumerate(zip(firmware, simulated, strict=True)):
         assert ours == theirs, f"step {index}: firmware {bytes.fromhex(ours[4:]) if ours.startswith('OUT') else ours!r}"
     # and the exchange itself is what the protocol says
     replies = b"".join(bytes.fromhex(line[4:]) for line in firmware if line.startswith("OUT"))
