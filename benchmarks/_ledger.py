@@ -19,10 +19,11 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 def commit() -> str:
     """Short hash of HEAD, with ``+dirty`` when the tree has uncommitted changes to tracked files."""
     try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True)
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True,
+                              check=True)
         # the ledger itself does not count: appending to it is what a benchmark does
-        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "psmini", "benchmarks", ":!benchmarks/results.md"],
-                               cwd=REPO).returncode
+        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "psmini", "benchmarks",
+                                ":!benchmarks/results.md"], cwd=REPO).returncode
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
     return head.stdout.strip() + ("+dirty" if dirty else "")

@@ -16,8 +16,8 @@ Measured in the same run, each end-to-end run in its own child process (its peak
   files written (npy, png, json; NaN where unsolved);
 - the computation alone for both, on decoded samples in memory (torch: one batch, on one thread and on all);
 - near light end to end: ``psmini batch --light-model near`` (:func:`psmini.batch.reconstruct_dataset` with
-  ``ReconstructionConfig(solver="near")``) on the first ``--near-count`` captures (near light costs seconds per sample: its
-  throughput is recorded beside the distant one, not raced against the NumPy loop).
+  ``ReconstructionConfig(solver="near")``) on the first ``--near-count`` captures (near light costs seconds per sample:
+  its throughput is recorded beside the distant one, not raced against the NumPy loop).
 
     python benchmarks/batch_throughput.py [--count 200] [--batch-size 4] [--workers 2] [--repeat 2] [--near-count 8]
         [--no-record]
@@ -326,7 +326,8 @@ def main(argv: list[str] | None = None) -> int:
         count = near["count"]
         distant = runs[f"psmini batch (cpu, {args.workers} workers)"]
         rows.append([f"{label}, {count} captures", f"{count / near['seconds']:.3f}",
-                     f"{count / near['seconds'] / baseline_e2e:.3f}× ({count / near['seconds'] / (n / distant['seconds']):.3f}× distant)",
+                     f"{count / near['seconds'] / baseline_e2e:.3f}× "
+                     f"({count / near['seconds'] / (n / distant['seconds']):.3f}× distant)",
                      f"{near['cpu_s'] / count * 1e3:.0f}", "—", "—",
                      f"{near['decode_s'] / count * 1e3:.1f} / {near['compute_s'] / count * 1e3:.1f} / "
                      f"{near['write_s'] / count * 1e3:.1f}",
@@ -338,15 +339,18 @@ def main(argv: list[str] | None = None) -> int:
             f"renders hard-linked, one card), distant lights, depth written by both (npy + png + json, NaN where "
             f"unsolved; psmini adds its outputs.json resume marker and writes each folder atomically), no "
             f"ground-truth scoring. PNGs decoded by OpenCV in the NumPy loop, by psmini.io's reader in psmini "
-            f"({'its ISA-L fast path for OpenCV-written PNGs' if png_fast_path() else 'OpenCV: isal not installed'}). psmini on CPU: batch size {args.batch_size}, {args.workers} worker processes "
+            f"({'its ISA-L fast path for OpenCV-written PNGs' if png_fast_path() else 'OpenCV: isal not installed'}). "
+            f"psmini on CPU: batch size {args.batch_size}, {args.workers} worker processes "
             f"each decoding, solving and writing whole batches with {max(1, threads // max(args.workers, 1))} "
             f"torch thread(s), or everything in one process on 1 thread; NumPy single process. Compute alone: "
             f"psmini on one in-memory batch of {args.batch_size} on CPU"
             + (f" and {args.gpu_batch_size} on CUDA" if "compute cuda" in runs else "")
             + f"; NumPy on one sample. Best of {args.repeat} interleaved rounds. CPU ms/sample: user + system time of "
             "the run and its worker processes over the samples (less sensitive to other processes than the "
-            "wall clock; on idle cores the wall-clock ratio tends to cores used × the inverse CPU-time ratio). Decode / compute / write: "
-            f"per-sample sums over the run (in the workers, they run in parallel). {os.cpu_count()} CPU cores; load average {load_before:.1f} before the "
+            "wall clock; on idle cores the wall-clock ratio tends to cores used × the inverse CPU-time ratio). Decode "
+            "/ compute / write: "
+            f"per-sample sums over the run (in the workers, they run in parallel). {os.cpu_count()} CPU cores; load "
+            f"average {load_before:.1f} before the "
             f"measurements and {load_after:.1f} after (other processes share the cores). Depth agreement psmini vs "
             f"NumPy (float64, one sample): max |Δz| = {difference:.2e} mm over the solved pixels, and the same "
             f"pixels solved.")

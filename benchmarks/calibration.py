@@ -105,15 +105,16 @@ def main() -> None:
         distance = card_distance_from_spheres(chosen)
         positions = positions.double() + torch.tensor([0.0, 0.0, distance], dtype=torch.float64)
         error = (positions - truth_positions).norm(dim=-1).numpy()
-        position_rows.append([len(subset), ", ".join(rows[i][0] for i in subset), float(error.max()), float(error.mean()),
-                              float(residuals.max()), distance - config.working_distance_mm])
+        position_rows.append([len(subset), ", ".join(rows[i][0] for i in subset), float(error.max()),
+                              float(error.mean()), float(residuals.max()), distance - config.working_distance_mm])
     position_table = table(
         ["placements", "centres (mm)", "max error mm", "mean error mm", "max residual mm", "card distance error mm"],
         position_rows,
     )
     body = (
         f"data_synth `render_sphere`: mirror sphere of radius {RADIUS_MM} mm resting on the card, 8 LEDs on a 31.6 mm "
-        f"ring 10 mm up, pinhole camera {config.working_distance_mm} mm above the card ({config.size}×{config.size} px, "
+        f"ring 10 mm up, pinhole camera {config.working_distance_mm} mm above the card ({config.size}×{config.size} "
+        "px, "
         f"{config.pixel_pitch_mm} mm/px at the card), {'noise and ' if config.noise else ''}{config.bit_depth}-bit "
         "quantisation, float32 renders. Errors against the exact reflection points. psmini: perspective = "
         "silhouette found automatically + tangent-cone centre + sub-pixel highlight + ray reflection; orthographic = "

@@ -154,7 +154,8 @@ def against_baseline(right: np.ndarray, baseline: np.ndarray, who: str) -> str:
     """The accuracy difference of ``right`` over ``baseline`` (bool per test sample) in points, with the exact
     McNemar p-value of their discordant samples, as a table cell."""
     only, only_baseline = int((right & ~baseline).sum()), int((baseline & ~right).sum())
-    return (f"{100 * (right.mean() - baseline.mean()):+.1f} (exact McNemar p = {mcnemar_exact(only, only_baseline):.2g}: "
+    return (f"{100 * (right.mean() - baseline.mean()):+.1f} (exact McNemar p = "
+            f"{mcnemar_exact(only, only_baseline):.2g}: "
             f"{only} test samples only {who} get right, {only_baseline} only the baseline)")
 
 
@@ -281,7 +282,8 @@ def main(argv: list[str] | None = None) -> int:
         "\n".join(" ".join(f"{v:2d}" for v in row) for row in cm_s),
         "```",
         "",
-        f"Confusion matrices as a figure: `{args.figure.relative_to(REPO) if args.figure.is_relative_to(REPO) else args.figure}`; "
+        "Confusion matrices as a figure: "
+        f"`{args.figure.relative_to(REPO) if args.figure.is_relative_to(REPO) else args.figure}`; "
         f"model: `{args.model.relative_to(REPO) if args.model.is_relative_to(REPO) else args.model}` (JSON, format "
         f"{classifier.to_dict()['format']} v{classifier.to_dict()['version']}).",
     ]

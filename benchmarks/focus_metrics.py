@@ -8,9 +8,9 @@
    Gaussian derivative. Frames per second on the GPU (batches of 64) when CUDA is present. Times are the best of
    7 runs (the machine is shared; the minimum is the least disturbed estimate).
 2. Autofocus. For every fabric of ``data_synth.FABRICS``: one focus stack from ``data_synth.rig.focus_stack``
-   (``--size`` pixels, default 200, i.e. 5 mm at 0.025 mm/px; depth of field 2 mm; positions -4…4 mm every
-   0.25 mm; rendered without noise), then, per noise level, Gaussian read noise of that standard deviation (fraction of full scale, the
-   model of ``focus_stack``, drawn here so that one render serves many noisy sweeps), clipping and 8-bit
+   (``--size`` pixels, default 200, i.e. 5 mm at 0.025 mm/px; depth of field 2 mm; positions -4…4 mm every 0.25 mm;
+   rendered without noise), then, per noise level, Gaussian read noise of that standard deviation (fraction of full
+   scale, the model of ``focus_stack``, drawn here so that one render serves many noisy sweeps), clipping and 8-bit
    quantisation, as a webcam delivers. Sweeps are windows of 21 consecutive positions (5 mm) placed so the
    true plane (``focal_plane - mean cloth height``, the frame ``focus_stack`` documents as sharpest) falls at
    different places in the window. The stop rule (psmini's ``AutofocusController``: five smaller values after
@@ -87,7 +87,8 @@ def numpy_measures() -> dict:
         for du, dv in ((0, 1), (1, 0), (1, 1), (1, -1)):
             c0, c1 = max(0, -dv), w - max(0, dv)
             d = np.abs(g[: h - du, c0:c1] - g[du:, c0 + dv : c1 + dv])
-            total += d[1 : h - 1, 1 - c0 : w - 1 - c0].sum() + d[1 - du : h - 1 - du, 1 - dv - c0 : w - 1 - dv - c0].sum()
+            total += (d[1 : h - 1, 1 - c0 : w - 1 - c0].sum()
+                      + d[1 - du : h - 1 - du, 1 - dv - c0 : w - 1 - dv - c0].sum())
         return float(total) / ((h - 2) * (w - 2))
 
     def wavelet(u):
@@ -230,8 +231,9 @@ def speed_section() -> tuple[str, dict]:
                 baselines[fastest] / min(t_single, t_one_thread), baselines[fastest] / t_batch, f"{agree:.1e}",
             ])
             figures[name] = (min(t_single, t_one_thread), t_batch, baselines[fastest])
-    header = ["measure", "seed (s)", "torch 1 frame (ms)", "torch 1 frame, 1 thread (ms)", "torch batch 16 (ms/frame)", "NumPy (ms)", "OpenCV (ms)",
-              "OpenCV norm (ms)", "fastest baseline", "speed-up 1 frame", "speed-up batch", "rel. diff vs torch"]
+    header = ["measure", "seed (s)", "torch 1 frame (ms)", "torch 1 frame, 1 thread (ms)", "torch batch 16 (ms/frame)",
+              "NumPy (ms)", "OpenCV (ms)", "OpenCV norm (ms)", "fastest baseline", "speed-up 1 frame", "speed-up batch",
+              "rel. diff vs torch"]
     text = table(header, rows)
     text += (f"\n\ntorch {torch.get_num_threads()} threads, OpenCV {cv2.getNumThreads()} threads; speed-up = fastest "
              "baseline time / best torch single-frame time (> 1: torch faster). The OpenCV and NumPy baselines run "
@@ -312,10 +314,12 @@ def accuracy_section(stacks: dict, seeds: int) -> tuple[str, dict, dict]:
                         argmax_hits[m, noise] += abs(window[int(np.argmax(s))] - true_mm) <= STEP_MM + 1e-9
                         if noise == NOISE_LEVELS[-1]:
                             per_fabric[m, fabric] += hit
-    header = ["measure"] + [f"noise {n:g}: stop rule" for n in NOISE_LEVELS] + [f"noise {n:g}: argmax" for n in NOISE_LEVELS]
+    header = (["measure"] + [f"noise {n:g}: stop rule" for n in NOISE_LEVELS]
+              + [f"noise {n:g}: argmax" for n in NOISE_LEVELS])
     rows = [[m] + [f"{100 * hits[m, n] / sweeps[n]:.1f}%" for n in NOISE_LEVELS]
             + [f"{100 * argmax_hits[m, n] / sweeps[n]:.1f}%" for n in NOISE_LEVELS] for m in FOCUS_MEASURES]
-    text = (f"{sweeps[NOISE_LEVELS[0]]} sweeps per noise level ({len(stacks)} fabrics × {seeds} noise draws × windows); "
+    text = (f"{sweeps[NOISE_LEVELS[0]]} sweeps per noise level ({len(stacks)} fabrics × {seeds} noise draws × "
+            "windows); "
             f"hit = within {STEP_MM} mm (one step) of the true plane; positions visited or returned outside the "
             f"sweep's range: {outside}.\n\n" + table(header, rows))
     per_sweeps = sweeps[NOISE_LEVELS[-1]] // len(stacks)

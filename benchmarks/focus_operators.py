@@ -183,7 +183,8 @@ def figure(medians: dict[str, dict[str, float]], ranks: dict[str, float]) -> Non
     fig, ax = plt.subplots(figsize=(8.5, 9))
     image = ax.imshow(np.clip(data, 0, 2.0), cmap="viridis_r", aspect="auto", vmin=0, vmax=2.0)
     ax.set_xticks(range(len(conditions)), conditions, rotation=30, ha="right")
-    ax.set_yticks(range(len(order)), [f"{i + 1}. {code} ({FOCUS_OPERATORS[code].family})" for i, code in enumerate(order)])
+    ax.set_yticks(range(len(order)),
+                  [f"{i + 1}. {code} ({FOCUS_OPERATORS[code].family})" for i, code in enumerate(order)])
     for i in range(data.shape[0]):
         for j in range(data.shape[1]):
             ax.text(j, i, f"{data[i, j]:.2f}", ha="center", va="center", fontsize=7,
@@ -222,7 +223,8 @@ def main() -> int:
         "than NumPy.\n\n"
         + table(["operator", "family", "psmini (ms)", "torch path (ms)", "NumPy (ms)", "NumPy / psmini", "met"], rows)
         + f"\n\nSlowest global operator: {worst:.3f} ms. Brenner: psmini {brenner_ms * 1e3:.1f} µs, OpenCV fused "
-        f"absdiff + max + norm(NORM_L2SQR) {fused_ms * 1e3:.1f} µs (best of 5000 interleaved in alternating order; ratio "
+        f"absdiff + max + norm(NORM_L2SQR) {fused_ms * 1e3:.1f} µs (best of 5000 interleaved in alternating order; "
+        "ratio "
         f"{brenner_ms / fused_ms:.2f})."
     )
     print(parts[-1], flush=True)

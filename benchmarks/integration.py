@@ -65,7 +65,8 @@ def numpy_naive_fc(gu: np.ndarray, gv: np.ndarray) -> np.ndarray:
 
 
 def timed(func, device: torch.device, repeat: int = 3):
-    """Result of ``func`` and its best wall time of ``repeat`` (the CPU is shared; the best run is the least disturbed)."""
+    """Result of ``func`` and its best wall time of ``repeat`` (the CPU is shared; the best run is the least
+    disturbed)."""
     return func(), best_time(func, repeat=repeat, warmup=0, device=str(device))
 
 
@@ -154,14 +155,16 @@ def main() -> None:
     body = (
         "Perspective integration of the ground-truth normals with K (log-depth), every method with its defaults; "
         "depth aligned by the median ratio to depth_gt, mean absolute error over the mask (mm). Times: best of 3 "
-        "after a warm-up (bilateral: one run), wall clock, on a CPU shared with other jobs (single runs varied up to 20x). bilateral: Cao et al.'s energy (normal form, k = 2, relative energy tol 1e-4), this implementation.\n\n"
+        "after a warm-up (bilateral: one run), wall clock, on a CPU shared with other jobs (single runs varied up to "
+        "20x). bilateral: Cao et al.'s energy (normal form, k = 2, relative energy tol 1e-4), this implementation.\n\n"
         + table(header, rows)
         + "\n\nAnalytic surfaces, orthographic, 96×112 px, float64: relative RMSE (after the mean, / depth range).\n\n"
         + table(["surface", *METHODS, "numpy naive FC"], surfaces)
     )
     print(body)
     if not args.no_record:
-        append_results("Normal integration on DiLiGenT_depth and analytic surfaces (benchmarks/integration.py)", body, device)
+        append_results("Normal integration on DiLiGenT_depth and analytic surfaces (benchmarks/integration.py)", body,
+                       device)
 
 
 if __name__ == "__main__":

@@ -16,10 +16,9 @@ depth error: RMSE after removing the mean offset (the dome of the distant-light 
 
 Beside each case: the noise floor (per-pixel least squares at the TRUE surface with the TRUE LEDs on the same
 flat-fielded images, using exactly the lit, usable observations) and near_true's excess over it split in two (least
-squares at the true surface with near_true's selection of observations; at near_true's surface with the true
-selection), the share of scored pixels whose near-light depth
-(true LEDs, mean offset removed) is more than 0.1 mm off, near light's absolute height error (the mean offset itself), the
-alternations run, and the seconds of near light and of
+squares at the true surface with near_true's selection of observations; at near_true's surface with the true selection),
+the share of scored pixels whose near-light depth (true LEDs, mean offset removed) is more than 0.1 mm off, near light's
+absolute height error (the mean offset itself), the alternations run, and the seconds of near light and of
 the distant pipeline (flat-field, least squares, Frankot–Chellappa) in the same run. At the end, near light on a
 batch of 16 captures against 16 single calls (seconds per sample).
 
@@ -66,7 +65,8 @@ QUICK_FABRICS = ("cotton", "taffeta")
 
 def calibrate(config: RigConfig, device: torch.device) -> tuple[torch.nn.Module, dict[str, float]]:
     """LEDs fitted to the simulator's noisy card images at 0 and 1 mm; errors against the truth."""
-    cards = [render_card(config, CARD_ALBEDO, seed=10 + i, height_mm=h, device=device) for i, h in enumerate((0.0, 1.0))]
+    cards = [render_card(config, CARD_ALBEDO, seed=10 + i, height_mm=h, device=device)
+             for i, h in enumerate((0.0, 1.0))]
     start = time.perf_counter()
     fit = fit_leds(torch.stack([c.images for c in cards]), [0.0, 1.0], config.pixel_pitch_mm, "nominal",
                    card_albedo=CARD_ALBEDO, dark=torch.stack([c.dark for c in cards]), saturation_level=1.0)
@@ -79,7 +79,8 @@ def calibrate(config: RigConfig, device: torch.device) -> tuple[torch.nn.Module,
                         "seconds": seconds}
 
 
-def dome_error_um(difference: torch.Tensor, region: torch.Tensor, pixel_pitch_mm: float, sigma_mm: float = 1.0) -> float:
+def dome_error_um(difference: torch.Tensor, region: torch.Tensor, pixel_pitch_mm: float,
+                  sigma_mm: float = 1.0) -> float:
     """RMS over the region of the depth error low-passed at ``sigma_mm``: the dome, without the weave-scale error.
 
     Normalised convolution (the error outside the region does not leak in): blur(d·m) / blur(m).
@@ -155,7 +156,8 @@ def batch_speed(size: int, pitch: float, device: torch.device, count: int = 16) 
     faster kept: the machines are shared; the batch timed twice as well)."""
     config = RigConfig(size=size, pixel_pitch_mm=pitch, noise=True, bit_depth=8, intensity_spread=0.05)
     card = render_card(config, CARD_ALBEDO, device=device)
-    fabrics = [make_fabric(FULL_FABRICS[i % len(FULL_FABRICS)], size=size, pixel_pitch_mm=pitch, seed=0) for i in range(count)]
+    fabrics = [make_fabric(FULL_FABRICS[i % len(FULL_FABRICS)], size=size, pixel_pitch_mm=pitch, seed=0)
+               for i in range(count)]
     captures = [render_capture(f, config, height_offset_mm=0.5 * (i % 3), device=device) for i, f in enumerate(fabrics)]
     images, dark = torch.stack([c.images for c in captures]), torch.stack([c.dark for c in captures])
     lights = captures[0].lights
@@ -236,7 +238,8 @@ def stability_only(size: int, pitch: float, device: torch.device, args: argparse
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="two fabrics, 128 px, one offset: under a minute on a CPU")
-    parser.add_argument("--speed", action="store_true", help="only the speed of near light against the distant pipeline")
+    parser.add_argument("--speed", action="store_true",
+                        help="only the speed of near light against the distant pipeline")
     parser.add_argument("--stability", action="store_true",
                         help="only how far a change of one part in 10^7 of the card carries through near light")
     parser.add_argument("--json", action="store_true", help="last line: one JSON object of mean errors")
@@ -281,7 +284,8 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append([name, f"{offset:g}", "8-bit noisy" if noisy else "noise-free"]
                             + [f"{case[m]['angle_deg']:.3f} / {case[m]['depth_rmse_um']:.0f} / {case[m]['dome_um']:.1f}"
                                for m in METHODS]
-                            + [f"{case['floor']['angle_deg']:.3f}", f"{near_case['angle_deg'] - case['floor']['angle_deg']:+.3f}",
+                            + [f"{case['floor']['angle_deg']:.3f}",
+                               f"{near_case['angle_deg'] - case['floor']['angle_deg']:+.3f}",
                                f"{case['split']['selection'] - case['floor']['angle_deg']:+.3f} / "
                                f"{case['split']['depth'] - case['floor']['angle_deg']:+.3f}",
                                f"{near_case['depth_rmse_um'] / far_case['depth_rmse_um']:.2f}",
@@ -306,7 +310,8 @@ def main(argv: list[str] | None = None) -> int:
                       f"{sum(floors[True]) / len(floors[True]):.3f}", ""]])
     speed = batch_speed(size, pitch, device)
     note = (f"{len(fabrics)} fabrics × offsets {offsets} mm, {size}×{size} px at {pitch:.4f} mm/px, on {device}. "
-            f"Cells: mean angular error over cloth pixels with ≥ 3 usable LEDs (lit, unsaturated, card usable) / depth RMSE after removing "
+            "Cells: mean angular error over cloth pixels with ≥ 3 usable LEDs (lit, unsaturated, card usable) / depth "
+            "RMSE after removing "
             f"the mean offset / dome: RMS of that depth error low-passed at σ = 1 mm (normalised convolution over the "
             f"same pixels), the low-frequency bend without the weave-scale integration error. Of which selection / "
             f"depth: the excess over the floor of least squares at the true surface with near_true's selection of "
@@ -316,8 +321,10 @@ def main(argv: list[str] | None = None) -> int:
             f"{min(heights[True]):+.0f} to {max(heights[True]):+.0f} µm noisy. Near light on a batch "
             f"of 16 {size}² captures: {speed['batch']:.2f} s per sample, single calls {speed['single']:.2f} s per "
             f"sample (ratio {speed['batch'] / speed['single']:.2f}); distant pipeline {speed['far']:.3f} s per sample "
-            f"(near / distant {speed['single'] / speed['far']:.0f}×). LEDs calibrated from noisy 8-bit cards at 0 and 1 mm in {fit['seconds']:.1f} s: "
-            f"largest position error {fit['position_error_mm']:.3f} mm, intensity error {100 * fit['intensity_error']:.2f}%.")
+            f"(near / distant {speed['single'] / speed['far']:.0f}×). LEDs calibrated from noisy 8-bit cards at 0 and "
+            f"1 mm in {fit['seconds']:.1f} s: "
+            f"largest position error {fit['position_error_mm']:.3f} mm, intensity error "
+            f"{100 * fit['intensity_error']:.2f}%.")
     print(report)
     print(means)
     print(note)

@@ -118,12 +118,13 @@ def main(argv: list[str] | None = None) -> int:
             + [f"{worst[m]:.3f}", f"{rank[m]:.2f}" if m in rank else "—", f"{seconds[m]:.1f}"] for m in METHODS]
     report = table(["estimator"] + [f"{n} (°)" for n in names] + ["worst case (× best)", "mean rank", "total s"], rows)
     nl_ok = [n for n in names if errors[(n, "nonlambertian")] <= errors[(n, RECOMMENDED_ROBUST_METHOD)]]
+    excepted = (" (" + ", ".join(n for n in names if n not in nl_ok) + " excepted)") if len(nl_ok) < len(names) else ""
     note = (f"Mean angular error (°) over each case's mask. Worst case: the largest ratio, over the cases, of the "
             f"estimator's error to the best error of {', '.join(ROBUST_METHODS)} on that case; mean rank among those. "
             f"Least worst case: {chosen} ({worst[chosen]:.3f}); RECOMMENDED_ROBUST_METHOD = "
             f"{RECOMMENDED_ROBUST_METHOD} ({worst[RECOMMENDED_ROBUST_METHOD]:.3f}). nonlambertian no worse than "
             f"robust on {len(nl_ok)} of {len(names)} cases"
-            f"{' (' + ', '.join(n for n in names if n not in nl_ok) + ' excepted)' if len(nl_ok) < len(names) else ''}. Pixels: {pixels}. Stress set: data_synth.stress at {args.size}² px under DiLiGenT's 96 "
+            f"{excepted}. Pixels: {pixels}. Stress set: data_synth.stress at {args.size}² px under DiLiGenT's 96 "
             f"directions; fabrics at {args.fabric_size}² px, rig LEDs as distant lights. Defaults: "
             f"{RobustOptions().to_dict()}; {NonLambertianOptions().to_dict()}. {torch.get_num_threads()} thread(s).")
     print(report)

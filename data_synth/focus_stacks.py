@@ -199,7 +199,8 @@ def render_focus_stack(texture: Tensor, height_mm: Tensor, positions_mm: Tensor 
     frames = []
     for position in positions.tolist():  # a loop over frames, each a few whole-image operations
         sigma = (blur_per_mm * (height + position - focal_plane_mm).abs()).clamp(max=_LEVELS[-1])
-        upper = torch.searchsorted(levels, sigma.reshape(-1), right=True).clamp(1, len(_LEVELS) - 1).reshape(sigma.shape)
+        upper = torch.searchsorted(levels, sigma.reshape(-1), right=True).clamp(1, len(_LEVELS) - 1)
+        upper = upper.reshape(sigma.shape)
         low, high = levels[upper - 1], levels[upper]
         weight = ((sigma - low) / (high - low)).clamp(0, 1)
         below = layers.gather(0, (upper - 1)[None])[0]
@@ -223,7 +224,8 @@ def _blurred(texture: Tensor, sigma: float) -> Tensor:
     if sigma == 0:
         return texture
     size = min(2 * math.ceil(3 * sigma) + 1, 2 * (min(texture.shape) // 2) - 1)
-    return kornia.filters.gaussian_blur2d(texture[None, None], (size, size), (sigma, sigma), border_type="reflect")[0, 0]
+    blurred = kornia.filters.gaussian_blur2d(texture[None, None], (size, size), (sigma, sigma), border_type="reflect")
+    return blurred[0, 0]
 
 
 def focus_stack_of(surface: str, *, size: int = 96, frames: int = 15, depth_mm: float = 1.0, seed: int = 0,

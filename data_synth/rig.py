@@ -291,7 +291,8 @@ def defocus(images: Tensor, sigma_px: Tensor) -> Tensor:
         if b < low or a > high:
             continue
         weight_a = ((b - sigma) / (b - a)).clamp(0, 1) * ((sigma >= a) & (sigma < b))
-        weight_b = ((sigma - a) / (b - a)).clamp(0, 1) * ((sigma >= a) & ((sigma < b) | (index == len(_BLUR_LEVELS) - 2)))
+        inside = (sigma >= a) & ((sigma < b) | (index == len(_BLUR_LEVELS) - 2))
+        weight_b = ((sigma - a) / (b - a)).clamp(0, 1) * inside
         result = result + weight_a * _blur(images, a) + weight_b * _blur(images, b)
     return result
 
@@ -405,9 +406,10 @@ def render_card(config: RigConfig | None = None, albedo: float = CARD_ALBEDO, se
     return render_capture(card, config.replace(shadows=False), seed, lights=lights, device=device, dtype=dtype)
 
 
-def render_sphere(config: RigConfig | None = None, radius_mm: float = 1.5, centre_mm: tuple[float, float, float] | None = None,
-                  seed: int = 2, *, led_radius_mm: float = 1.0, background_albedo: float = 0.05,
-                  device: torch.device | str | None = None, dtype: torch.dtype = torch.float32) -> SphereCapture:
+def render_sphere(config: RigConfig | None = None, radius_mm: float = 1.5,
+                  centre_mm: tuple[float, float, float] | None = None, seed: int = 2, *, led_radius_mm: float = 1.0,
+                  background_albedo: float = 0.05, device: torch.device | str | None = None,
+                  dtype: torch.dtype = torch.float32) -> SphereCapture:
     """A mirror sphere (resting on the card unless ``centre_mm`` says otherwise) under each LED.
 
     Each pixel's perspective ray (see :class:`SphereCapture`) is intersected with the sphere and reflected about
@@ -448,7 +450,8 @@ def render_sphere(config: RigConfig | None = None, radius_mm: float = 1.5, centr
     highlight = torch.exp(-0.5 * miss2 / led_radius_mm**2) * (along > 0)
     card = render(depth_to_points(torch.zeros(1, 1, config.size, config.size, device=device, dtype=dtype),
                                   config.pixel_pitch_mm),
-                  torch.tensor([0.0, 0.0, 1.0], device=device, dtype=dtype).view(1, 3, 1, 1).expand(1, 3, config.size, config.size),
+                  torch.tensor([0.0, 0.0, 1.0], device=device, dtype=dtype).view(1, 3, 1, 1)
+                  .expand(1, 3, config.size, config.size),
                   torch.full((1, 1, config.size, config.size), background_albedo, device=device, dtype=dtype), leds)
     card = card * _gain(leds, config, card)
     signal = torch.where(on_sphere, 0.95 * highlight, card[0]) * _vignette(config, card)[0] + config.ambient

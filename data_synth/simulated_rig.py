@@ -316,7 +316,8 @@ class PtyLink:
     def __enter__(self) -> PtyLink:
         return self
 
-    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None) -> None:
+    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
+                 trace: TracebackType | None) -> None:
         self.close()
 
 
@@ -455,7 +456,8 @@ class SimulatedScene:
         if lit == "all" and self.target == "sample":
             return self._focus_frame()
         if lit == "all":  # light adds up: the sum of each LED's contribution above the dark frame
-            total = render["codes"].astype(np.int32).sum(0) - (len(render["codes"]) - 1) * render["dark"].astype(np.int32)
+            total = (render["codes"].astype(np.int32).sum(0)
+                     - (len(render["codes"]) - 1) * render["dark"].astype(np.int32))
             return np.clip(total, 0, 255).astype(np.uint8)
         return render["codes"][int(lit)]
 
@@ -637,7 +639,8 @@ class SimulatedRig:
     def __enter__(self) -> SimulatedRig:
         return self
 
-    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None) -> None:
+    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
+                 trace: TracebackType | None) -> None:
         self.close()
 
 

@@ -184,7 +184,8 @@ def make_stress_case(
         raise InputError(f"scene must be one of {sorted(STRESS_SCENES)}, got {name!r}")
     if not (isinstance(directions, Tensor) and directions.ndim == 2 and directions.shape[1] == 3
             and directions.shape[0] >= 3):
-        raise InputError(f"directions must be a (K, 3) tensor with K >= 3, got {getattr(directions, 'shape', directions)}")
+        raise InputError("directions must be a (K, 3) tensor with K >= 3, got "
+                         f"{getattr(directions, 'shape', directions)}")
     if size < 32:
         raise InputError(f"size must be at least 32 pixels, got {size}")
     if not 0 <= bounce < 1 or not full_well >= 0 or not read_noise >= 0 or not pixel_pitch_mm > 0:

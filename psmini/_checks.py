@@ -82,7 +82,8 @@ def check_mask(mask: Tensor | None, batch: int, height: int, width: int, name: s
         return None
     if not isinstance(mask, Tensor):
         raise InputError(f"{name} must be a torch.Tensor, got {type(mask).__name__}")
-    if mask.ndim != 4 or mask.shape[1] != 1 or tuple(mask.shape[2:]) != (height, width) or mask.shape[0] not in (1, batch):
+    if (mask.ndim != 4 or mask.shape[1] != 1 or tuple(mask.shape[2:]) != (height, width)
+            or mask.shape[0] not in (1, batch)):
         raise ShapeError(f"{name} must have shape ({batch}, 1, {height}, {width}), got {tuple(mask.shape)}")
     return mask.expand(batch, 1, height, width)
 

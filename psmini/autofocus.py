@@ -30,7 +30,8 @@ from torch import Tensor
 from psmini.errors import InputError
 from psmini.focus import FocusMeasure, Roi
 
-__all__ = ["AutofocusController", "AutofocusResult", "autofocus_sweep", "best_of_scores", "refine_peak", "sweep_positions"]
+__all__ = ["AutofocusController", "AutofocusResult", "autofocus_sweep", "best_of_scores", "refine_peak",
+           "sweep_positions"]
 
 logger = logging.getLogger(__name__)
 

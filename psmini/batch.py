@@ -465,7 +465,8 @@ def _samples_under(root: Path) -> tuple[list[Path], dict[str, str]]:
 
     scan = scan_samples(root)
     if not scan.samples and not scan.problems:
-        raise InputError(f"no sample folders (capture.json, or DiLiGenT filenames.txt + light_directions.txt) under {root}")
+        raise InputError(f"no sample folders (capture.json, or DiLiGenT filenames.txt + light_directions.txt) "
+                         f"under {root}")
     return scan.samples, {_relative(root, path): message for path, message in scan.problems.items()}
 
 
@@ -725,7 +726,8 @@ def reconstruct_dataset(
     elif device.type == "cpu":
         stream = _local_chunks(root, out, todo, settings, batch_size, workers)
     else:
-        stream = (_finish(out, solved, settings) for solved in _solved_stream(root, todo, settings, batch_size, workers))
+        solved_stream = _solved_stream(root, todo, settings, batch_size, workers)
+        stream = (_finish(out, solved, settings) for solved in solved_stream)
     for record in stream:
         records[record.sample] = record
         if progress is not None:

@@ -313,7 +313,8 @@ def _stack_dark(dark: Tensor | Sequence[Tensor | None] | None, like: Tensor) -> 
         dark = torch.stack([torch.zeros(1, height, width, dtype=like.dtype, device=like.device) if d is None
                             else d.to(like) for d in dark])
     check_tensor(dark, "dark")
-    if dark.ndim != 4 or dark.shape[1] != 1 or dark.shape[0] not in (1, count) or tuple(dark.shape[2:]) != (height, width):
+    if (dark.ndim != 4 or dark.shape[1] != 1 or dark.shape[0] not in (1, count)
+            or tuple(dark.shape[2:]) != (height, width)):
         raise ShapeError(f"dark must have shape ({count}, 1, {height}, {width}) or (1, 1, {height}, {width}), "
                          f"got {tuple(dark.shape)}")
     return check_finite(dark, "dark").to(like)
@@ -542,8 +543,9 @@ def fit_leds(
     The camera's per-pixel gain × vignetting is eliminated in closed form (see the module's docstring), so the
     result does not depend on it, and intensities are relative: they are scaled to average 1. Two stages, each
     started from the previous: ``point`` (positions and intensities, the beams held at the start's) and ``led``
-    (every parameter). Each stage runs up to ``options.iterations`` optimiser iterations; L-BFGS (the default) projects onto
-    the constraints every 20 iterations and stops when the loss no longer changes, Adam projects after every step. The fit runs in float64 on the images' device, on images averaged down to at most
+    (every parameter). Each stage runs up to ``options.iterations`` optimiser iterations; L-BFGS (the default)
+    projects onto the constraints every 20 iterations and stops when the loss no longer changes, Adam projects after
+    every step. The fit runs in float64 on the images' device, on images averaged down to at most
     ``options.max_size`` pixels a side.
 
     Args:
@@ -555,8 +557,8 @@ def fit_leds(
             field centre, :math:`\mu = 1`); an object with ``ring_diameter_mm`` and ``led_height_mm`` (such as
             ``data_synth.rig.RigConfig``); an ``LEDLights`` or ``PointLights`` (positions; point lights get beams
             toward the field centre and ``options.mu_init``); a ``DirectionalLights`` or a :math:`(K, 3)` tensor of
-            directions (a mirror-sphere calibration: positions along them at ``options.nominal_distance_mm``); or a light
-            object of ``docs/capture-format.md``.
+            directions (a mirror-sphere calibration: positions along them at ``options.nominal_distance_mm``); or a
+            light object of ``docs/capture-format.md``.
         card_albedo: the card's albedo, or one per height when different cards were used (only ratios between
             heights matter: one overall scale goes into the gain).
         dark: dark frames to subtract, shape :math:`(N, 1, H, W)` or :math:`(1, 1, H, W)` or a list of N
@@ -597,7 +599,8 @@ def fit_leds(
     heights = _per_height(heights_mm, count, "heights_mm", positive=False)
     albedo = _per_height(card_albedo, count, "card_albedo", positive=True)
     if count * leds < 2:
-        raise CalibrationError(f"the fit needs at least two card images in all (the gain absorbs one), got {count * leds}")
+        raise CalibrationError("the fit needs at least two card images in all (the gain absorbs one), "
+                               f"got {count * leds}")
     check_finite(images, "card_images")
     dark_frames = _stack_dark(dark, images)
     distance = options.nominal_distance_mm if options.nominal_distance_mm is not None else math.hypot(

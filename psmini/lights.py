@@ -126,7 +126,8 @@ def _check_points(points: Tensor) -> dict[str, int]:
 
 
 def _as_parameter(x: Tensor, learnable: bool) -> Tensor:
-    """A fresh ``nn.Parameter`` when learnable; otherwise ``x`` itself, so gradients flow back to the caller's tensor."""
+    """A fresh ``nn.Parameter`` when learnable; otherwise ``x`` itself, so gradients flow back to the caller's
+    tensor."""
     return nn.Parameter(x.detach().clone()) if learnable else x
 
 
@@ -211,7 +212,8 @@ def lights_to_dict(lights: LightModel) -> dict[str, Any]:
     """
     if not isinstance(lights, LightModel):
         raise InputError(
-            f"lights must be DirectionalLights, PointLights or LEDLights from psmini.lights, got {type(lights).__name__}"
+            "lights must be DirectionalLights, PointLights or LEDLights from psmini.lights, "
+            f"got {type(lights).__name__}"
         )
     return lights.to_dict()
 
@@ -269,7 +271,8 @@ class DirectionalLights(LightModel):
         check_shape(intensities, ["K"], "intensities")
         if intensities.shape[0] != directions.shape[0]:
             raise ShapeError(
-                f"intensities ({intensities.shape[0]}) and directions ({directions.shape[0]}) must count the same lights"
+                f"intensities ({intensities.shape[0]}) and directions ({directions.shape[0]}) must count the same "
+                "lights"
             )
         if bool((intensities <= 0).any()) or not bool(torch.isfinite(intensities).all()):
             raise CalibrationError(f"intensities must be positive and finite, got {intensities.tolist()}")
@@ -361,7 +364,8 @@ class LEDLights(PointLights):
     """
 
     kind = "led"
-    _FIELDS = (("positions_mm", 2, False), ("principal_directions", 2, False), ("intensities", 1, True), ("mu", 1, True))
+    _FIELDS = (("positions_mm", 2, False), ("principal_directions", 2, False), ("intensities", 1, True),
+               ("mu", 1, True))
 
     def __init__(
         self,

@@ -89,7 +89,8 @@ def median_angular_error(normals: Tensor, normals_gt: Tensor, mask: Tensor | Non
     return torch.stack([e[k].median() for e, k in zip(errors, keep, strict=True)])
 
 
-def depth_error(depth: Tensor, depth_gt: Tensor, mask: Tensor | None = None, align: str = "offset") -> dict[str, Tensor]:
+def depth_error(depth: Tensor, depth_gt: Tensor, mask: Tensor | None = None,
+                align: str = "offset") -> dict[str, Tensor]:
     """Depth error after alignment, over a mask; NaN in ``depth_gt`` counts as outside the mask.
 
     Args:

@@ -12,12 +12,12 @@ exactly: the card at height :math:`h_c` reads :math:`\rho_c E_k(x_c)\,(e_z \cdot
 reads :math:`\rho\,n \cdot L_k(x) / (E_k(x_c)\,l_{k,z}(x_c))`, with :math:`x_c` the point of the card seen by the same
 pixel. The camera's gain and vignetting cancel, and so do the LEDs' intensities; what remains is the geometry.
 
-The absolute height of the cloth is observable because the light field is not uniform: the per-pixel
-least-squares residual is zero only at the true height (noise-free, Lambertian). The solver finds the height
-offset by a scan of that residual on a coarse pixel grid in the first alternation, then refines it by parabolic
-(Newton) steps in later ones, a few batched evaluations of the light model on every fourth pixel. With a card it is sharp (about a micrometre on noise-free renders of the
-rig); on raw images the height shows only through the inverse-square law's variation across the field and is
-found to tens of micrometres.
+The absolute height of the cloth is observable because the light field is not uniform: the per-pixel least-squares
+residual is zero only at the true height (noise-free, Lambertian). The solver finds the height offset by a scan of that
+residual on a coarse pixel grid in the first alternation, then refines it by parabolic (Newton) steps in later ones, a
+few batched evaluations of the light model on every fourth pixel. With a card it is sharp (about a micrometre on
+noise-free renders of the rig); on raw images the height shows only through the inverse-square law's variation across
+the field and is found to tens of micrometres.
 
 Near light is a stage of the pipeline (:func:`solve_near_light`): it takes images that are already flat-fielded
 (:func:`psmini.flatfield.flatfield`) with their validity, and returns albedo, normals, depth and the solved mask.
@@ -608,7 +608,8 @@ def _first_and_third(x: Tensor) -> tuple[Tensor, Tensor]:
 
 def _median(values: Tensor, usable: Tensor) -> Tensor:
     """Median of ``values`` over the ``usable`` pixels of each batch item, (B, 1, 1, 1); 0 where none."""
-    medians = [v.masked_select(u).median() if bool(u.any()) else v.new_zeros(()) for v, u in zip(values, usable, strict=True)]
+    medians = [v.masked_select(u).median() if bool(u.any()) else v.new_zeros(())
+               for v, u in zip(values, usable, strict=True)]
     return torch.stack(medians).view(-1, 1, 1, 1)
 
 
@@ -936,20 +937,21 @@ class _Rejection:
         return _choose(enough, proposal, fallback)
 
 
-def _select(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, Tensor, Tensor, Tensor], used: Tensor, fit: tuple,
+def _select(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, Tensor, Tensor, Tensor], used: Tensor,
+            fit: tuple,
             albedo: Tensor, normals: Tensor, mask: Tensor | None, updates: int,
             highlight_rounds: int | None = None) -> tuple[Tensor, tuple, Tensor, Tensor]:
     """Highlight rounds (at most ``highlight_rounds``, K - 3 by default, each dropping at most one observation per
     pixel), the noise model and the shadows below its level (:meth:`_Rejection.settle_noise_model`), then
     ``updates`` full updates of the selection, re-solving after each change; returns the selection and its fit.
 
-    Each pixel's update depends on that pixel alone once the noise levels are known (estimated over the image
-    before each phase, :func:`_noise_sample`), and it returns a selection that the last update left unchanged unchanged again (its fit,
-    and so its tests, are the same; the highlight and shadow maps only grow by what they already hold). So only the
-    first update of a phase runs on every pixel, band by band of image rows (:func:`_row_bands`: its dozens of
-    passes stay in the core's cache, 47 against 74 ms on a 400² capture); the fits, and the updates after the first,
-    run on the pixels that changed, packed (:class:`_Pixels`; 1-5% of a fabric's), until a round changes none.
-    The selection and the fits are those of re-solving every pixel after every round.
+    Each pixel's update depends on that pixel alone once the noise levels are known (estimated over the image before
+    each phase, :func:`_noise_sample`), and it returns a selection that the last update left unchanged unchanged again
+    (its fit, and so its tests, are the same; the highlight and shadow maps only grow by what they already hold). So
+    only the first update of a phase runs on every pixel, band by band of image rows (:func:`_row_bands`: its dozens of
+    passes stay in the core's cache, 47 against 74 ms on a 400² capture); the fits, and the updates after the first, run
+    on the pixels that changed, packed (:class:`_Pixels`; 1-5% of a fabric's), until a round changes none. The selection
+    and the fits are those of re-solving every pixel after every round.
     """
     highlight_rounds = (images.shape[1] - 3) if highlight_rounds is None else highlight_rounds
     state = _owned((used, fit, albedo, normals))  # written in place from here on
@@ -969,7 +971,8 @@ def _owned(state):
     return tuple(_owned(x) for x in state) if isinstance(state, tuple) else state.clone()
 
 
-def _rounds(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, Tensor, Tensor, Tensor], mask: Tensor | None, state: tuple,
+def _rounds(rejection: _Rejection, images: Tensor, vectors: tuple[Tensor, Tensor, Tensor, Tensor],
+            mask: Tensor | None, state: tuple,
             rounds: int, highlights_only: bool) -> None:
     """Up to ``rounds`` updates of the selection of one phase of :func:`_select`, re-solving after each change, the
     state ``(used, fit, albedo, normals)`` written in place; stops at the first round that changes nothing."""
@@ -1898,7 +1901,8 @@ def refine_depth(
         >>> from psmini.lights import PointLights
         >>> lights = PointLights(torch.tensor([[10.0, 0, 10], [-10.0, 0, 10], [0, 10.0, 10], [0, -10.0, 10]]))
         >>> images = torch.rand(1, 4, 8, 8) + 0.5
-        >>> depth, albedo, losses = refine_depth(images, lights, torch.zeros(1, 1, 8, 8), 0.1, options=RefineOptions(scales=(1,), steps=3))
+        >>> options = RefineOptions(scales=(1,), steps=3)
+        >>> depth, albedo, losses = refine_depth(images, lights, torch.zeros(1, 1, 8, 8), 0.1, options=options)
         >>> depth.shape
         torch.Size([1, 1, 8, 8])
     """
@@ -1957,7 +1961,8 @@ def _shading_and_albedo(images, light_model, depth, pitch, weights, card_height_
     normals = normals_from_height(depth, pitch)
     vectors = near_light_vectors(light_model, depth, pitch, card_height_mm)
     shading = (vectors * normals[:, None]).sum(dim=2).clamp_min(0)
-    albedo = (weights * images * shading).sum(1, keepdim=True) / (weights * shading.square()).sum(1, keepdim=True).clamp_min(1e-12)
+    albedo = ((weights * images * shading).sum(1, keepdim=True)
+              / (weights * shading.square()).sum(1, keepdim=True).clamp_min(1e-12))
     return shading, albedo
 
 

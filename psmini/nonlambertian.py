@@ -67,7 +67,8 @@ from psmini.robust import (
     threshold_weights,
 )
 
-__all__ = ["BlinnPhongFit", "NonLambertianNormals", "NonLambertianOptions", "blinn_phong_images", "fit_blinn_phong", "nonlambertian_normals"]
+__all__ = ["BlinnPhongFit", "NonLambertianNormals", "NonLambertianOptions", "blinn_phong_images", "fit_blinn_phong",
+           "nonlambertian_normals"]
 
 # Pixels solved together: the (chunk, K) arrays of one iteration stay in cache (the normal equations ran ~5x faster
 # in blocks of 4096 pixels than over DiLiGenT cat's 45,200 at once, one CPU thread).
@@ -311,7 +312,8 @@ def _starts(values: Tensor, usable: Tensor, albedo: Tensor, normals: Tensor, lig
                                                                        usable, sigma)
 
     # options.shininess is never empty (NonLambertianOptions checks it)
-    starts = [(start_normals, exponent) for start_normals in (normals, peak, bisector) for exponent in options.shininess]
+    starts = [(start_normals, exponent)
+              for start_normals in (normals, peak, bisector) for exponent in options.shininess]
     best, best_cost = candidate(*starts[0])
     for start in starts[1:]:
         state, cost = candidate(*start)
@@ -466,8 +468,8 @@ def _fit_chunked(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor,
     if not parts:
         return [albedo, normals, albedo, albedo]
     # the test of the lobe takes one noise level for the whole image: all blocks first, then the choice
-    albedo_fit, normals_fit, specular, shininess, albedo_start, normals_start, statistics = [torch.cat(x)
-                                                                                             for x in zip(*parts, strict=True)]
+    albedo_fit, normals_fit, specular, shininess, albedo_start, normals_start, statistics = [
+        torch.cat(x) for x in zip(*parts, strict=True)]
     lobe = _keep_lobe(statistics, options.significance)[:, None]
     maps = [torch.where(lobe, albedo_fit, albedo_start), torch.where(lobe, normals_fit, normals_start),
             torch.where(lobe, specular, torch.zeros_like(specular)),

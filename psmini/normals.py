@@ -26,7 +26,8 @@ __all__ = ["albedo_normals", "LeastSquaresNormals", "normals_to_gradients", "sol
 _RANK_RATIO = 1e-6
 
 
-def _unit_and_length(m: Tensor, solved: Tensor | None, out: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+def _unit_and_length(m: Tensor, solved: Tensor | None,
+                     out: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """Split m (B, 3, H, W) into albedo |m| and unit normal; (0, 0, 1) and albedo 0 where not solved.
 
     ``solved`` (B, 1, H, W) marks well-posed pixels; ``None`` means all. Pixels with |m| = 0 count as not solved.
@@ -93,7 +94,8 @@ def _check_weights(weights: Tensor | None, shape: torch.Size) -> Tensor | None:
     if weights is None:
         return None
     if not isinstance(weights, Tensor) or not (weights.dtype == torch.bool or weights.is_floating_point()):
-        raise InputError(f"weights must be a bool or floating-point tensor, got {getattr(weights, 'dtype', type(weights))}")
+        raise InputError("weights must be a bool or floating-point tensor, "
+                         f"got {getattr(weights, 'dtype', type(weights))}")
     if weights.shape != shape:
         raise ShapeError(f"weights must have the shape of the intensities {tuple(shape)}, got {tuple(weights.shape)}")
     if weights.dtype != torch.bool:
@@ -319,7 +321,8 @@ class LeastSquaresNormals(nn.Module):
 
 
 def normals_to_gradients(normals: Tensor, min_nz: float = 1e-2, *, out: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    r"""Surface gradients :math:`p = \partial z / \partial x = -n_x / n_z` and :math:`q = \partial z / \partial y = -n_y / n_z`.
+    r"""Surface gradients :math:`p = \partial z / \partial x = -n_x / n_z` and
+    :math:`q = \partial z / \partial y = -n_y / n_z`.
 
     x points right and y up (so along image rows, downward, the height changes by :math:`-q` per pixel step).
     A normal with :math:`n_z \le` ``min_nz`` (grazing, or facing away from the camera, which a surface seen by the

@@ -306,7 +306,8 @@ def reconstruct(sample, config: ReconstructionConfig | None = None) -> Reconstru
     Example:
         >>> from psmini.io import Sample
         >>> from psmini.lights import DirectionalLights, ring_lights
-        >>> sample = Sample(name="random", images=torch.rand(8, 16, 16) + 0.1, lights=DirectionalLights(ring_lights(8, 55.0)))
+        >>> lights = DirectionalLights(ring_lights(8, 55.0))
+        >>> sample = Sample(name="random", images=torch.rand(8, 16, 16) + 0.1, lights=lights)
         >>> reconstruct(sample).normals.shape
         torch.Size([1, 3, 16, 16])
     """

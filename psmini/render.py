@@ -320,7 +320,8 @@ class Renderer(nn.Module):
         if shadows and pixel_pitch_mm is None:
             raise InputError("Renderer(shadows=True) needs pixel_pitch_mm")
         self.light_model = light_model
-        self.shininess, self.shadows, self.pixel_pitch_mm = check_positive(shininess, "shininess"), shadows, pixel_pitch_mm
+        self.shininess = check_positive(shininess, "shininess")
+        self.shadows, self.pixel_pitch_mm = shadows, pixel_pitch_mm
 
     def forward(self, points: Tensor, normals: Tensor, albedo: Tensor, specular: Tensor | None = None) -> Tensor:
         """Images, shape :math:`(B, K, H, W)`."""

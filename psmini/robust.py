@@ -515,10 +515,10 @@ def _solve_one(
 ) -> tuple[Tensor, Tensor]:
     """Robust m (3, N) and solvability (N,) for the pixel rows (N, K) of one batch element.
 
-    The IRLS estimators run the scheme of the module docstring: the more consistent of least squares on the
-    thresholded readings and on their rank-trimmed band, ``iterations - shadow_iterations`` IRLS iterations on the thresholded readings, ``shadow_iterations``
-    more that also leave out the readings the current estimate puts in attached shadow, and per pixel the more
-    consistent of the last two estimates (:func:`_more_consistent`).
+    The IRLS estimators run the scheme of the module docstring: the more consistent of least squares on the thresholded
+    readings and on their rank-trimmed band, ``iterations - shadow_iterations`` IRLS iterations on the thresholded
+    readings, ``shadow_iterations`` more that also leave out the readings the current estimate puts in attached shadow,
+    and per pixel the more consistent of the last two estimates (:func:`_more_consistent`).
     """
     kept = _rejection(rows, base, method, options)
     if method in ("trimmed", "threshold"):

@@ -5,9 +5,10 @@
 
 Figures:
 
-- ``fabrics.png``: synthetic jute, knit, net and lurex (crops at the rig's 0.025 mm per pixel) captured by the simulated rig (one LED image) and
-  reconstructed by near-light photometric stereo: albedo, normal map (RGB = (n + 1) / 2), depth as a hill-shaded
-  relief in viridis with its colour bar (µm) and a scale bar (``psmini.viz``);
+- ``fabrics.png``: synthetic jute, knit, net and lurex (crops at the rig's 0.025 mm per pixel) captured by the
+  simulated rig (one LED image) and reconstructed by near-light photometric stereo: albedo, normal map
+  (RGB = (n + 1) / 2), depth as a hill-shaded relief in viridis with its colour bar (µm) and a scale bar
+  (``psmini.viz``);
 - ``nearlight.png``: angular error of distant lights (raw, then flat-fielded by the card) and near light on jute,
   the whole 10 mm field;
 - ``focus.png``: every focus measure over a synthetic focus stack, each normalised to its maximum;

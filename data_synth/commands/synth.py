@@ -24,7 +24,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "and DIR/card (the matte card under each LED, for flat-fielding; a card already in DIR from an earlier "
         "synth of the same rig is kept, so several fabrics share one folder as one rig session's captures do).",
     )
-    parser.add_argument("fabric", choices=_fabric_names(), metavar="FABRIC", help=f"one of {', '.join(_fabric_names())}")
+    parser.add_argument("fabric", choices=_fabric_names(), metavar="FABRIC",
+                        help=f"one of {', '.join(_fabric_names())}")
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="parent folder of the two captures")
     parser.add_argument("--seed", type=int, default=0, help="seed of the fabric and the noise (default: 0)")
     parser.add_argument("--size", type=int, default=400, help="side of the square crop, pixels (default: 400)")

@@ -108,7 +108,8 @@ def locate_highlights(
     if dark is not None:
         dark = dark.reshape(-1, *dark.shape[-2:]) if dark.ndim >= 2 else dark
         if dark.ndim != 3 or dark.shape[0] != 1 or tuple(dark.shape[1:]) != (height, width):
-            raise ShapeError(f"dark must have shape ({height}, {width}) or (1, {height}, {width}), got {tuple(dark.shape)}")
+            raise ShapeError(f"dark must have shape ({height}, {width}) or (1, {height}, {width}), "
+                             f"got {tuple(dark.shape)}")
         signal = images - dark.to(images)
     centre = centre_px.to(images)
     radius = torch.as_tensor(radius_px, device=images.device, dtype=images.dtype)

@@ -132,7 +132,8 @@ def _plane(frame: Tensor | None, height: int, width: int, name: str) -> Tensor |
     if frame.ndim == 3 and frame.shape[0] == 1:
         frame = frame[0]
     if frame.ndim != 2 or tuple(frame.shape) != (height, width):
-        raise ShapeError(f"{name} must have shape ({height}, {width}) or (1, {height}, {width}), got {tuple(frame.shape)}")
+        raise ShapeError(f"{name} must have shape ({height}, {width}) or (1, {height}, {width}), "
+                         f"got {tuple(frame.shape)}")
     return frame
 
 

@@ -467,7 +467,8 @@ def sphere_centre_from_silhouette(
     w = torch.linalg.solve_triangular(r, q.transpose(-2, -1) @ target, upper=True)[:, 0]
     norm = w.norm()
     if not bool(norm > 1):
-        raise CalibrationError(f"the sphere's outline does not form a cone around a sphere (|w| = {float(norm):.4g} <= 1)")
+        raise CalibrationError("the sphere's outline does not form a cone around a sphere "
+                               f"(|w| = {float(norm):.4g} <= 1)")
     sin_alpha = (1 - 1 / norm.square()).sqrt()
     return w / norm * (radius_mm / sin_alpha)
 
@@ -534,7 +535,8 @@ def reflect_perspective(
 
     Example:
         >>> K = torch.tensor([[1600.0, 0, 199.5], [0, 1600.0, 199.5], [0, 0, 1]])
-        >>> directions, points = reflect_perspective(torch.tensor([[199.5, 199.5]]), K, torch.tensor([0, 0, -38.5]), 1.5)
+        >>> centre = torch.tensor([0, 0, -38.5])
+        >>> directions, points = reflect_perspective(torch.tensor([[199.5, 199.5]]), K, centre, 1.5)
         >>> float(directions[0, 2]), float(points[0, 2])
         (1.0, -37.0)
     """

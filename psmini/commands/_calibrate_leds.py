@@ -29,7 +29,8 @@ def register_leds(calibrate_subparsers: argparse._SubParsersAction) -> argparse.
         "with the camera's vignetting eliminated per pixel. Two heights or more pin the LEDs' distance best.",
     )
     parser.add_argument("dirs", nargs="+", type=Path, metavar="DIR", help="flat-field capture folders (kind flatfield)")
-    parser.add_argument("--out", type=Path, required=True, metavar="FILE", help="lights file to write (JSON, docs/lights-file.md)")
+    parser.add_argument("--out", type=Path, required=True, metavar="FILE",
+                        help="lights file to write (JSON, docs/lights-file.md)")
     parser.add_argument("--heights-mm", type=float, nargs="+", metavar="H",
                         help="card height of each DIR, mm (default: metadata.card_height_mm of each, else 0)")
     parser.add_argument("--init", default="nominal", metavar="nominal|FILE",

@@ -58,10 +58,12 @@ def add_config_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--near-option", action="append", default=[], metavar="KEY=VALUE",
                         help="an option of the near-light solver (VALUE as JSON), e.g. max_iterations=3")
     parser.add_argument("--min-reference", type=float, default=0.02, metavar="F",
-                        help="card pixels darker than F x the LED's brightest card pixel are not trusted (default 0.02)")
+                        help="card pixels darker than F x the LED's brightest card pixel are not trusted "
+                             "(default 0.02)")
     parser.add_argument("--card-smoothing-px", type=float, default=None, metavar="S",
                         help="denoise the card before dividing by it: a local linear fit of each LED's share in a "
-                             "Gaussian window of S pixels (psmini.flatfield.smooth_card; default: the card as captured)")
+                             "Gaussian window of S pixels (psmini.flatfield.smooth_card; default: the card as "
+                             "captured)")
     parser.add_argument("--dtype", choices=["float32", "float64"], default="float32",
                         help="floating dtype of the computation (default float32)")
     add_device_flag(parser)

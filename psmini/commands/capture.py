@@ -1,4 +1,5 @@
-"""``psmini capture``: a capture folder from the rig (``--port URL --camera ID``) or the simulated rig (``--simulate``)."""
+"""``psmini capture``: a capture folder from the rig (``--port URL --camera ID``) or the simulated rig
+(``--simulate``)."""
 
 from __future__ import annotations
 
@@ -27,8 +28,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--port", metavar="URL", help="LED controller port or pyserial URL (/dev/ttyUSB0, COM3, "
                         "psminisim://...)")
     parser.add_argument("--camera", metavar="ID", help="camera index or device path for OpenCV")
-    parser.add_argument("--backend", default=None, help="OpenCV backend: v4l2, dshow, msmf, avfoundation, gstreamer, any "
-                        "(default: the platform's)")
+    parser.add_argument("--backend", default=None,
+                        help="OpenCV backend: v4l2, dshow, msmf, avfoundation, gstreamer, any "
+                             "(default: the platform's)")
     parser.add_argument("--kind", choices=["sample", "flatfield", "sphere"], default="sample",
                         help="what lies under the camera (hardware only; default: sample)")
     parser.add_argument("--flatfield", type=Path, metavar="CARD", help="the card capture to flat-field by (hardware)")
@@ -61,7 +63,8 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     summary = _simulated(args) if args.simulate else _hardware(args)
     summary["time_s"] = time.perf_counter() - start
-    print(f"captured {summary['kind']} with {summary['leds']} LEDs ({summary['firmware']}) in {summary['time_s']:.1f} s")
+    print(f"captured {summary['kind']} with {summary['leds']} LEDs ({summary['firmware']}) "
+          f"in {summary['time_s']:.1f} s")
     print(f"  wrote {summary['out']}")
     if args.json:
         emit_json(summary)
@@ -69,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _simulated(args: argparse.Namespace) -> dict:
-    """Hand ``--simulate`` to the installed rig simulator (data_synth's, through the ``psmini.rig_simulators`` group)."""
+    """Hand ``--simulate`` to the installed rig simulator (data_synth's, through the ``psmini.rig_simulators``
+    group)."""
     from psmini.errors import InputError
 
     simulators = list(importlib.metadata.entry_points(group="psmini.rig_simulators"))
@@ -98,6 +102,7 @@ def _hardware(args: argparse.Namespace) -> dict:
             lights = nominal_ring_lights(leds.led_count)
         session = CaptureSession(leds, camera, lights, pixel_pitch_mm=args.pixel_pitch, frames_per_led=args.frames)
         flatfield = {"path": str(args.flatfield.resolve())} if args.flatfield is not None else None
-        session.capture(args.out, args.kind, flatfield=flatfield, card_albedo=args.card_albedo, overwrite=args.overwrite)
+        session.capture(args.out, args.kind, flatfield=flatfield, card_albedo=args.card_albedo,
+                        overwrite=args.overwrite)
         return {"out": str(args.out), "kind": args.kind, "leds": leds.led_count, "firmware": str(leds.identity),
                 "simulated": False, "camera": camera.report}

@@ -28,7 +28,8 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     sample = load_sample_for(args)
     if sample.normals_gt is None:
-        raise DataFormatError(f"{args.folder} has no ground-truth normals (Normal_gt.mat or gt/normals.npy) to evaluate against")
+        raise DataFormatError(f"{args.folder} has no ground-truth normals (Normal_gt.mat or gt/normals.npy) to "
+                              "evaluate against")
     scores = evaluate_sample(sample, config)
     scores["solver"] = scores["config"]["solver"]
     scores["time_s"] = time.perf_counter() - start

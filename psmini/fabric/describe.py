@@ -23,8 +23,8 @@ from psmini.fabric.structure import StructureOptions, fabric_structure
 from psmini.fabric.surface import ISO_PARAMETERS, SurfaceOptions, iso25178, scale_limited_surface, valid_pixels
 
 __all__ = ["WAVINESS_OPTIONS", "COUPLING_OPTIONS", "DESCRIBE_SURFACE_OPTIONS", "DESCRIPTOR_NAMES", "MODEL_FORMAT",
-           "MODEL_VERSION", "FabricClassifier", "albedo_periodicity", "albedo_relief_coupling", "describe", "descriptor_vector",
-           "structure_row", "reconstruct_for_description"]
+           "MODEL_VERSION", "FabricClassifier", "albedo_periodicity", "albedo_relief_coupling", "describe",
+           "descriptor_vector", "structure_row", "reconstruct_for_description"]
 
 #: The scale-limited surface on which :func:`describe` reports the ISO parameters: plane removed, an L-filter of
 #: 2.5 mm (an ISO 25178-3 nesting index; it removes wrinkles and drape, keeps yarn repeats up to ~1.5 mm).
@@ -64,7 +64,8 @@ def reconstruct_for_description(sample: Any, config: Any = None) -> Any:
     Example:
         >>> from psmini.io import Sample
         >>> from psmini.lights import DirectionalLights, ring_lights
-        >>> sample = Sample(name="s", images=torch.rand(8, 16, 16) + 0.1, lights=DirectionalLights(ring_lights(8, 55.0)))
+        >>> lights = DirectionalLights(ring_lights(8, 55.0))
+        >>> sample = Sample(name="s", images=torch.rand(8, 16, 16) + 0.1, lights=lights)
         >>> reconstruct_for_description(sample).depth.shape
         torch.Size([1, 1, 16, 16])
     """

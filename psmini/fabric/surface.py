@@ -453,7 +453,8 @@ def spatial_parameters(surface: Tensor, valid: Tensor, pixel_pitch_mm: float, th
     - ``Std`` (degrees in [0, 180), counter-clockwise from x, y up): the texture direction, the direction of the
       lay. The angular power spectrum :math:`f_{APS}(\theta) = \int_0^{R} |F(r\cos\theta, r\sin\theta)|^2 r\,dr`
       peaks across the lay (at the direction of the dominant spatial frequency, refined by a parabola through
-      the three best directions; the spectrum of the Hann-windowed surface, zero-padded twice); ``Std`` is that angle plus 90°, the direction along which the texture runs.
+      the three best directions; the spectrum of the Hann-windowed surface, zero-padded twice); ``Std`` is that
+      angle plus 90°, the direction along which the texture runs.
 
     Args:
         surface: :math:`(B, 1, H, W)`, mm, zero-mean over ``valid``.

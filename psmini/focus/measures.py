@@ -118,7 +118,8 @@ def _region(frames: Tensor, roi: Roi | str | None, min_size: int, name: str) -> 
     if frames.ndim == 4 and frames.shape[1] == 1:
         frames = frames[:, 0]
     if frames.ndim != 3 or frames.shape[0] == 0:
-        raise ShapeError(f"{name}: frames must have shape (B, H, W) or (B, 1, H, W) with B ≥ 1, got {tuple(frames.shape)}")
+        raise ShapeError(f"{name}: frames must have shape (B, H, W) or (B, 1, H, W) with B ≥ 1, "
+                         f"got {tuple(frames.shape)}")
     height, width = frames.shape[-2:]
     if height < min_size or width < min_size:
         raise ShapeError(f"{name}: frames must be at least {min_size}×{min_size} pixels, got {height}×{width}")

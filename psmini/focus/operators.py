@@ -190,7 +190,8 @@ def _gaussian_gradients(g: Tensor, sigma: float) -> tuple[Tensor, Tensor, int]:
 
 def _steered(gx: Tensor, gy: Tensor) -> Tensor:
     """max over θ ∈ {0°, 45°, …, 315°} of cos θ gx + sin θ gy = the largest |response| of four orientations."""
-    return torch.maximum(torch.maximum(gx.abs(), gy.abs()), _SQRT_HALF * torch.maximum((gx + gy).abs(), (gx - gy).abs()))
+    diagonal = _SQRT_HALF * torch.maximum((gx + gy).abs(), (gx - gy).abs())
+    return torch.maximum(torch.maximum(gx.abs(), gy.abs()), diagonal)
 
 
 def _curvature_map(g: Tensor) -> Tensor:
@@ -901,7 +902,8 @@ def steerable_filters(frames: Tensor, roi: Roi | str | None = None, sigma: float
 
     .. math::
         F = \frac{1}{N} \sum_{valid} \max_\theta R_\theta
-          = \frac{1}{N} \sum_{valid} \max\big(|g_x|, |g_y|, \tfrac{|g_x + g_y|}{\sqrt 2}, \tfrac{|g_x - g_y|}{\sqrt 2}\big)
+          = \frac{1}{N} \sum_{valid} \max\big(|g_x|, |g_y|,
+            \tfrac{|g_x + g_y|}{\sqrt 2}, \tfrac{|g_x - g_y|}{\sqrt 2}\big)
 
     (opposite angles give opposite responses, so the maximum over eight angles is the largest absolute
     response of four). ``fmeasure`` ties :math:`\sigma` to its window; here it is a parameter.

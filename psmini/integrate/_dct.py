@@ -20,7 +20,7 @@ operations, so autograd, float64 and CUDA work as for any other op. The constant
 dtype and device.
 
 The convention is SciPy's unnormalised one (``scipy.fft.dctn(x, type=2)`` and ``idctn``):
-:math:`C_{k_1 k_2} = 4 \sum_{n_1, n_2} x_{n_1 n_2} \cos\frac{\pi k_1 (2n_1 + 1)}{2N_1} \cos\frac{\pi k_2 (2n_2 + 1)}{2N_2}`.
+:math:`C_{k_1 k_2} = 4 \sum_{n_1, n_2} x_{n_1 n_2} \cos\frac{\pi k_1 (2n_1+1)}{2N_1} \cos\frac{\pi k_2 (2n_2+1)}{2N_2}`.
 """
 
 from __future__ import annotations
@@ -58,7 +58,8 @@ def complex_dtype(dtype: torch.dtype) -> torch.dtype:
 
 
 def twiddles(n1: int, n2: int) -> tuple[Tensor, Tensor]:
-    r"""Half-sample twiddles :math:`e^{-i\pi k/(2N)}`, complex128: ``(N1, 1)`` for ``k < N1``, ``(1, K2)`` for ``k < K2``."""
+    r"""Half-sample twiddles :math:`e^{-i\pi k/(2N)}`, complex128: ``(N1, 1)`` for ``k < N1``, ``(1, K2)`` for
+    ``k < K2``."""
     k1, k2 = torch.arange(n1, dtype=torch.float64), torch.arange(n2 // 2 + 1, dtype=torch.float64)
     w1 = torch.polar(torch.ones_like(k1), -math.pi * k1 / (2 * n1))
     w2 = torch.polar(torch.ones_like(k2), -math.pi * k2 / (2 * n2))

@@ -76,7 +76,8 @@ class _Grid:
     def half(self, like: Tensor) -> tuple[Tensor, Tensor]:
         """The first shares: both sides alike (plain least squares)."""
         half = torch.full_like(like, 0.5)
-        return self._one_sided(half, self.forward_u, self.backward_u), self._one_sided(half, self.forward_v, self.backward_v)
+        return (self._one_sided(half, self.forward_u, self.backward_u),
+                self._one_sided(half, self.forward_v, self.backward_v))
 
     def shares(self, z: Tensor, conf: Tensor, k: float) -> tuple[Tensor, Tensor]:
         """Weight of each pixel's forward equation, from the one-sided depth differences (the bilateral weights)."""
@@ -84,7 +85,8 @@ class _Grid:
         du, dv = du * self.mu, dv * self.mv
         su = torch.sigmoid(k * conf * (F.pad(du, (1, 0)) ** 2 - F.pad(du, (0, 1)) ** 2))
         sv = torch.sigmoid(k * conf * (F.pad(dv, (0, 0, 1, 0)) ** 2 - F.pad(dv, (0, 0, 0, 1)) ** 2))
-        return self._one_sided(su, self.forward_u, self.backward_u), self._one_sided(sv, self.forward_v, self.backward_v)
+        return (self._one_sided(su, self.forward_u, self.backward_u),
+                self._one_sided(sv, self.forward_v, self.backward_v))
 
     def system(self, gu: Tensor, gv: Tensor, conf: Tensor, su: Tensor, sv: Tensor) -> tuple[Tensor, ...]:
         """Edge weights and targets of the weighted least squares with the shares fixed."""
@@ -101,7 +103,8 @@ class _Grid:
         return (eu * self.mu).sum(dim=(1, 2, 3)) + (ev * self.mv).sum(dim=(1, 2, 3))
 
     def stationarity(self, z: Tensor, gu: Tensor, gv: Tensor, k: float) -> Tensor:
-        r""":math:`G(z, g)`: the energy's gradient in :math:`z` with the shares evaluated at :math:`z` (0 at the result)."""
+        r""":math:`G(z, g)`: the energy's gradient in :math:`z` with the shares evaluated at :math:`z` (0 at the
+        result)."""
         conf = _confidence(gu, gv)
         wu, wv, tu, tv = self.system(gu, gv, conf, *self.shares(z, conf, k))
         du, dv = grid_differences(z)
@@ -251,7 +254,8 @@ class BilateralIntegration(nn.Module):
         torch.Size([1, 1, 8, 8])
     """
 
-    def __init__(self, pixel_pitch_mm: float = 1.0, k: float = 2.0, max_iterations: int = 100, tol: float = 1e-4) -> None:
+    def __init__(self, pixel_pitch_mm: float = 1.0, k: float = 2.0, max_iterations: int = 100,
+                 tol: float = 1e-4) -> None:
         super().__init__()
         self.pixel_pitch_mm, self.k, self.max_iterations, self.tol = pixel_pitch_mm, k, max_iterations, tol
 

@@ -233,7 +233,8 @@ def _solution_spectrum(spectrum: Tensor, plan: _MirrorPlan) -> Tensor:
 
     Sixteen real products over contiguous planes where the reference steps (:func:`_reference_solution`) make
     some forty passes over strided and complex arrays (in the cache, a product over the strided real view of a
-    complex array took 44 us, over a contiguous plane 8): 0.74 against 1.39 ms on 400^2 on one thread of the 2-core Xeon.
+    complex array took 44 us, over a contiguous plane 8): 0.74 against 1.39 ms on 400^2 on one thread of the 2-core
+    Xeon.
     """
     planes = torch.stack([spectrum.real, spectrum.imag], dim=2).flatten(1, 2)  # (B, 4, H, K)
     partners = planes.index_select(-2, plan.transform.negated)  # the same at -k_v

@@ -118,12 +118,12 @@ def masked_least_squares(
 ) -> Tensor:
     r"""Least-squares integration on the pixels of a mask of any shape (sparse operators, multigrid PCG).
 
-    Minimises :math:`\sum w (z_{i,j+1} - z_{ij} - \bar g^u)^2 + \sum w (z_{i+1,j} - z_{ij} - \bar g^v)^2` over the
-    edges inside the mask, :math:`\bar g` the (weighted) mean gradient of the edge's two pixels. The domain is the mask itself, with natural boundaries along its outline, so a non-rectangular
-    object is not forced toward the rectangle's edge (Durou, Aujol and Courteille, "Integrating the normal field
-    of a surface in the presence of discontinuities", EMMCVPR 2009; Quéau, Durou and Aujol, "Normal
-    integration: a survey", JMIV 2018). Solved by conjugate gradients preconditioned with aggregation
-    multigrid, on CPU or CUDA.
+    Minimises :math:`\sum w (z_{i,j+1} - z_{ij} - \bar g^u)^2 + \sum w (z_{i+1,j} - z_{ij} - \bar g^v)^2` over the edges
+    inside the mask, :math:`\bar g` the (weighted) mean gradient of the edge's two pixels. The domain is the mask
+    itself, with natural boundaries along its outline, so a non-rectangular object is not forced toward the rectangle's
+    edge (Durou, Aujol and Courteille, "Integrating the normal field of a surface in the presence of discontinuities",
+    EMMCVPR 2009; Quéau, Durou and Aujol, "Normal integration: a survey", JMIV 2018). Solved by conjugate gradients
+    preconditioned with aggregation multigrid, on CPU or CUDA.
 
     Args:
         p: :math:`\partial z/\partial x`, shape :math:`(B, 1, H, W)` (x right).

@@ -3,7 +3,8 @@ r"""Weighted least-squares integration on a pixel grid: operators, a multigrid-p
 Every integrator beyond the Fourier ones reduces to one problem on the 4-connected pixel grid:
 
 .. math::
-    \min_z \sum_{(i,j)} w^u_{ij} (z_{i,j+1} - z_{ij} - t^u_{ij})^2 + \sum_{(i,j)} w^v_{ij} (z_{i+1,j} - z_{ij} - t^v_{ij})^2
+    \min_z \sum_{(i,j)} w^u_{ij} (z_{i,j+1} - z_{ij} - t^u_{ij})^2
+        + \sum_{(i,j)} w^v_{ij} (z_{i+1,j} - z_{ij} - t^v_{ij})^2
 
 with edge weights ``w`` (zero on edges leaving the mask) and edge targets ``t``. Its normal equations
 :math:`L z = D^\top W t` hold a weighted graph Laplacian :math:`L = D^\top W D`, solved here by conjugate gradients
@@ -156,10 +157,12 @@ class _Hierarchy:
         coarsest = self.levels[-1]
         batch, _, height, width = coarsest.active.shape
         n = height * width
-        basis = torch.eye(n, device=wu.device, dtype=wu.dtype).view(1, n, 1, height, width).expand(batch, -1, -1, -1, -1)
+        basis = torch.eye(n, device=wu.device, dtype=wu.dtype).view(1, n, 1, height, width)
+        basis = basis.expand(batch, -1, -1, -1, -1)
         expand = lambda t: t.unsqueeze(1).expand(-1, n, -1, -1, -1).reshape(batch * n, *t.shape[1:])  # noqa: E731
         level = _Level(
-            coarsest.wu, coarsest.wv, expand(coarsest.active), torch.stack([expand(w) for w in coarsest.neighbours]), expand(coarsest.diag)
+            coarsest.wu, coarsest.wv, expand(coarsest.active), torch.stack([expand(w) for w in coarsest.neighbours]),
+            expand(coarsest.diag)
         )
         dense = level.apply(basis.reshape(batch * n, 1, height, width)).view(batch, n, n)
         self.coarse_inverse = torch.linalg.pinv(dense, hermitian=True)

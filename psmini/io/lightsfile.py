@@ -153,7 +153,8 @@ def read_lights_file(path: str | Path) -> LightsFile:
     if not isinstance(version, int) or isinstance(version, bool) or version < 1:
         raise DataFormatError(f"lights file {path}: version must be a positive integer, got {version!r}")
     if version > LIGHTS_VERSION:
-        raise DataFormatError(f"lights file {path}: version {version} is newer than this psmini reads ({LIGHTS_VERSION})")
+        raise DataFormatError(f"lights file {path}: version {version} is newer than this psmini reads "
+                              f"({LIGHTS_VERSION})")
     entry = document.get("lights")
     if not isinstance(entry, Mapping):
         raise DataFormatError(f"lights file {path}: lights must be a JSON object (a light model), got "

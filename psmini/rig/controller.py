@@ -205,7 +205,8 @@ class LEDController:
         self.open()
         return self
 
-    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None) -> None:
+    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
+                 trace: TracebackType | None) -> None:
         self.close()
 
     def _close_port(self) -> None:
@@ -301,7 +302,8 @@ class LEDController:
                 return self._await_reply(port, verb.rstrip("?"), text)
             except _Retry as retry:
                 cause = str(retry)
-        raise RigError(f"LED controller on {self.name}: command {text!r} failed after {1 + self.retries} tries: {cause}")
+        raise RigError(f"LED controller on {self.name}: command {text!r} failed after {1 + self.retries} tries: "
+                       f"{cause}")
 
     # ------------------------------------------------------------------------------------------ plumbing
 
@@ -345,7 +347,8 @@ class LEDController:
         if identity.name != FIRMWARE_NAME:
             raise RigError(f"the device on {self.name} runs {identity.name!r}, expected the {FIRMWARE_NAME!r} firmware")
         if identity.version.split(".")[0] != "1":
-            raise RigError(f"the device on {self.name} runs {identity}, a protocol version this host does not speak (1.x)")
+            raise RigError(f"the device on {self.name} runs {identity}, a protocol version this host does not speak "
+                           "(1.x)")
 
     def _await_reply(self, port: SerialPort, expected: str, text: str) -> Reply:
         deadline = time.monotonic() + self.command_timeout_s

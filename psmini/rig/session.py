@@ -68,7 +68,8 @@ def nominal_ring_lights(led_count: int = 8, ring_diameter_mm: float = 31.6, led_
         raise RigError(f"a ring needs at least 3 LEDs to span 3D, got {led_count!r}")
     if not (ring_diameter_mm > 0 and led_height_mm > 0):
         raise RigError(f"ring diameter and LED height must be positive, got {ring_diameter_mm!r}, {led_height_mm!r}")
-    azimuth = torch.arange(led_count, dtype=torch.float64) * (2 * math.pi / led_count) + math.radians(azimuth_offset_deg)
+    azimuth = (torch.arange(led_count, dtype=torch.float64) * (2 * math.pi / led_count)
+               + math.radians(azimuth_offset_deg))
     radius = ring_diameter_mm / 2
     positions = torch.stack([radius * azimuth.cos(), radius * azimuth.sin(),
                              torch.full_like(azimuth, float(led_height_mm))], dim=-1)
@@ -139,8 +140,9 @@ class CaptureSession:
 
     Example:
         >>> from data_synth.simulated_rig import SimulatedRig
-        >>> with SimulatedRig(size=32, pixel_pitch_mm=0.1) as rig, LEDController(rig.port, handshake_timeout_s=1) as leds, \\
-        ...         RigCamera(0, open_capture=rig.open_capture, frame_size=rig.frame_size, crop_size=32) as camera:
+        >>> with (SimulatedRig(size=32, pixel_pitch_mm=0.1) as rig,
+        ...       LEDController(rig.port, handshake_timeout_s=1) as leds,
+        ...       RigCamera(0, open_capture=rig.open_capture, frame_size=rig.frame_size, crop_size=32) as camera):
         ...     CaptureSession(leds, camera, rig.lights, pixel_pitch_mm=0.025).acquire().images.shape
         (8, 32, 32)
     """
