@@ -229,11 +229,13 @@ def test_parse_outputs():
 class TestCommand:
     def test_batch_then_resume(self, tree, tmp_path, capsys):
         out = tmp_path / "out"
-        assert main(["batch", str(tree), "--light-model", "distant", "--out", str(out), "--workers", "0", "--no-progress", "--json"]) == 1
+        assert main(["batch", str(tree), "--light-model", "distant", "--out", str(out), "--workers", "0",
+                     "--no-progress", "--json"]) == 1
         report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
         assert report["counts"] == {"done": 3, "skipped": 0, "failed": 1}
         assert report["solvers"] == ["distant"] and report["config"]["solver"] == "distant"
-        assert main(["batch", str(tree / "lotA"), "--light-model", "distant", "--out", str(out / "lotA"), "--workers", "0", "--json"]) == 0
+        assert main(["batch", str(tree / "lotA"), "--light-model", "distant", "--out", str(out / "lotA"),
+                     "--workers", "0", "--json"]) == 0
         captured = capsys.readouterr()
         assert json.loads(captured.out.strip().splitlines()[-1])["counts"] == {"done": 0, "skipped": 2, "failed": 0}
         assert "2sample" in captured.err.replace(" ", "")  # the progress bar (on stderr)
@@ -244,7 +246,8 @@ class TestCommand:
         (tmp_path / "empty").mkdir()
         assert main(["batch", str(tmp_path / "empty"), "--out", str(tmp_path / "out")]) == 1
         assert "no sample folders" in capsys.readouterr().err
-        assert main(["batch", str(tree), "--light-model", "distant", "--out", str(tmp_path / "out"), "--outputs", "depth,mesh"]) == 1
+        assert main(["batch", str(tree), "--light-model", "distant", "--out", str(tmp_path / "out"),
+                     "--outputs", "depth,mesh"]) == 1
         assert "normals,albedo,depth,ply" in capsys.readouterr().err
         assert not (tmp_path / "out").exists()
 

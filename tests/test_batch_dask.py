@@ -27,7 +27,8 @@ def tree(tmp_path_factory):
 @pytest.fixture(scope="module")
 def cluster():
     """An in-process cluster (threads, no worker processes to start): the tasks still travel through the scheduler."""
-    with distributed.LocalCluster(processes=False, n_workers=1, threads_per_worker=2, dashboard_address=None) as cluster:
+    with distributed.LocalCluster(processes=False, n_workers=1, threads_per_worker=2,
+                                  dashboard_address=None) as cluster:
         yield cluster
 
 
@@ -65,7 +66,8 @@ class TestSameAsLocal:
 
     def test_resume_after_a_partial_run(self, tree, tmp_path, client):
         out = tmp_path / "out"
-        first = reconstruct_dataset(tree / "lotA", out / "lotA", DISTANT, client=client)  # a run that covered part of the tree
+        # a run that covered part of the tree
+        first = reconstruct_dataset(tree / "lotA", out / "lotA", DISTANT, client=client)
         assert first["counts"] == {"done": 2, "skipped": 0, "failed": 0}
         stamps = {name: (out / name / "outputs.json").stat().st_mtime_ns for name in GOOD[:2]}
         (out / "lotB").mkdir()
@@ -90,7 +92,9 @@ class TestFailures:
 
     @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a worker without CUDA")
     def test_a_raising_task_fails_its_own_samples_and_the_run_goes_on(self, tree, tmp_path, client):
-        summary = reconstruct_dataset(tree, tmp_path / "out", dataclasses.replace(DISTANT, device="cuda"), batch_size=2, client=client)
+        summary = reconstruct_dataset(
+            tree, tmp_path / "out", dataclasses.replace(DISTANT, device="cuda"), batch_size=2, client=client
+        )
         assert summary["counts"] == {"done": 0, "skipped": 0, "failed": 4}
         assert all("no CUDA device on this worker" in row["error"] for row in summary["samples"])
         assert json.loads((tmp_path / "out" / "summary.json").read_text())["counts"]["failed"] == 4
@@ -116,16 +120,18 @@ class TestFailures:
 
 @pytest.mark.slow
 def test_importing_psmini_does_not_import_dask():
-    code = "import sys, psmini, psmini.batch, psmini.cli; print(sorted(m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed')))"
-    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "[]"
+    code = ("import sys, psmini, psmini.batch, psmini.cli; "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed')))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert result.stdout.strip() == "[]"
 
 
 class TestCommand:
     @pytest.mark.slow
     def test_local_cluster_from_the_command_line(self, tree, tmp_path, capsys):
         out = tmp_path / "out"
-        code = main(["batch", str(tree / "lotA"), "--light-model", "distant", "--out", str(out), "--scheduler", "local:1", "--no-score",
-                     "--outputs", "depth", "--no-progress", "--json"])
+        code = main(["batch", str(tree / "lotA"), "--light-model", "distant", "--out", str(out),
+                     "--scheduler", "local:1", "--no-score", "--outputs", "depth", "--no-progress", "--json"])
         assert code == 0
         report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
         assert report["counts"] == {"done": 2, "skipped": 0, "failed": 0}

@@ -44,7 +44,8 @@ def test_every_public_name_is_in_the_api_reference():
             owner = obj.__module__
             if owner not in documented and name not in documented and owner.split(".")[0] in ("psmini", "data_synth"):
                 missing.append(f"{name}.{public} (defined in {owner})")
-    assert not missing, "add a '::: MODULE' line to a page of docs/api/ (and to mkdocs.yml's nav) for: " + ", ".join(missing)
+    assert not missing, ("add a '::: MODULE' line to a page of docs/api/ (and to mkdocs.yml's nav) for: "
+                         + ", ".join(missing))
 
 
 def test_documented_modules_exist():

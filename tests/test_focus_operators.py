@@ -70,12 +70,16 @@ class TestAgainstNumpy(BaseTester):
 
     def test_acmo_is_the_histogram_moment(self):
         raw = np.random.default_rng(5).integers(0, 256, (1, 30, 30), dtype=np.uint8)
-        assert float(focus_measure(torch.from_numpy(raw), "ACMO")) == pytest.approx(ref.ACMO_histogram(raw[0]), rel=1e-6)
+        assert float(focus_measure(torch.from_numpy(raw), "ACMO")) == pytest.approx(
+            ref.ACMO_histogram(raw[0]), rel=1e-6
+        )
 
     def test_roi_is_crop(self):
         frames = torch.rand(2, 40, 50, dtype=torch.float64)
         for code in CODES:
-            self.assert_close(focus_measure(frames, code, roi=(3, 5, 33, 30)), focus_measure(frames[:, 5:35, 3:36], code))
+            self.assert_close(
+                focus_measure(frames, code, roi=(3, 5, 33, 30)), focus_measure(frames[:, 5:35, 3:36], code)
+            )
 
 
 class TestOpenCVPath(BaseTester):

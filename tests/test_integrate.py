@@ -414,8 +414,15 @@ class TestIntegrateNormals(BaseTester):
         k, normals, depth = perspective_plane(20, 30, device, dtype)
         gu, gv, scale = perspective_log_gradients(normals, k)
         log_depth = depth.log()
-        self.assert_close((gu / scale)[..., 1:-1, 5], ((log_depth[..., 6] - log_depth[..., 4]) / 2)[..., 1:-1], rtol=1e-3, atol=1e-6)
-        self.assert_close((gv / scale)[..., 5, 1:-1], ((log_depth[..., 6, :] - log_depth[..., 4, :]) / 2)[..., 1:-1], rtol=1e-3, atol=1e-6)
+        self.assert_close(
+            (gu / scale)[..., 1:-1, 5], ((log_depth[..., 6] - log_depth[..., 4]) / 2)[..., 1:-1], rtol=1e-3, atol=1e-6
+        )
+        self.assert_close(
+            (gv / scale)[..., 5, 1:-1],
+            ((log_depth[..., 6, :] - log_depth[..., 4, :]) / 2)[..., 1:-1],
+            rtol=1e-3,
+            atol=1e-6,
+        )
 
     def test_gradcheck(self):
         k, normals, _ = perspective_plane(5, 6, "cpu", torch.float64)

@@ -139,7 +139,9 @@ class TestFitLeds(BaseTester):
 
     def test_cuda(self, cuda_device):
         images, dark = _cards(CLEAN.replace(size=16, pixel_pitch_mm=10.0 / 16))
-        fit = fit_leds(images.to(cuda_device) - dark.to(cuda_device), HEIGHTS, 10.0 / 16, options=LEDFitOptions(iterations=(5, 5)))
+        fit = fit_leds(
+            images.to(cuda_device) - dark.to(cuda_device), HEIGHTS, 10.0 / 16, options=LEDFitOptions(iterations=(5, 5))
+        )
         assert fit.positions_mm.device.type == "cuda" and fit.gain.device.type == "cuda"
 
 

@@ -57,7 +57,10 @@ class TestSpans3d:
 
 class TestPointAndLED(BaseTester):
     def test_point_inverse_square(self, device, dtype):
-        lights = PointLights(torch.tensor([[0.0, 0.0, 10.0]], device=device, dtype=dtype), torch.tensor([2.0], device=device, dtype=dtype))
+        lights = PointLights(
+            torch.tensor([[0.0, 0.0, 10.0]], device=device, dtype=dtype),
+            torch.tensor([2.0], device=device, dtype=dtype),
+        )
         points = torch.zeros(1, 3, 1, 2, device=device, dtype=dtype)
         points[0, 0, 0, 1] = 10.0  # second point at x = 10 mm
         dirs, irradiance = lights(points)
@@ -69,7 +72,12 @@ class TestPointAndLED(BaseTester):
     def test_led_cosine_power(self, device, dtype):
         position = torch.tensor([[0.0, 0.0, 10.0]], device=device, dtype=dtype)
         down = torch.tensor([[0.0, 0.0, -1.0]], device=device, dtype=dtype)
-        leds = LEDLights(position, down, torch.tensor([1.0], device=device, dtype=dtype), torch.tensor([3.0], device=device, dtype=dtype))
+        leds = LEDLights(
+            position,
+            down,
+            torch.tensor([1.0], device=device, dtype=dtype),
+            torch.tensor([3.0], device=device, dtype=dtype),
+        )
         points = torch.zeros(1, 3, 1, 1, device=device, dtype=dtype)
         points[0, 0] = 10.0
         _, irradiance = leds(points)
@@ -92,7 +100,9 @@ class TestPointAndLED(BaseTester):
             LEDLights(torch.rand(3, 3), -torch.ones(3, 3).abs(), mu=torch.tensor([1.0, -1.0, 1.0]))
 
     def test_gradcheck(self):
-        positions = (torch.rand(3, 3, dtype=torch.float64) + torch.tensor([0.0, 0.0, 5.0], dtype=torch.float64)).requires_grad_()
+        positions = (
+            torch.rand(3, 3, dtype=torch.float64) + torch.tensor([0.0, 0.0, 5.0], dtype=torch.float64)
+        ).requires_grad_()
         points = torch.rand(1, 3, 2, 2, dtype=torch.float64, requires_grad=True)
         down = torch.tensor([[0.0, 0.1, -1.0]], dtype=torch.float64).expand(3, 3)
 
@@ -110,7 +120,9 @@ class TestPointAndLED(BaseTester):
 
 class TestDirectional(BaseTester):
     def test_forward_broadcasts(self, device, dtype):
-        lights = DirectionalLights(ring_lights(8, 55.0, device=device, dtype=dtype), torch.linspace(1, 2, 8, device=device, dtype=dtype))
+        lights = DirectionalLights(
+            ring_lights(8, 55.0, device=device, dtype=dtype), torch.linspace(1, 2, 8, device=device, dtype=dtype)
+        )
         dirs, irradiance = lights(torch.zeros(2, 3, 4, 5, device=device, dtype=dtype))
         assert dirs.shape == (2, 8, 3, 4, 5) and irradiance.shape == (2, 8, 1, 4, 5)
         self.assert_close(irradiance[1, :, 0, 3, 4], torch.linspace(1, 2, 8, device=device, dtype=dtype))

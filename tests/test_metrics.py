@@ -26,8 +26,15 @@ class TestAngular(BaseTester):
         mask = torch.ones(1, 1, 4, 4, dtype=torch.bool, device=device)
         mask[..., 3, :] = False
         reference = _tilted(0).to(device, dtype)
-        self.assert_close(mean_angular_error(normals, reference, mask), torch.tensor([10 / 3], device=device, dtype=dtype), rtol=1e-4, atol=1e-4)
-        self.assert_close(median_angular_error(normals, reference), torch.tensor([0.0], device=device, dtype=dtype), rtol=0, atol=1e-3)
+        self.assert_close(
+            mean_angular_error(normals, reference, mask),
+            torch.tensor([10 / 3], device=device, dtype=dtype),
+            rtol=1e-4,
+            atol=1e-4,
+        )
+        self.assert_close(
+            median_angular_error(normals, reference), torch.tensor([0.0], device=device, dtype=dtype), rtol=0, atol=1e-3
+        )
 
     def test_empty_mask_raise(self):
         with pytest.raises(InputError, match="selects no pixel"):

@@ -163,7 +163,9 @@ class TestFit(BaseTester):
     def test_differentiable(self):
         normals, scored, albedo, lights, images = _glossy_sphere("cpu", torch.float64, size=12)
         images = images.clone().requires_grad_()
-        albedo_fit, normals_fit = nonlambertian_normals(images, lights, scored, options=NonLambertianOptions(iterations=5))
+        albedo_fit, normals_fit = nonlambertian_normals(
+            images, lights, scored, options=NonLambertianOptions(iterations=5)
+        )
         (normals_fit[:, 0] * scored).sum().backward()
         assert torch.isfinite(images.grad).all() and images.grad.abs().sum() > 0
 

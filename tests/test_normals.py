@@ -15,7 +15,10 @@ def _lit_everywhere(normals, lights):
 class TestAlbedoNormals(BaseTester):
     def test_recovers_sphere(self, device, dtype):
         normals, inside, albedo = analytic_sphere(48, device=device, dtype=dtype)
-        lights = ring_lights(8, 35.0, device=device, dtype=dtype) * torch.linspace(0.8, 1.2, 8, device=device, dtype=dtype)[:, None]
+        lights = (
+            ring_lights(8, 35.0, device=device, dtype=dtype)
+            * torch.linspace(0.8, 1.2, 8, device=device, dtype=dtype)[:, None]
+        )
         images = render(normals, albedo, lights)
         est_albedo, est_normals = albedo_normals(images, lights)
         region = inside & _lit_everywhere(normals, lights)
@@ -54,7 +57,9 @@ class TestAlbedoNormals(BaseTester):
         assert int((albedo > 0).sum()) == 1 and normals[0, 2, 0, 0] == 1
 
     def test_batched_lights(self, device, dtype):
-        lights = torch.stack([ring_lights(8, 45.0, device=device, dtype=dtype), ring_lights(8, 30.0, device=device, dtype=dtype)])
+        lights = torch.stack(
+            [ring_lights(8, 45.0, device=device, dtype=dtype), ring_lights(8, 30.0, device=device, dtype=dtype)]
+        )
         normals, _, albedo = analytic_sphere(16, device=device, dtype=dtype)
         images = torch.cat([render(normals, albedo, lights[0]), render(normals, albedo, lights[1])])
         _, est = albedo_normals(images, lights)
@@ -200,7 +205,9 @@ class TestGradients(BaseTester):
             normals_to_gradients(normals.clone().requires_grad_(), out=out)
 
     def test_gradcheck(self):
-        normals = torch.nn.functional.normalize(torch.rand(1, 3, 3, 3, dtype=torch.float64) + 0.3, dim=1).requires_grad_()
+        normals = torch.nn.functional.normalize(
+            torch.rand(1, 3, 3, 3, dtype=torch.float64) + 0.3, dim=1
+        ).requires_grad_()
         self.gradcheck(normals_to_gradients, (normals,))
 
 

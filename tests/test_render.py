@@ -74,7 +74,9 @@ class TestRenderLambertian(BaseTester):
 
     def test_batched_lights(self, device, dtype):
         normals, _, albedo = analytic_sphere(8, device=device, dtype=dtype)
-        lights = torch.stack([ring_lights(4, 30.0, device=device, dtype=dtype), ring_lights(4, 60.0, device=device, dtype=dtype)])
+        lights = torch.stack(
+            [ring_lights(4, 30.0, device=device, dtype=dtype), ring_lights(4, 60.0, device=device, dtype=dtype)]
+        )
         images = render_lambertian(normals.expand(2, -1, -1, -1), albedo.expand(2, -1, -1, -1), lights)
         self.assert_close(images[1:], render_lambertian(normals, albedo, lights[1]))
 
@@ -190,7 +192,11 @@ class TestRender(BaseTester):
 
     def test_errors(self):
         lights = DirectionalLights(ring_lights(8, 55.0))
-        points, normals, albedo = torch.zeros(1, 3, 4, 4), _flat_normals(4, "cpu", torch.float32), torch.ones(1, 1, 4, 4)
+        points, normals, albedo = (
+            torch.zeros(1, 3, 4, 4),
+            _flat_normals(4, "cpu", torch.float32),
+            torch.ones(1, 1, 4, 4),
+        )
         with pytest.raises(InputError, match="pixel_pitch_mm"):
             render(points, normals, albedo, lights, shadows=True)
         with pytest.raises(ShapeError, match="normals"):

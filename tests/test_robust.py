@@ -94,7 +94,9 @@ class TestWeights(BaseTester):
         self.assert_close(_trim_band(rows, 0.25, 0.10, usable).float(), _trim_keep(rows, 0.25, 0.10, usable, 1).float())
         tied = torch.tensor([[0.1, 0.1, 0.5, 0.5, 0.5, 0.9, 0.9, 0.9]], device=device, dtype=dtype)
         # ranks 2 .. 7 kept by rank; the band keeps every reading equal to a bound as well
-        assert _trim_band(tied, 0.25, 0.0, torch.ones_like(tied, dtype=torch.bool)).tolist() == [[False, False] + [True] * 6]
+        assert _trim_band(tied, 0.25, 0.0, torch.ones_like(tied, dtype=torch.bool)).tolist() == [
+            [False, False] + [True] * 6
+        ]
 
     def test_trim_band_numpy_path_matches_torch_path(self):
         """The CPU band (NumPy) and the device band (torch) agree, ties and unusable readings included."""
@@ -202,7 +204,9 @@ class TestRobustNormals(BaseTester):
         # differences must not straddle a change of order; seeded noise keeps the point the same on every run
         noise = torch.rand(images.shape, generator=torch.Generator().manual_seed(0), dtype=images.dtype)
         images = (images + 0.05 * noise).requires_grad_()
-        self.gradcheck(lambda x: robust_normals(x, lights, method, options=RobustOptions(iterations=3, shadow=0.0)), (images,))
+        self.gradcheck(
+            lambda x: robust_normals(x, lights, method, options=RobustOptions(iterations=3, shadow=0.0)), (images,)
+        )
 
     def test_gradcheck_trimmed(self):
         generator = torch.Generator().manual_seed(0)  # distinct readings, far from ties, on every run

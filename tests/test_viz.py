@@ -54,7 +54,9 @@ class TestArrays:
         ours = viz.apply_colormap(values, (-1.0, 3.0))[0]
         theirs = matplotlib.colormaps["viridis"](np.linspace(0, 1, 300))[:, :3]
         assert np.abs(ours - theirs).max() < 0.01
-        np.testing.assert_allclose(viz.apply_colormap(np.array([[-5.0, 9.0]]), (-1.0, 3.0))[0], theirs[[0, -1]], atol=1e-3)
+        np.testing.assert_allclose(
+            viz.apply_colormap(np.array([[-5.0, 9.0]]), (-1.0, 3.0))[0], theirs[[0, -1]], atol=1e-3
+        )
         with pytest.raises(InputError, match="increasing"):
             viz.apply_colormap(values, (1.0, 1.0))
 

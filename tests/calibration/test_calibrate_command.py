@@ -21,7 +21,10 @@ def _last_json(capsys) -> dict:
 
 @pytest.fixture(scope="module")
 def spheres():
-    return [render_sphere(CONFIG, 1.5, (x, y, 1.5), seed=i) for i, (x, y) in enumerate([(0.0, 0.0), (3.0, 3.0), (-3.0, 3.0)])]
+    return [
+        render_sphere(CONFIG, 1.5, (x, y, 1.5), seed=i)
+        for i, (x, y) in enumerate([(0.0, 0.0), (3.0, 3.0), (-3.0, 3.0)])
+    ]
 
 
 def _true_directions(render):
@@ -45,7 +48,9 @@ def _write_rgb8(folder, render):
 def test_rgb8_with_mask_orthographic(tmp_path, capsys, spheres):
     folder = _write_rgb8(tmp_path / "sphere", spheres[0])
     out = tmp_path / "lights.json"
-    assert main(["calibrate", "sphere", str(folder), "--mask", str(folder / "mask.png"), "--out", str(out), "--json"]) == 0
+    assert (
+        main(["calibrate", "sphere", str(folder), "--mask", str(folder / "mask.png"), "--out", str(out), "--json"]) == 0
+    )
     report = _last_json(capsys)
     directions = torch.tensor(report["directions"])
     assert directions.shape == (8, 3) and "positions_mm" not in report
@@ -58,8 +63,17 @@ def test_rgb8_with_mask_orthographic(tmp_path, capsys, spheres):
 def test_placements_positions_and_reconstruct_with_lights(tmp_path, capsys, spheres):
     folders = []
     for i, render in enumerate(spheres):
-        folders.append(write_capture(tmp_path / f"sphere{i}", render.images, DirectionalLights(ring_lights(8, 20.0)),
-                                     pixel_pitch_mm=CONFIG.pixel_pitch_mm, kind="sphere", bit_depth=10, dark=render.dark))
+        folders.append(
+            write_capture(
+                tmp_path / f"sphere{i}",
+                render.images,
+                DirectionalLights(ring_lights(8, 20.0)),
+                pixel_pitch_mm=CONFIG.pixel_pitch_mm,
+                kind="sphere",
+                bit_depth=10,
+                dark=render.dark,
+            )
+        )
     intrinsics = tmp_path / "K.json"
     intrinsics.write_text(json.dumps({"K": rig_intrinsics(CONFIG).tolist()}))
     out = tmp_path / "lights.json"
@@ -68,15 +82,24 @@ def test_placements_positions_and_reconstruct_with_lights(tmp_path, capsys, sphe
     assert main(args) == 0
     report = _last_json(capsys)
     assert float(angle_deg(torch.tensor(report["directions"]), _true_directions(spheres[0])).max()) < 0.5
-    error = (torch.tensor(report["positions_mm"], dtype=torch.float64) - spheres[0].lights.positions_mm.double()).norm(dim=-1)
+    found = torch.tensor(report["positions_mm"], dtype=torch.float64)
+    error = (found - spheres[0].lights.positions_mm.double()).norm(dim=-1)
     assert float(error.max()) < 0.5  # half the rig's resolution
     assert len(report["residuals_mm"]) == 8
 
     # a flat card reconstructed with the calibrated lights (not the folder's) comes out flat
     card = render_card(CONFIG, albedo=0.8)
     reference = render_card(CONFIG, albedo=0.8, seed=5)
-    card_dir = write_capture(tmp_path / "card", reference.images, reference.lights, pixel_pitch_mm=CONFIG.pixel_pitch_mm,
-                             kind="flatfield", bit_depth=10, dark=reference.dark, card_albedo=0.8)
+    card_dir = write_capture(
+        tmp_path / "card",
+        reference.images,
+        reference.lights,
+        pixel_pitch_mm=CONFIG.pixel_pitch_mm,
+        kind="flatfield",
+        bit_depth=10,
+        dark=reference.dark,
+        card_albedo=0.8,
+    )
     sample = write_capture(tmp_path / "sample", card.images, DirectionalLights(ring_lights(8, 20.0)),
                            pixel_pitch_mm=CONFIG.pixel_pitch_mm, bit_depth=10, dark=card.dark,
                            flatfield={"path": str(card_dir)})
@@ -110,6 +133,9 @@ def test_bad_input_fails_cleanly(tmp_path, capsys, spheres):
     (folder / "filenames.txt").write_text("\n".join(names[:3] + ["007.png"]))
     dark = np.zeros((200, 200, 3), np.uint8)
     write_image(folder / "007.png", dark)
-    assert main(["calibrate", "sphere", str(folder), "--mask", str(folder / "mask.png"), "--out", str(tmp_path / "x.json")]) == 1
+    assert main(["calibrate", "sphere", str(folder), "--mask", str(folder / "mask.png"),
+                 "--out", str(tmp_path / "x.json")]) == 1
     assert "LED 3" in capsys.readouterr().err and not (tmp_path / "x.json").exists()
-    assert main(["reconstruct", str(folder), "--lights", str(tmp_path / "none.json"), "--out", str(tmp_path / "o")]) == 1
+    assert (
+        main(["reconstruct", str(folder), "--lights", str(tmp_path / "none.json"), "--out", str(tmp_path / "o")]) == 1
+    )

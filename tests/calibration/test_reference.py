@@ -41,8 +41,9 @@ def test_smoothing_removes_the_noise(cards, method):
 
 
 def test_polynomial_recovers_a_polynomial():
-    y, x = torch.meshgrid(torch.linspace(-1, 1, 30, dtype=torch.float64), torch.linspace(-1, 1, 40, dtype=torch.float64),
-                          indexing="ij")
+    y, x = torch.meshgrid(
+        torch.linspace(-1, 1, 30, dtype=torch.float64), torch.linspace(-1, 1, 40, dtype=torch.float64), indexing="ij"
+    )
     surface = (1 + 0.3 * x - 0.2 * y + 0.1 * x * y - 0.05 * x**3)[None]
     weights = torch.ones_like(surface)
     weights[..., :10, :10] = 0  # untrusted pixels do not matter

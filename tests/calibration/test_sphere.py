@@ -61,7 +61,8 @@ class TestFitCircle(BaseTester):
 
     def test_gradcheck(self):
         angle = torch.linspace(0, 6.0, 12, dtype=torch.float64)
-        points = torch.stack([3 + 2 * angle.cos(), 1 + 2 * angle.sin()], -1) + 0.05 * torch.randn(12, 2, dtype=torch.float64)
+        circle = torch.stack([3 + 2 * angle.cos(), 1 + 2 * angle.sin()], -1)
+        points = circle + 0.05 * torch.randn(12, 2, dtype=torch.float64)
         self.gradcheck(lambda p: fit_circle(p, trim=False)[:2], (points.requires_grad_(),))
 
 
@@ -114,7 +115,9 @@ def _outline(centre: torch.Tensor, radius: float, count: int = 400) -> torch.Ten
     """Exact pixels of a sphere's perspective outline (the tangent cone)."""
     axis = centre / centre.norm()
     alpha = math.asin(radius / float(centre.norm()))
-    first = torch.nn.functional.normalize(torch.linalg.cross(axis, torch.tensor([0.0, 1.0, 0.0], dtype=axis.dtype)), dim=0)
+    first = torch.nn.functional.normalize(
+        torch.linalg.cross(axis, torch.tensor([0.0, 1.0, 0.0], dtype=axis.dtype)), dim=0
+    )
     second = torch.linalg.cross(axis, first)
     theta = torch.linspace(0, 2 * math.pi, count + 1, dtype=axis.dtype)[:-1, None]
     rays = math.cos(alpha) * axis + math.sin(alpha) * (theta.cos() * first + theta.sin() * second)

@@ -30,7 +30,13 @@ def test_reconstruct_writes_outputs(tmp_path, capsys):
     out = tmp_path / "ball-out"
     assert main(["reconstruct", str(folder), "--out", str(out), "--json"]) == 0
     report = _last_json(capsys)
-    assert {p.rsplit("/", 1)[-1] for p in report["files"]} >= {"albedo.png", "normals.png", "depth.npy", "depth.png", "points.ply"}
+    assert {p.rsplit("/", 1)[-1] for p in report["files"]} >= {
+        "albedo.png",
+        "normals.png",
+        "depth.npy",
+        "depth.png",
+        "points.ply",
+    }
     depth = np.load(out / "depth.npy")
     assert depth.shape == (512, 612)
     # the ball bulges toward the camera: its centre stands higher than its rim

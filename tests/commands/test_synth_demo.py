@@ -64,7 +64,9 @@ def test_demo_reconstructs_and_scores(tmp_path, capsys):
     assert 0.0 < report["mean_angular_error_deg"] < 10.0
     # with no flag the rig's LEDs pick the near-light solver, which beats the classical pipeline
     assert report["solver"] == "near" and report["config"]["integrator"] == "masked"
-    assert report["mean_angular_error_deg"] == report["errors_deg"]["near"] < report["errors_deg"]["distant (classical)"]
+    assert (
+        report["mean_angular_error_deg"] == report["errors_deg"]["near"] < report["errors_deg"]["distant (classical)"]
+    )
     # the one scoring rule: `psmini evaluate` on the demo's capture gives the demo's figure
     assert main(["evaluate", str(out / "capture" / "cotton"), "--json"]) == 0
     evaluated = _last_json(capsys)

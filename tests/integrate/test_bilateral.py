@@ -85,7 +85,9 @@ class TestBilateral(BaseTester):
     def test_cuda_matches_cpu(self, cuda_device):
         z, p, q = bumps_surface(32, 36, 0.1, "cpu", torch.float64)
         expected = bilateral_integration(p, q)
-        self.assert_close(bilateral_integration(p.to(cuda_device), q.to(cuda_device)).cpu(), expected, rtol=1e-6, atol=1e-6)
+        self.assert_close(
+            bilateral_integration(p.to(cuda_device), q.to(cuda_device)).cpu(), expected, rtol=1e-6, atol=1e-6
+        )
 
 
 def test_diligent_cat():

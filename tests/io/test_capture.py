@@ -32,7 +32,9 @@ def points() -> PointLights:
 
 
 def codes(bits: int, seed: int = 0, count: int = K) -> np.ndarray:
-    return np.random.default_rng(seed).integers(0, 2**bits, size=(count, H, W)).astype(np.uint16 if bits > 8 else np.uint8)
+    return (
+        np.random.default_rng(seed).integers(0, 2**bits, size=(count, H, W)).astype(np.uint16 if bits > 8 else np.uint8)
+    )
 
 
 def assert_same_lights(actual, expected) -> None:
@@ -51,7 +53,9 @@ class TestLightsDict:
         assert_same_lights(lights_from_dict(data), lights)
 
     def test_optional_keys_default_to_ones(self):
-        back = lights_from_dict({"model": "led", "positions_mm": [[0, 0, 10]] * 3, "principal_directions": [[0, 0, -1]] * 3})
+        back = lights_from_dict(
+            {"model": "led", "positions_mm": [[0, 0, 10]] * 3, "principal_directions": [[0, 0, -1]] * 3}
+        )
         torch.testing.assert_close(back.mu, torch.ones(3))
         torch.testing.assert_close(back.intensities, torch.ones(3))
 
@@ -91,7 +95,9 @@ class TestRoundTrip:
     def test_floats_are_rounded_to_codes(self, tmp_path):
         images = torch.rand(K, H, W, dtype=torch.float64)
         write_capture(tmp_path / "s", images, directional(), pixel_pitch_mm=0.025, bit_depth=16)
-        torch.testing.assert_close(read_capture(tmp_path / "s").images.double(), images, rtol=0, atol=0.5 / 65535 + 1e-7)
+        torch.testing.assert_close(
+            read_capture(tmp_path / "s").images.double(), images, rtol=0, atol=0.5 / 65535 + 1e-7
+        )
 
     def test_everything_round_trips(self, tmp_path):
         rng = np.random.default_rng(3)
@@ -99,9 +105,17 @@ class TestRoundTrip:
         normals /= np.linalg.norm(normals, axis=0)
         depth = rng.random((H, W)).astype(np.float32)
         depth[0, 0] = np.nan
-        gt = {"normals": normals, "depth": depth, "albedo": rng.random((H, W)), "mask": depth == depth, "lights": leds()}
+        gt = {
+            "normals": normals,
+            "depth": depth,
+            "albedo": rng.random((H, W)),
+            "mask": depth == depth,
+            "lights": leds(),
+        }
         dark, mask = codes(16, seed=5, count=1)[0], rng.random((H, W)) > 0.5
-        write_capture(tmp_path / "card", codes(16, seed=9), directional(), pixel_pitch_mm=0.025, kind="flatfield", card_albedo=0.8)
+        write_capture(
+            tmp_path / "card", codes(16, seed=9), directional(), pixel_pitch_mm=0.025, kind="flatfield", card_albedo=0.8
+        )
         write_capture(
             tmp_path / "s", codes(16), directional(), pixel_pitch_mm=0.03, dark=dark, mask=mask,
             flatfield={"path": str(tmp_path / "card")}, gt=gt, crop=[120, 40, 400, 400],
@@ -132,7 +146,15 @@ class TestRoundTrip:
             read_capture(tmp_path / "s")
 
     def test_focus_capture(self, tmp_path):
-        write_capture(tmp_path / "f", codes(8, count=3), None, pixel_pitch_mm=0.025, kind="focus", bit_depth=8, positions_mm=[0, 0.1, 0.2])
+        write_capture(
+            tmp_path / "f",
+            codes(8, count=3),
+            None,
+            pixel_pitch_mm=0.025,
+            kind="focus",
+            bit_depth=8,
+            positions_mm=[0, 0.1, 0.2],
+        )
         capture = read_capture(tmp_path / "f")
         assert capture.lights is None and capture.positions_mm == [0.0, 0.1, 0.2]
 
@@ -225,7 +247,9 @@ class TestWriteErrors:
 
 @pytest.fixture
 def sample_folder(tmp_path):
-    write_capture(tmp_path / "s", codes(16), directional(), pixel_pitch_mm=0.025, dark=codes(16, 1, 1)[0], mask=np.ones((H, W)))
+    write_capture(
+        tmp_path / "s", codes(16), directional(), pixel_pitch_mm=0.025, dark=codes(16, 1, 1)[0], mask=np.ones((H, W))
+    )
     return tmp_path / "s"
 
 
@@ -359,7 +383,9 @@ class TestReadErrors:
             read_capture(sample_folder)
 
     def test_flatfield_albedo_disagrees(self, tmp_path, sample_folder):
-        write_capture(tmp_path / "card", codes(16), directional(), pixel_pitch_mm=0.025, kind="flatfield", card_albedo=0.8)
+        write_capture(
+            tmp_path / "card", codes(16), directional(), pixel_pitch_mm=0.025, kind="flatfield", card_albedo=0.8
+        )
         _edit(sample_folder, flatfield={"path": "../card", "albedo": 0.5})
         with pytest.raises(DataFormatError, match="albedo 0.5 disagrees with card_albedo 0.8"):
             read_capture(sample_folder)

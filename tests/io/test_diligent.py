@@ -82,7 +82,9 @@ class TestSynthetic:
     def test_gray_images_divide_by_gray_intensity(self, tmp_path):
         folder = _fake_folder(tmp_path / "obj", channels=1)
         sample = read_diligent(folder)
-        raw = np.rint(sample.images[0].numpy() * np.dot([1.0, 1.0 + 1 / 11, 1.0 + 2 / 11], [0.2989, 0.587, 0.114]) * 65535)
+        raw = np.rint(
+            sample.images[0].numpy() * np.dot([1.0, 1.0 + 1 / 11, 1.0 + 2 / 11], [0.2989, 0.587, 0.114]) * 65535
+        )
         from psmini.io.images import read_image_raw
 
         np.testing.assert_allclose(raw, read_image_raw(folder / "001.png")[0], atol=0.02)

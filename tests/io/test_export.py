@@ -87,7 +87,8 @@ class TestNormals:
         flat = torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).expand(3, H, W)
         save_normal_png(tmp_path / "n.png", flat)
         bgr = cv2.imread(str(tmp_path / "n.png"), cv2.IMREAD_UNCHANGED)
-        assert bgr[0, 0].tolist() == [255, 128, 128]  # B = n_z on disk in OpenCV's order: viewers show RGB (128,128,255)
+        # B = n_z on disk in OpenCV's order: viewers show RGB (128,128,255)
+        assert bgr[0, 0].tolist() == [255, 128, 128]
 
     def test_right_facing_is_red(self, tmp_path):
         right = torch.tensor([1.0, 0.0, 0.0]).view(3, 1, 1).expand(3, H, W)
@@ -150,7 +151,10 @@ class TestDepth:
     def test_flat_depth(self, tmp_path):
         save_depth(tmp_path / "d.npy", torch.full((H, W), 2.0))
         sidecar = json.loads((tmp_path / "d.json").read_text())
-        assert sidecar["min"] == sidecar["max"] == 2.0 and sidecar["preview_limits"][0] < 2.0 < sidecar["preview_limits"][1]
+        assert (
+            sidecar["min"] == sidecar["max"] == 2.0
+            and sidecar["preview_limits"][0] < 2.0 < sidecar["preview_limits"][1]
+        )
 
     def test_errors(self, tmp_path):
         with pytest.raises(InputError, match="mask is empty"):
@@ -239,7 +243,9 @@ class TestWriteOutputs:
         from psmini.pipeline import Reconstruction
 
         result = reconstruction()
-        rec = Reconstruction(result["albedo"], result["normals"], result["depth"], result["depth"], result["depth"], result["mask"])
+        rec = Reconstruction(
+            result["albedo"], result["normals"], result["depth"], result["depth"], result["depth"], result["mask"]
+        )
         write_outputs(tmp_path / "out", rec)
         assert json.loads((tmp_path / "out" / "depth.json").read_text())["units"] == "pixels"
 

@@ -45,7 +45,9 @@ class TestLoadCapture:
         assert isinstance(sample, Sample) and sample.name == "denim" and sample.count == K
         assert sample.images.shape == (K, H, W) and sample.images.dtype == torch.float32
         torch.testing.assert_close(sample.images.double(), torch.from_numpy(images(3)), rtol=0, atol=0.5 / 65535 + 1e-7)
-        torch.testing.assert_close(sample.reference.double(), torch.from_numpy(images(1)), rtol=0, atol=0.5 / 4095 + 1e-7)
+        torch.testing.assert_close(
+            sample.reference.double(), torch.from_numpy(images(1)), rtol=0, atol=0.5 / 4095 + 1e-7
+        )
         assert sample.reference_dark.shape == (1, H, W) and sample.dark.shape == (1, H, W)
         assert sample.card_albedo == 0.8 and sample.pixel_pitch_mm == 0.025 and sample.saturation_level == 1.0
         assert sample.mask.dtype == torch.bool and bool(sample.mask.all())
@@ -60,7 +62,11 @@ class TestLoadCapture:
 
         decoded = []
         real_read_capture = load_module.read_capture
-        monkeypatch.setattr(load_module, "read_capture", lambda path, **kw: decoded.append(Path(path).name) or real_read_capture(path, **kw))
+        monkeypatch.setattr(
+            load_module,
+            "read_capture",
+            lambda path, **kw: decoded.append(Path(path).name) or real_read_capture(path, **kw),
+        )
         sample = load_sample(rig / "denim", with_flatfield=False)
         assert decoded == ["denim"]
         assert sample.reference is None and sample.reference_dark is None and sample.card_albedo == 0.8
@@ -71,13 +77,16 @@ class TestLoadCapture:
     def test_sample_without_flatfield(self, tmp_path):
         write_capture(tmp_path / "s", images(0), lights(), pixel_pitch_mm=0.025)
         sample = load_sample(tmp_path / "s")
-        assert sample.reference is None and sample.card_albedo == 1.0 and sample.mask is None and sample.normals_gt is None
+        assert (
+            sample.reference is None and sample.card_albedo == 1.0 and sample.mask is None and sample.normals_gt is None
+        )
 
     def test_flatfield_with_other_image_count(self, tmp_path):
         other = DirectionalLights(ring_lights(4, 55.0))
         write_capture(tmp_path / "card", images(1, 4), other, pixel_pitch_mm=0.025, kind="flatfield", card_albedo=0.8)
         write_capture(tmp_path / "s", images(0), lights(), pixel_pitch_mm=0.025, flatfield={"path": "../card"})
-        with pytest.raises(DataFormatError, match=r"\(4, 5, 6\) .* \(8, 5, 6\); the card must be imaged under the same LEDs"):
+        with pytest.raises(DataFormatError, match=r"\(4, 5, 6\) .* \(8, 5, 6\); the card must be imaged under the same "
+                                                  r"LEDs"):
             load_sample(tmp_path / "s")
 
     def test_focus_capture_is_refused(self, tmp_path):
@@ -109,7 +118,9 @@ class TestFindSamples:
     def test_lists_samples_only(self, rig, tmp_path, caplog):
         write_capture(tmp_path / "nested" / "sphere", images(5), lights(), pixel_pitch_mm=0.025, kind="sphere")
         write_capture(tmp_path / "nested" / "twill", images(6), lights(), pixel_pitch_mm=0.025)
-        write_capture(tmp_path / "nested" / "focus", images(6, 2), None, pixel_pitch_mm=0.025, kind="focus", positions_mm=[0, 1])
+        write_capture(
+            tmp_path / "nested" / "focus", images(6, 2), None, pixel_pitch_mm=0.025, kind="focus", positions_mm=[0, 1]
+        )
         (tmp_path / "nested" / "broken").mkdir()
         (tmp_path / "nested" / "broken" / "capture.json").write_text("{")
         (tmp_path / ".hidden.tmp-1234").mkdir()
@@ -150,5 +161,7 @@ def test_capture_round_trip_through_the_pipeline(tmp_path):
                   mask=inside, gt={"normals": normals})  # fmt: skip
     sample = load_sample(tmp_path / "sphere")
     result = reconstruct(sample)
-    error = mean_angular_error(result.normals, sample.normals_gt[None], sample.mask[None] & (shading > 0).all(0)[None, None])
+    error = mean_angular_error(
+        result.normals, sample.normals_gt[None], sample.mask[None] & (shading > 0).all(0)[None, None]
+    )
     assert float(error) < 0.1

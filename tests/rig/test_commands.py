@@ -53,7 +53,10 @@ def test_capture_argument_errors(tmp_path, capsys):
     assert "--port needs --camera" in capsys.readouterr().err
     assert main(["capture", "--port", "loop://", "--fault", "garbage", "--out", str(tmp_path / "x")]) == 1
     assert "add --simulate" in capsys.readouterr().err
-    assert main(["capture", "--port", "loop://", "--camera", "0", "--kind", "flatfield", "--out", str(tmp_path / "x")]) == 1
+    assert (
+        main(["capture", "--port", "loop://", "--camera", "0", "--kind", "flatfield", "--out", str(tmp_path / "x")])
+        == 1
+    )
     assert "--card-albedo" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
 

@@ -367,7 +367,8 @@ def test_the_python_twin_agrees_with_the_firmware(emulator, name):
     assert len(firmware) == len(twin)
     for (step, ours, our_pins), (_, theirs, their_pins) in zip(firmware, twin, strict=True):
         assert (ours, our_pins) == (theirs, their_pins), (
-            f"{name}, step {step}: firmware {ours!r} pins {our_pins:08b}, SimulatedRig {theirs!r} pins {their_pins:08b}")
+            f"{name}, step {step}: firmware {ours!r} pins {our_pins:08b}, SimulatedRig {theirs!r} pins "
+            f"{their_pins:08b}")
         assert not ours or documented(ours)
 
 

@@ -105,7 +105,9 @@ def host_firmware(tmp_path_factory) -> Path:
 def test_sketch_answers_like_the_simulated_device(host_firmware):
     commands = "".join(f"x {a[0].hex()}\n" if op == "x" else f"t {a[0]}\n" if op == "t" else "s\n"
                        for op, *a in SCRIPT)
-    result = subprocess.run([str(host_firmware)], input=commands, capture_output=True, text=True, check=True, timeout=30)
+    result = subprocess.run(
+        [str(host_firmware)], input=commands, capture_output=True, text=True, check=True, timeout=30
+    )
     firmware = result.stdout.splitlines()
     simulated = simulate(SCRIPT)
     assert len(firmware) == len(simulated)

@@ -22,7 +22,9 @@ def test_encode_commands_are_ascii_lines():
     assert isinstance(encode_command("WDT", 500), bytes)
 
 
-@pytest.mark.parametrize("verb, args", [("on", (1,)), ("ON", (-1,)), ("ON", (1.5,)), ("ON", (True,)), ("WDT", (10**40,))])
+@pytest.mark.parametrize(
+    "verb, args", [("on", (1,)), ("ON", (-1,)), ("ON", (1.5,)), ("ON", (True,)), ("WDT", (10**40,))]
+)
 def test_encode_refuses_bad_commands(verb, args):
     with pytest.raises(RigError):
         encode_command(verb, *args)
