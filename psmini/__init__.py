@@ -25,7 +25,7 @@ from psmini.integrate import (
     integrate_normals,
     masked_least_squares,
 )
-from psmini.evaluation import evaluate_sample, score_reconstruction
+from psmini.evaluation import evaluate_sample, evaluation_mask, score_reconstruction
 from psmini import fabric  # the subpackage: ISO 25178-2 parameters, yarn structure, descriptors
 from psmini.flatfield import FlatField, FlatFieldResult, flatfield
 from psmini.autofocus import AutofocusController, AutofocusResult, autofocus_sweep, best_of_scores, refine_peak
@@ -102,6 +102,7 @@ __all__ = [
     "median_angular_error",
     "depth_error",
     "evaluate_sample",
+    "evaluation_mask",
     "score_reconstruction",
     # near light
     "solve_near_light",
