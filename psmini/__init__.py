@@ -11,6 +11,11 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
+from psmini.threads import prefer_passive_waiting, set_threads
+
+# before torch loads OpenMP: idle threads sleep rather than spin, so concurrent processes do not stall each other
+prefer_passive_waiting()
+
 from psmini.errors import CalibrationError, DataFormatError, InputError, PsminiError, RigError, ShapeError
 from psmini import integrate  # the package, callable as psmini.integrate.integrate
 from psmini.integrate import METHODS as INTEGRATION_METHODS
@@ -104,6 +109,7 @@ __all__ = [
     "evaluate_sample",
     "evaluation_mask",
     "score_reconstruction",
+    "set_threads",
     # near light
     "solve_near_light",
     "NearLightOptions",
