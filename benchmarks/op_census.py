@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import functools
 import sys
 from functools import partial
 from pathlib import Path
@@ -29,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._ledger import append_results, best_time, table  # noqa: E402
 from data_synth import make_fabric  # noqa: E402
 from data_synth.rig import RigConfig, render_capture, render_card  # noqa: E402
+import psmini  # noqa: E402
 from psmini import PhotometricStereo  # noqa: E402
 from psmini.config import ReconstructionConfig  # noqa: E402
 
@@ -61,11 +63,23 @@ class Census(TorchDispatchMode):
     def _caller() -> str:
         frame = sys._getframe(2)
         while frame is not None:
-            name = frame.f_code.co_filename
-            if "/psmini/" in name and not name.endswith("_checks.py"):
-                return f"{name.split('/psmini/')[1]}:{frame.f_code.co_name}"
+            name = library_file(frame.f_code.co_filename)
+            if name is not None and name != "_checks.py":
+                return f"{name}:{frame.f_code.co_name}"
             frame = frame.f_back
         return "(outside psmini)"
+
+
+#: The library's own folder, wherever this clone is: a path fragment such as "/psmini/" would also match a
+#: virtual environment inside a clone named psmini (``psmini/.venv/.../torch/...``).
+PACKAGE = Path(psmini.__file__).resolve().parent
+
+
+@functools.lru_cache(maxsize=None)
+def library_file(filename: str) -> str | None:
+    """``filename`` relative to the psmini package (``"integrate/poisson.py"``), or ``None`` outside it."""
+    path = Path(filename).resolve()
+    return path.relative_to(PACKAGE).as_posix() if path.is_relative_to(PACKAGE) else None
 
 
 def eager_prices(size: int) -> tuple[float, float]:

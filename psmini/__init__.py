@@ -11,6 +11,11 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
+from psmini.threads import prefer_passive_waiting, set_threads
+
+# before torch loads OpenMP: idle threads sleep rather than spin, so concurrent processes do not stall each other
+prefer_passive_waiting()
+
 from psmini import (
     fabric,  # the subpackage: ISO 25178-2 parameters, yarn structure, descriptors
     integrate,  # the package, callable as psmini.integrate.integrate
@@ -19,7 +24,7 @@ from psmini.autofocus import AutofocusController, AutofocusResult, autofocus_swe
 from psmini.calibration import calibrate_sphere, card_reference, triangulate_leds
 from psmini.config import ReconstructionConfig
 from psmini.errors import CalibrationError, DataFormatError, InputError, PsminiError, RigError, ShapeError
-from psmini.evaluation import evaluate_sample, score_reconstruction
+from psmini.evaluation import evaluate_sample, evaluation_mask, score_reconstruction
 from psmini.flatfield import FlatField, FlatFieldResult, flatfield
 from psmini.focus import (
     FOCUS_MEASURES,
@@ -147,7 +152,9 @@ __all__ = [
     "median_angular_error",
     "depth_error",
     "evaluate_sample",
+    "evaluation_mask",
     "score_reconstruction",
+    "set_threads",
     # near light
     "solve_near_light",
     "NearLightOptions",

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+# psmini before torch: it asks OpenMP to let idle threads sleep (psmini.threads), which keeps the suite from
+# stalling when other processes share the cores
+import psmini  # noqa: F401, I001
 from pathlib import Path
 
 import pytest

@@ -97,6 +97,13 @@ def test_pages_hold_no_dated_figures(page):
     assert not re.search(r"\d\d:\d\d UTC|commit `[0-9a-f]{7}", text), page
 
 
+def _readme_python_blocks() -> list[str]:
+    """The README's Python examples, in order (the DiLiGenT one, then the capture one)."""
+    readme = (REPO / "README.md").read_text(encoding="utf-8")
+    section = readme.split("## From Python", 1)[1].split("\n## ", 1)[0]
+    return re.findall(r"```python\n(.*?)```", section, re.S)
+
+
 @pytest.mark.slow
 def test_readme_python_example_runs_and_prints_what_it_says(monkeypatch, capsys):
     """The README's DiLiGenT example, run as written from the repository root (so ``../shared/data`` is the
@@ -105,7 +112,7 @@ def test_readme_python_example_runs_and_prints_what_it_says(monkeypatch, capsys)
         pytest.skip("DiLiGenT/cat is not in ../shared/data beside the repository")
     pytest.importorskip("plotly", reason="result.show() needs plotly (the viz extra)")
     readme = (REPO / "README.md").read_text(encoding="utf-8")
-    code = re.search(r"## From Python.*?```python\n(.*?)```", readme, re.S).group(1)
+    code = _readme_python_blocks()[0]
     assert len(code.strip().splitlines()) <= 15
     monkeypatch.chdir(REPO)
     namespace: dict = {}
@@ -114,3 +121,24 @@ def test_readme_python_example_runs_and_prints_what_it_says(monkeypatch, capsys)
     assert "lstsq: 8.41° mean angular error" in printed and "robust: 6.49° mean angular error" in printed
     depth = namespace["depth"][namespace["mask"]]
     assert bool((depth > 0).all()) and 0.9 < float(depth.log().mean().exp()) < 1.1
+
+
+@pytest.mark.slow
+def test_readme_capture_example_prints_what_psmini_evaluate_prints(tmp_path, monkeypatch, capsys):
+    """The README's capture example, run as written beside a ``psmini synth jute --out synthetic`` folder (a
+    capture has no ``sample.mask``; its ground truth has its own): it prints the figures of ``psmini evaluate``."""
+    import json
+
+    from psmini.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["synth", "jute", "--out", "synthetic", "--size", "96"]) == 0
+    capsys.readouterr()
+    code = _readme_python_blocks()[1]
+    exec(compile(code, "README.md", "exec"), {})  # noqa: S102 (the README's own example)
+    printed = capsys.readouterr().out.strip()
+    assert main(["evaluate", "synthetic/jute", "--json"]) == 0
+    evaluated = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert printed == (f"{evaluated['mean_angular_error_deg']:.2f}° mean angular error, "
+                       f"{evaluated['depth_rmse_mm'] * 1000:.0f} µm depth RMSE")
+    assert 0 < evaluated["mean_angular_error_deg"] < 5
