@@ -27,10 +27,10 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import psmini  # noqa: E402
 from benchmarks._ledger import append_results, best_time, table  # noqa: E402
 from data_synth import make_fabric  # noqa: E402
 from data_synth.rig import RigConfig, render_capture, render_card  # noqa: E402
-import psmini  # noqa: E402
 from psmini import PhotometricStereo  # noqa: E402
 from psmini.config import ReconstructionConfig  # noqa: E402
 
@@ -75,7 +75,7 @@ class Census(TorchDispatchMode):
 PACKAGE = Path(psmini.__file__).resolve().parent
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def library_file(filename: str) -> str | None:
     """``filename`` relative to the psmini package (``"integrate/poisson.py"``), or ``None`` outside it."""
     path = Path(filename).resolve()

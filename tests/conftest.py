@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 # psmini before torch: it asks OpenMP to let idle threads sleep (psmini.threads), which keeps the suite from
-# stalling when other processes share the cores
-import psmini  # noqa: F401, I001
+# stalling when other processes share the cores (the split keeps the import sorter from moving it after torch)
+import psmini  # noqa: F401
+
+# isort: split
 from pathlib import Path
 
 import pytest

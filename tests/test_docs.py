@@ -111,7 +111,6 @@ def test_readme_python_example_runs_and_prints_what_it_says(monkeypatch, capsys)
     if not (REPO.parent / "shared" / "data" / "DiLiGenT" / "cat" / "filenames.txt").is_file():
         pytest.skip("DiLiGenT/cat is not in ../shared/data beside the repository")
     pytest.importorskip("plotly", reason="result.show() needs plotly (the viz extra)")
-    readme = (REPO / "README.md").read_text(encoding="utf-8")
     code = _readme_python_blocks()[0]
     assert len(code.strip().splitlines()) <= 15
     monkeypatch.chdir(REPO)

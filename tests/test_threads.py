@@ -1,4 +1,5 @@
-"""psmini's threads: OpenMP waits passively when psmini comes first, and ``--threads`` / ``set_threads`` set the count."""
+"""psmini's threads: OpenMP waits passively when psmini comes first, and ``--threads`` / ``set_threads`` set the
+count."""
 
 from __future__ import annotations
 
