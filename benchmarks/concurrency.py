@@ -41,6 +41,8 @@ def child(workload: str, data: Path, first: str, start_at: float) -> dict[str, f
     """Import in the policy's order, load the workload, wait for ``start_at``, time one run."""
     if first == "torch":
         import torch  # noqa: F401  (before psmini: OpenMP keeps its default wait policy)
+    else:
+        import psmini  # noqa: F401  (before torch: psmini asks OpenMP's idle threads to sleep)
     import numpy as np
     import torch
 
@@ -76,7 +78,8 @@ def child(workload: str, data: Path, first: str, start_at: float) -> dict[str, f
     start, cpu = time.perf_counter(), time.process_time()
     with torch.no_grad():
         run()
-    return {"wall": time.perf_counter() - start, "cpu": time.process_time() - cpu, "threads": torch.get_num_threads()}
+    return {"wall": time.perf_counter() - start, "cpu": time.process_time() - cpu, "threads": torch.get_num_threads(),
+            "wait_policy": os.environ.get("OMP_WAIT_POLICY", "(default)")}
 
 
 def launch(workload: str, data: Path, policy: str, count: int, together: bool) -> list[dict[str, float]]:
