@@ -333,10 +333,11 @@ class PointLights(LightModel):
         """Vectors from the points to the lights, (B, K, 3, H, W), and their lengths (B, K, 1, H, W)."""
         _check_points(points)
         offsets = self.positions_mm.to(points)[None, :, :, None, None] - points[:, None]
-        distance = offsets.norm(dim=2, keepdim=True)
-        if bool((distance.detach() <= 0).any()):
+        # the summed squares, not Tensor.norm: a norm along dim 2 is 45 times slower on the CPU (psmini._tensor)
+        squared = offsets.square().sum(dim=2, keepdim=True)
+        if bool((squared.detach() <= 0).any()):
             raise CalibrationError("a surface point coincides with a light position")
-        return offsets, distance
+        return offsets, squared.sqrt()
 
     def forward(self, points: Tensor) -> tuple[Tensor, Tensor]:
         """Per-pixel unit light vectors and inverse-square irradiance."""

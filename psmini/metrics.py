@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from psmini._checks import check_mask, check_shape
+from psmini._tensor import vector_length
 from psmini.errors import InputError, ShapeError
 
 __all__ = ["angular_error_deg", "mean_angular_error", "median_angular_error", "depth_error"]
@@ -50,7 +51,7 @@ def angular_error_deg(normals: Tensor, normals_gt: Tensor) -> Tensor:
         raise ShapeError(f"normals_gt {tuple(normals_gt.shape)} does not match normals {tuple(normals.shape)}")
     a = torch.nn.functional.normalize(normals, dim=1)
     b = torch.nn.functional.normalize(normals_gt.to(normals), dim=1)
-    cross = torch.linalg.cross(a, b.expand_as(a), dim=1).norm(dim=1, keepdim=True)
+    cross = vector_length(torch.linalg.cross(a, b.expand_as(a), dim=1), dim=1)
     dot = (a * b).sum(dim=1, keepdim=True)
     return torch.rad2deg(torch.atan2(cross, dot))
 

@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from psmini._checks import check_finite, check_positive, check_shape, check_tensor
+from psmini._tensor import vector_length
 from psmini.errors import InputError, ShapeError
 from psmini.lights import as_batched_lights
 
@@ -73,7 +74,7 @@ def normals_from_height(height_mm: Tensor, pixel_pitch_mm: float) -> Tensor:
     pitch = check_positive(pixel_pitch_mm, "pixel_pitch_mm")
     p, q = _height_gradients(height_mm, pitch)
     normals = torch.cat([-p, -q, torch.ones_like(p)], dim=1)
-    return normals / normals.norm(dim=1, keepdim=True)
+    return normals / vector_length(normals, dim=1)
 
 
 def _height_gradients(height: Tensor, pitch: float) -> tuple[Tensor, Tensor]:
@@ -160,7 +161,7 @@ def cast_shadows(height_mm: Tensor, light_vectors: Tensor, pixel_pitch_mm: float
     z = height_mm.detach()
     vectors = vectors.detach()
     count = vectors.shape[1]
-    horizontal = vectors[:, :, :2].norm(dim=2)  # (B, K, H, W)
+    horizontal = vector_length(vectors[:, :, :2], dim=2, keepdim=False)  # (B, K, H, W)
     safe = horizontal.clamp_min(1e-12)
     # Height gained per pixel of horizontal travel; a light straight overhead (horizontal 0) casts no shadow.
     rise = vectors[:, :, 2] / safe * pitch
