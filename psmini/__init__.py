@@ -70,11 +70,8 @@ from psmini.metrics import angular_error_deg, depth_error, mean_angular_error, m
 from psmini.nearlight import (
     NearLightOptions,
     NearLightResult,
-    RefineOptions,
-    estimate_height_offset,
+    near_light_energy,
     near_light_vectors,
-    refine_depth,
-    robust_near_light_normals,
     solve_near_light,
 )
 from psmini.nonlambertian import (
@@ -158,11 +155,8 @@ __all__ = [
     # near light
     "solve_near_light",
     "NearLightOptions",
-    "RefineOptions",
     "near_light_vectors",
-    "robust_near_light_normals",
-    "estimate_height_offset",
-    "refine_depth",
+    "near_light_energy",
     "NearLightResult",
     # pipeline
     "ReconstructionConfig",

@@ -62,7 +62,7 @@ OUTPUT_KINDS = ("normals", "albedo", "depth", "ply")
 #: Columns of ``summary.csv`` (and keys of each entry of ``summary.json``'s ``samples``).
 SUMMARY_FIELDS = (
     "sample", "status", "solver", "time_s", "decode_s", "compute_s", "write_s", "batch_size", "mean_angular_error_deg",
-    "median_angular_error_deg", "unsolved_share", "noise_floor_share", "depth_rmse_mm", "depth_mae_mm", "error",
+    "median_angular_error_deg", "unsolved_share", "normal_std_median_deg", "depth_rmse_mm", "depth_mae_mm", "error",
 )
 _MARKER = "outputs.json"
 
@@ -78,9 +78,9 @@ class BatchRecord:
         time_s: decode + its share of the batch computation + write, seconds.
         decode_s, compute_s, write_s: the parts of ``time_s``.
         batch_size: how many samples were solved together with it.
-        noise_floor_share: near light: the share of its solved pixels fitted to a shadow
-            (:attr:`psmini.nearlight.NearLightResult.at_noise_floor`, written as ``noise_floor.png``); None with
-            distant lights.
+        normal_std_median_deg: near light: the median over its solved pixels of each normal's predicted RMS angular
+            error (:attr:`psmini.nearlight.NearLightResult.normal_std`, written as ``normal_std.npy``/``.png``);
+            None with distant lights.
         scores: errors against ground truth (:func:`psmini.evaluation.score_reconstruction`) when it has some.
         error: the error message of a failed sample.
     """
@@ -93,7 +93,7 @@ class BatchRecord:
     compute_s: float = 0.0
     write_s: float = 0.0
     batch_size: int = 0
-    noise_floor_share: float | None = None
+    normal_std_median_deg: float | None = None
     scores: dict[str, float] = field(default_factory=dict)
     error: str = ""
 
@@ -519,7 +519,7 @@ def iter_reconstructions(
 def _write(out_dir: Path, result: Reconstruction, sample, outputs: tuple[str, ...], metadata: dict[str, Any]) -> None:
     """Write the chosen outputs of one sample atomically; ``outputs.json`` carries its summary row and config."""
     from psmini.geometry import depth_to_points
-    from psmini.io import save_albedo_png, save_depth, save_noise_floor, save_normal_png, save_ply, write_outputs
+    from psmini.io import save_albedo_png, save_depth, save_normal_png, save_normal_std, save_ply, write_outputs
     from psmini.io._atomic import atomic_folder
 
     pitch = sample.pixel_pitch_mm
@@ -543,9 +543,9 @@ def _write(out_dir: Path, result: Reconstruction, sample, outputs: tuple[str, ..
             points = depth_to_points(depth.double(), 1.0 if pitch is None else float(pitch))
             save_ply(target / "points.ply", points, albedo, mask)
             names.append("points.ply")
-        floor = getattr(result, "at_noise_floor", None)
-        counts = {} if floor is None else save_noise_floor(target / "noise_floor.png", floor.cpu(), mask)
-        names += ["noise_floor.png"] if counts else []
+        normal_std = getattr(result, "normal_std", None)
+        counts = {} if normal_std is None else save_normal_std(target / "normal_std.npy", normal_std.cpu(), mask)
+        names += ["normal_std.npy", "normal_std.png"] if counts else []
         summary = {"files": names, "size": list(depth.shape[-1:-3:-1]), "pixel_pitch_mm": pitch, **counts,
                    "metadata": metadata}
         (target / _MARKER).write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n", encoding="utf-8")
@@ -592,13 +592,13 @@ def _scores(result: Reconstruction, sample) -> dict[str, float]:
             if k.endswith(("_deg", "_mm", "_share")) and math.isfinite(float(v))}
 
 
-def _noise_floor_share(result: Reconstruction) -> float | None:
-    """The share of the solved pixels that near light fitted to a shadow (None for a distant-light result)."""
-    flags = getattr(result, "at_noise_floor", None)
-    if flags is None:
+def _normal_std_median(result: Reconstruction) -> float | None:
+    """The median of near light's predicted normal error over the solved pixels, degrees (None for a distant-light
+    result or nothing solved)."""
+    normal_std = getattr(result, "normal_std", None)
+    if normal_std is None or not bool(result.mask.any()):
         return None
-    solved = int(result.mask.sum())
-    return int((flags & result.mask).sum()) / solved if solved else 0.0
+    return float(normal_std[result.mask].median())
 
 
 def _write_summary(out: Path, records: list[BatchRecord], settings: dict[str, Any]) -> dict[str, Any]:
@@ -646,10 +646,10 @@ def reconstruct_dataset(
     The rest are split into chunks of ``batch_size`` consecutive samples; each chunk is decoded, solved in batches
     of samples sharing a size, lights and card, and written atomically: ``albedo.png``, ``normals.png``,
     ``depth.npy``/``.png``/``.json``, ``points.ply`` (as :func:`psmini.io.write_outputs`; only those chosen by
-    ``outputs``), with near light ``noise_floor.png`` (its pixels fitted to a shadow, whatever ``outputs``
-    chooses: they concern every product) and ``outputs.json``, whose ``metadata.batch`` holds the sample's summary
-    row. ``out/summary.csv`` and ``out/summary.json`` list every sample with its status, times, the share of its
-    solved pixels fitted to a shadow (near light) and, when it has ground truth, errors
+    ``outputs``), with near light ``normal_std.npy`` and ``normal_std.png`` (each normal's predicted error, whatever
+    ``outputs`` chooses: it concerns every product) and ``outputs.json``, whose ``metadata.batch`` holds the
+    sample's summary row. ``out/summary.csv`` and ``out/summary.json`` list every sample with its status, times,
+    the median predicted normal error (near light) and, when it has ground truth, errors
     (:func:`psmini.evaluation.score_reconstruction`).
 
     Where the chunks run: on the CPU, in ``workers`` processes that each decode, solve and write whole chunks; on
@@ -758,7 +758,7 @@ def _finish(out: Path, solved: _Solved, settings: _Settings) -> BatchRecord:
     try:
         resolved = settings.config.resolved(item.sample.lights, item.sample.mask is not None)
         record.solver = resolved.solver
-        record.noise_floor_share = _noise_floor_share(solved.result)
+        record.normal_std_median_deg = _normal_std_median(solved.result)
         record.scores = _scores(solved.result, item.sample) if settings.score else {}
         record.status, record.error = "done", ""
         record.time_s = item.decode_s + solved.compute_s

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from psmini.config import ReconstructionConfig
-from psmini.metrics import depth_error, mean_angular_error, median_angular_error
+from psmini.metrics import angular_error_deg, depth_error, mean_angular_error, median_angular_error
 from psmini.pipeline import Reconstruction, reconstruct
 
 __all__ = ["evaluate_sample", "score_reconstruction", "evaluation_mask"]
@@ -53,10 +53,12 @@ def score_reconstruction(result: Reconstruction, sample) -> dict[str, float | in
 
     Returns:
         dict with ``name``, ``pixels`` (scored), ``unsolved_pixels`` and ``unsolved_share`` (of the scored ones),
-        ``mean_angular_error_deg``, ``median_angular_error_deg``; for near light, ``noise_floor_pixels`` (scored
-        pixels of :attr:`~psmini.nearlight.NearLightResult.at_noise_floor`) and ``noise_floor_error_deg`` (their
-        mean error; NaN when none); and, when the sample has ground-truth depth, ``depth_rmse_mm`` and
-        ``depth_mae_mm`` (after removing the mean offset).
+        ``mean_angular_error_deg``, ``median_angular_error_deg``; for near light, over the scored solved pixels, the
+        median predicted error (:attr:`~psmini.nearlight.NearLightResult.normal_std`, ``normal_std_median_deg``),
+        the share of errors below their prediction (``within_normal_std_share``: 0.63 for 2-D Gaussian errors
+        predicted right) and the mean of error² / predicted² (``error_to_normal_std_ratio``: 1 when right); and, when
+        the sample has
+        ground-truth depth, ``depth_rmse_mm`` and ``depth_mae_mm`` (after removing the mean offset).
 
     Example:
         >>> from psmini.io import Sample
@@ -81,12 +83,14 @@ def score_reconstruction(result: Reconstruction, sample) -> dict[str, float | in
         "mean_angular_error_deg": float(mean_angular_error(result.normals, normals_gt, mask)[0]),
         "median_angular_error_deg": float(median_angular_error(result.normals, normals_gt, mask)[0]),
     }
-    at_floor = getattr(result, "at_noise_floor", None)
-    if at_floor is not None:  # near light: solved pixels fitted to a reading at the noise floor, and their error
-        at_floor = mask & at_floor.to(device)
-        scores["noise_floor_pixels"] = int(at_floor.sum())
-        scores["noise_floor_error_deg"] = float(mean_angular_error(result.normals, normals_gt, at_floor)[0]) \
-            if bool(at_floor.any()) else float("nan")
+    normal_std = getattr(result, "normal_std", None)
+    solved = mask & result.mask.bool()
+    if normal_std is not None and bool(solved.any()):  # near light: how well its predicted errors held
+        predicted = normal_std.to(device=device, dtype=dtype)[solved].clamp_min(torch.finfo(dtype).tiny)
+        error = angular_error_deg(result.normals, normals_gt)[solved]
+        scores["normal_std_median_deg"] = float(predicted.median())
+        scores["within_normal_std_share"] = float((error < predicted).to(dtype).mean())
+        scores["error_to_normal_std_ratio"] = float((error / predicted).square().mean())
     if sample.depth_gt is not None:
         errors = depth_error(result.depth, sample.depth_gt.to(device=device, dtype=dtype).unsqueeze(0), mask)
         scores["depth_rmse_mm"] = float(errors["rmse"][0])

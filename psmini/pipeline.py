@@ -27,7 +27,6 @@ from psmini._chunks import batch_part, chunks
 from psmini.config import ReconstructionConfig
 from psmini.errors import InputError
 from psmini.flatfield import flatfield
-from psmini.integrate import METHODS as INTEGRATION_METHODS
 from psmini.integrate import integrate
 from psmini.lights import DirectionalLights, LightModel, check_spans_3d
 from psmini.nearlight import NearLightResult, solve_near_light
@@ -145,9 +144,6 @@ class PhotometricStereo(nn.Module):
             check_positive(pixel_pitch_mm, "pixel_pitch_mm")
         elif self.solver == "near":
             raise InputError("the near-light solver needs the pixel pitch (mm per pixel on the cloth); got None")
-        if self.solver == "distant" and self.config.integrator == "fill":
-            raise InputError("integrator 'fill' is the near solver's; the distant solver takes one of "
-                             + ", ".join(sorted(INTEGRATION_METHODS)))
         if self.solver == "near" and self.config.integrator_options:
             raise InputError(f"integrator options {sorted(self.config.integrator_options)} are for the distant "
                              "solver's integrator; the near solver weights its own (set NearLightOptions)")

@@ -147,32 +147,27 @@ class TestReconstructDataset:
         assert meta["files"] == ["normals.png", "depth.npy", "depth.png", "depth.json"]
         assert meta["metadata"]["batch"]["status"] == "done"
 
-    def test_near_light_fits_to_a_shadow_written_and_summarised(self, tree, tmp_path):
-        """Near light's at_noise_floor flags reach the output folder (noise_floor.png, counted in outputs.json,
-        whatever the outputs chosen) and the summary (noise_floor_share); distant rows leave the cell empty.
-
-        One capture per batch, so that the batch solves what ``reconstruct`` solves: in a batch, near light's
-        answer moves with the rounding of batched operations (an FFT, a multi-threaded sum), which its alternation's
-        discrete decisions can carry to a pixel's selection (see ``solve_near_light``)."""
+    def test_near_light_normal_std_written_and_summarised(self, tree, tmp_path):
+        """Near light's predicted normal errors reach the output folder (normal_std.npy/.png, their median in
+        outputs.json, whatever the outputs chosen) and the summary (normal_std_median_deg); distant rows leave the
+        cell empty."""
         summary = reconstruct_dataset(tree / "lotA", tmp_path / "near", outputs="depth", score=False, batch_size=1)
         for row in summary["samples"]:
-            assert row["batch_size"] == 1
             expected = reconstruct(load_sample(tree / "lotA" / row["sample"]))
-            flagged = expected.at_noise_floor & expected.mask
-            assert row["solver"] == "near" and int(flagged.sum()) > 0
-            assert row["noise_floor_share"] == pytest.approx(int(flagged.sum()) / int(expected.mask.sum()))
+            median = float(expected.normal_std[expected.mask].median())
+            assert row["solver"] == "near" and row["normal_std_median_deg"] == pytest.approx(median, rel=1e-5)
             folder = tmp_path / "near" / row["sample"]
             meta = json.loads((folder / "outputs.json").read_text())
-            assert meta["files"][-1] == "noise_floor.png"
-            assert meta["noise_floor_pixels"] == int(flagged.sum())
-            pixels, _ = psmini.io.read_image_raw(folder / "noise_floor.png")
-            assert int((pixels == 255).sum()) == meta["noise_floor_pixels"] and set(np.unique(pixels)) <= {0, 255}
+            assert meta["files"][-2:] == ["normal_std.npy", "normal_std.png"]
+            written = np.load(folder / "normal_std.npy")
+            np.testing.assert_allclose(written[expected.mask[0, 0].numpy()],
+                                       expected.normal_std[expected.mask].numpy(), rtol=1e-5)
         distant = reconstruct_dataset(tree / "lotA", tmp_path / "distant", DISTANT, outputs="depth", score=False)
-        assert all(row["noise_floor_share"] == "" for row in distant["samples"])
-        assert not (tmp_path / "distant" / "jute" / "noise_floor.png").exists()
+        assert all(row["normal_std_median_deg"] == "" for row in distant["samples"])
+        assert not (tmp_path / "distant" / "jute" / "normal_std.npy").exists()
         rows = (tmp_path / "near" / "summary.csv").read_text().splitlines()
-        column = rows[0].split(",").index("noise_floor_share")
-        assert all(float(line.split(",")[column]) > 0 for line in rows[1:])
+        column = rows[0].split(",").index("normal_std_median_deg")
+        assert all(0 < float(line.split(",")[column]) < 10 for line in rows[1:])
 
     def test_sample_whose_card_is_missing_fails_alone(self, tree, tmp_path):
         root = _fresh(tree, tmp_path)
@@ -211,7 +206,7 @@ class TestIterReconstructions:
         results = dict(iter_reconstructions(tree / "lotB", ReconstructionConfig(solver="near")))
         expected = reconstruct(load_sample(tree / "lotB" / "cotton"), ReconstructionConfig(solver="near"))
         torch.testing.assert_close(results["cotton"].depth, expected.depth, atol=1e-4, rtol=1e-4)
-        assert type(results["cotton"]) is type(expected) and results["cotton"].at_noise_floor.shape == (1, 1, 64, 64)
+        assert type(results["cotton"]) is type(expected) and results["cotton"].normal_std.shape == (1, 1, 64, 64)
 
     def test_errors(self, tmp_path):
         with pytest.raises(InputError, match="does not exist"):

@@ -47,7 +47,7 @@ class TestReconstructionConfig:
             ({"near": {"max_iterations": 2}, "solver": "distant"}, "solver is 'distant'"),
             ({"near": {"speed": "fast"}}, "speed"),
             ({"near": {"max_iterations": 0}}, "max_iterations"),
-            ({"solver": "distant", "integrator": "fill"}, "near solver's"),
+            ({"solver": "distant", "integrator": "fill"}, "integrator must be one of"),
             ({"estimator": "lstsq", "estimator_options": {"low": 0.2}}, "takes no options"),
             ({"estimator": "tukey", "estimator_options": {"window": 3}}, "window"),
             ({"estimator": "tukey", "estimator_options": {"iterations": 0}}, "iterations"),

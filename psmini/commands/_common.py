@@ -60,10 +60,10 @@ def add_config_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-reference", type=float, default=0.02, metavar="F",
                         help="card pixels darker than F x the LED's brightest card pixel are not trusted "
                              "(default 0.02)")
-    parser.add_argument("--card-smoothing-px", type=float, default=None, metavar="S",
+    parser.add_argument("--card-smoothing-px", type=float, default=3.0, metavar="S",
                         help="denoise the card before dividing by it: a local linear fit of each LED's share in a "
-                             "Gaussian window of S pixels (psmini.flatfield.smooth_card; default: the card as "
-                             "captured)")
+                             "Gaussian window of S pixels (psmini.flatfield.smooth_card; default 3; 0 divides by the "
+                             "card as captured)")
     parser.add_argument("--dtype", choices=["float32", "float64"], default="float32",
                         help="floating dtype of the computation (default float32)")
     add_device_flag(parser)
@@ -97,7 +97,7 @@ def config_from_args(args: argparse.Namespace):
         # near's JSON form, which __post_init__ turns into NearLightOptions (naming a bad key as an InputError)
         near=_options(args.near_option, "--near-option"),  # type: ignore[arg-type]
         min_reference=args.min_reference,
-        card_smoothing_px=args.card_smoothing_px, device=args.device,
+        card_smoothing_px=args.card_smoothing_px or None, device=args.device,
         dtype=args.dtype,
     )
 

@@ -36,10 +36,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"{sample.name} ({scores['solver']}-light solver): mean angular error "
           f"{scores['mean_angular_error_deg']:.3f} deg, median {scores['median_angular_error_deg']:.3f} deg over "
           f"{scores['pixels']} pixels ({scores['unsolved_pixels']} of them unsolved)")
-    if scores.get("noise_floor_pixels"):
-        print(f"{sample.name}: {scores['noise_floor_pixels']} of them fitted to three observations, one at the noise "
-              f"floor (a shadow or a grazing light: NearLightResult.at_noise_floor), mean error "
-              f"{scores['noise_floor_error_deg']:.1f} deg")
+    if "normal_std_median_deg" in scores:
+        print(f"{sample.name}: predicted normal error (normal_std) median {scores['normal_std_median_deg']:.3f} deg; "
+              f"{100 * scores['within_normal_std_share']:.0f}% of the errors below it (63% when it is right), "
+              f"mean (error / predicted)^2 {scores['error_to_normal_std_ratio']:.2f} (1 when right)")
     if "depth_rmse_mm" in scores:
         print(f"{sample.name}: depth RMSE {scores['depth_rmse_mm']:.4f} mm, MAE {scores['depth_mae_mm']:.4f} mm "
               "(after removing the mean offset)")

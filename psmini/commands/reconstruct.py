@@ -15,7 +15,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="reconstruct a DiLiGenT or psmini capture folder",
         description="Reconstruct albedo, normals, depth and a PLY point cloud from a DiLiGenT folder or a psmini "
         "capture folder, and write them into OUT (albedo.png, normals.png, depth.npy, depth.png, points.ply; with "
-        "near light noise_floor.png, the pixels fitted to a shadow).",
+        "near light normal_std.npy/.png, each normal's predicted error).",
     )
     add_reconstruction_flags(parser)
     parser.add_argument("--out", type=Path, required=True, metavar="OUT", help="output folder (created)")
@@ -39,17 +39,16 @@ def run(args: argparse.Namespace) -> int:
           f"{sample.images.shape[-2]}) with the {resolved.solver}-light solver on {config.device} in {elapsed:.2f} s")
     for path in written:
         print(f"  wrote {path}")
-    floor = _noise_floor_pixels(result)
-    if floor is not None:
-        print(f"  {floor} of {int(result.mask.sum())} solved pixels fitted to a shadow (3 observations, one at the "
-              "noise floor): their normals are unreliable, see noise_floor.png")
+    predicted = _normal_std_median(result)
+    if predicted is not None:
+        print(f"  normals' predicted RMS error: median {predicted:.3f} deg over the solved pixels (normal_std.npy)")
     if args.json:
         emit_json({"name": sample.name, "out": str(args.out), "files": [str(p) for p in written], "time_s": elapsed,
-                   "solver": resolved.solver, "noise_floor_pixels": floor, "config": resolved.to_dict()})
+                   "solver": resolved.solver, "normal_std_median_deg": predicted, "config": resolved.to_dict()})
     return 0
 
 
-def _noise_floor_pixels(result) -> int | None:
-    """How many solved pixels near light fitted to a shadow (None for a distant-light result)."""
-    flags = getattr(result, "at_noise_floor", None)
-    return None if flags is None else int((flags & result.mask).sum())
+def _normal_std_median(result) -> float | None:
+    """The median over the solved pixels of near light's predicted normal error, degrees (None for distant light)."""
+    normal_std = getattr(result, "normal_std", None)
+    return None if normal_std is None or not bool(result.mask.any()) else float(normal_std[result.mask].median())

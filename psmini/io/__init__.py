@@ -20,8 +20,8 @@ from psmini.io.export import (
     save_albedo_png,
     save_depth,
     save_mesh_ply,
-    save_noise_floor,
     save_normal_png,
+    save_normal_std,
     save_ply,
     write_outputs,
 )
@@ -81,6 +81,6 @@ __all__ = [
     "save_mesh_ply",
     "save_depth",
     "save_ply",
-    "save_noise_floor",
+    "save_normal_std",
     "write_outputs",
 ]

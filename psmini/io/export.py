@@ -32,7 +32,7 @@ __all__ = [
     "save_depth",
     "save_ply",
     "save_mesh_ply",
-    "save_noise_floor",
+    "save_normal_std",
     "write_outputs",
 ]
 
@@ -367,49 +367,62 @@ def save_mesh_ply(path: str | Path, points: Any, colors: Any = None, mask: Any =
 
 def _field(reconstruction: Any, name: str) -> Any:
     value = reconstruction.get(name) if isinstance(reconstruction, Mapping) else getattr(reconstruction, name, None)
-    if value is None and name not in ("mask", "at_noise_floor"):
+    if value is None and name not in ("mask", "normal_std"):
         raise InputError(f"reconstruction lacks {name!r}; expected albedo, normals, depth (and optionally mask)")
     return value
 
 
-def _noise_floor(flags: Any, inside: np.ndarray) -> np.ndarray | None:
-    """The (H, W) bool ``at_noise_floor`` flags of a reconstruction (None without them), like its mask."""
-    if flags is None:
+#: ``normal_std.png`` maps a predicted error of this many degrees (or more) to white.
+NORMAL_STD_PNG_MAX_DEG = 10.0
+
+
+def _normal_std(values: Any, inside: np.ndarray) -> np.ndarray | None:
+    """The (H, W) predicted angular errors of a reconstruction (None without them), like its mask, checked."""
+    if values is None:
         return None
-    array = _planes(flags, "at_noise_floor", 1)[0]
+    array = _planes(values, "normal_std", 1)[0].astype(np.float32)
     if array.shape != inside.shape:
-        raise ShapeError(f"at_noise_floor must be {inside.shape[0]}x{inside.shape[1]} (HxW) like the image, got "
+        raise ShapeError(f"normal_std must be {inside.shape[0]}x{inside.shape[1]} (HxW) like the image, got "
                          f"{array.shape}")
-    return array != 0
+    if not np.isfinite(array[inside]).all() or (array[inside] < 0).any():
+        raise InputError("normal_std must be finite and >= 0 (degrees) inside the mask")
+    return array
 
 
-def save_noise_floor(path: str | Path, flags: Any, mask: Any = None) -> dict[str, float]:
-    """Write near light's ``at_noise_floor`` flags as an 8-bit PNG: 255 at the flagged solved pixels, 0 elsewhere.
+def save_normal_std(path: str | Path, normal_std: Any, mask: Any = None) -> dict[str, float | None]:
+    """Write each normal's predicted RMS angular error (near light's
+    :attr:`~psmini.nearlight.NearLightResult.normal_std`): ``.npy`` float32 degrees, NaN outside the mask, and beside
+    it a ``.png`` of the same name, 8-bit, 0 at 0° to 255 at :data:`NORMAL_STD_PNG_MAX_DEG` or more (0 outside).
 
     Args:
-        path: destination ``.png``.
-        flags: :attr:`psmini.nearlight.NearLightResult.at_noise_floor`, :math:`(1, 1, H, W)`, :math:`(1, H, W)`
-            or :math:`(H, W)`, bool (nonzero counts as flagged).
-        mask: the solved pixels, like ``flags`` (None: every pixel); flags outside it are not written.
+        path: destination ``.npy`` (the picture goes to the same path with ``.png``).
+        normal_std: :math:`(1, 1, H, W)`, :math:`(1, H, W)` or :math:`(H, W)`, degrees.
+        mask: the pixels to write, like ``normal_std`` (None: every pixel).
 
     Returns:
-        ``{"noise_floor_pixels": n, "noise_floor_share": n / solved}`` (the share 0 when nothing is solved).
+        ``{"normal_std_median_deg": m, "normal_std_png_max_deg": 10.0}`` (the median over the mask; None if empty).
 
     Raises:
-        ShapeError: flags or mask of another shape. DataFormatError: the file cannot be written.
+        ShapeError: a map or mask of another shape. InputError: negative or non-finite values inside the mask.
+        DataFormatError: the files cannot be written.
 
     Example:
-        >>> flags = torch.zeros(1, 1, 4, 4, dtype=torch.bool)
-        >>> flags[..., 0, 0] = True
-        >>> save_noise_floor("noise_floor.png", flags)  # doctest: +SKIP
-        {'noise_floor_pixels': 1, 'noise_floor_share': 0.0625}
+        >>> save_normal_std("normal_std.npy", torch.full((1, 1, 4, 4), 0.5))  # doctest: +SKIP
+        {'normal_std_median_deg': 0.5, 'normal_std_png_max_deg': 10.0}
     """
-    array = _planes(flags, "at_noise_floor", 1)[0] != 0
+    path = Path(path)
+    array = np.asarray(_planes(normal_std, "normal_std", 1)[0], dtype=np.float32)
     inside = _mask(mask, *array.shape)
-    flagged = array & inside
-    write_image(path, flagged.astype(np.uint8) * np.uint8(255))
-    count, solved = int(np.count_nonzero(flagged)), int(np.count_nonzero(inside))
-    return {"noise_floor_pixels": count, "noise_floor_share": count / solved if solved else 0.0}
+    checked = _normal_std(array, inside)
+    assert checked is not None
+    try:
+        np.save(path, np.where(inside, checked, np.nan).astype(np.float32))
+    except OSError as error:
+        raise DataFormatError(f"cannot write {path}: {error}") from error
+    scaled = np.clip(checked / NORMAL_STD_PNG_MAX_DEG, 0, 1) * 255
+    write_image(path.with_suffix(".png"), np.where(inside, np.round(scaled), 0).astype(np.uint8))
+    median = float(np.median(checked[inside])) if inside.any() else None
+    return {"normal_std_median_deg": median, "normal_std_png_max_deg": NORMAL_STD_PNG_MAX_DEG}
 
 
 def write_outputs(
@@ -428,16 +441,17 @@ def write_outputs(
     of :func:`psmini.geometry.depth_to_points` inside the mask, coloured by albedo), ``mesh.ply``
     (:func:`save_mesh_ply`: the same points triangulated over the mask) and ``outputs.json``
     (the file list, the albedo scale, the depth range, the pixel pitch, ``metadata``). A near-light result
-    (:class:`~psmini.nearlight.NearLightResult`) adds ``noise_floor.png``, 8-bit, 255 at the solved pixels
-    fitted to a shadow (:attr:`~psmini.nearlight.NearLightResult.at_noise_floor`: their normals are not to be
-    trusted) and 0 elsewhere, and ``outputs.json`` counts them (``noise_floor_pixels``,
-    ``noise_floor_share`` of the solved pixels). Written into a temporary sibling folder and renamed into place.
+    (:class:`~psmini.nearlight.NearLightResult`) adds each normal's predicted RMS angular error beside
+    ``normals.png``: ``normal_std.npy`` (float32 degrees, NaN outside the mask) and ``normal_std.png``
+    (:func:`save_normal_std`), with its median in ``outputs.json`` (``normal_std_median_deg``). Written into a
+    temporary sibling folder and renamed into place.
 
     Args:
         out_dir: the output folder; must not exist unless ``overwrite``.
         reconstruction: a ``psmini.pipeline.Reconstruction`` or a mapping with ``albedo`` (:math:`(1, 1, H, W)`
             or :math:`(1, H, W)`), ``normals`` (:math:`(1, 3, H, W)` or :math:`(3, H, W)`), ``depth`` (like
-            albedo, mm) and optionally ``mask`` and ``at_noise_floor`` (like albedo, bool); a batch of one or none.
+            albedo, mm) and optionally ``mask`` (like albedo, bool) and ``normal_std`` (like albedo, degrees); a
+            batch of one or none.
         pixel_pitch_mm: size of a pixel, mm, for the point cloud's x and y; None gives pixel units.
         normal_bit_depth: 8 or 16 for ``normals.png``.
         metadata: extra JSON-serialisable entries for ``outputs.json``.
@@ -466,11 +480,11 @@ def write_outputs(
             f"albedo {albedo.shape[1:]}, normals {normals.shape[1:]} and depth {depth.shape[1:]} must share one size"
         )
     inside = _mask(_field(reconstruction, "mask"), height, width)
-    floor = _noise_floor(_field(reconstruction, "at_noise_floor"), inside)  # checked before anything is written
+    normal_std = _normal_std(_field(reconstruction, "normal_std"), inside)  # checked before anything is written
     pitch = 1.0 if pixel_pitch_mm is None else float(pixel_pitch_mm)
     points = depth_to_points(torch.from_numpy(depth[None]), pitch)[0]
     names = ["albedo.png", "normals.png", "depth.npy", "depth.png", "depth.json", "points.ply", "mesh.ply"]
-    names += ([] if floor is None else ["noise_floor.png"]) + ["outputs.json"]
+    names += ([] if normal_std is None else ["normal_std.npy", "normal_std.png"]) + ["outputs.json"]
     with atomic_folder(out_dir, overwrite) as target:
         scale = save_albedo_png(target / "albedo.png", albedo, inside)
         save_normal_png(target / "normals.png", normals, inside, bit_depth=normal_bit_depth)
@@ -478,7 +492,7 @@ def write_outputs(
                    pixel_pitch_mm=pixel_pitch_mm)
         vertex_count = save_ply(target / "points.ply", points, albedo, inside[None])
         _, face_count = save_mesh_ply(target / "mesh.ply", points, albedo, inside)
-        floor_counts = {} if floor is None else save_noise_floor(target / "noise_floor.png", floor, inside)
+        std_summary = {} if normal_std is None else save_normal_std(target / "normal_std.npy", normal_std, inside)
         summary = {
             "files": names[:-1],
             "size": [width, height],
@@ -489,7 +503,7 @@ def write_outputs(
             "depth_units": "mm" if pixel_pitch_mm is not None else "pixels",
             "vertices": vertex_count,
             "faces": face_count,
-            **floor_counts,
+            **std_summary,
             "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "metadata": dict(metadata or {}),
         }

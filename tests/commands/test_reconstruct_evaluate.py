@@ -127,9 +127,9 @@ def test_diligent_from_python_without_pitch_is_in_pixels_over_the_mask():
     assert 20.0 < float(inside.max() - inside.min()) < 400.0
 
 
-def test_reconstruct_near_light_reports_its_fits_to_a_shadow(tmp_path, capsys):
-    """A synthetic capture (LEDs: near light) writes noise_floor.png and says how many pixels it flags; the
-    distant solver reports none."""
+def test_reconstruct_near_light_reports_its_predicted_errors(tmp_path, capsys):
+    """A synthetic capture (LEDs: near light) writes normal_std.npy/.png and reports their median over the solved
+    pixels; the distant solver reports none."""
     from data_synth.rig import write_synthetic_capture
     from psmini import reconstruct
     from psmini.io import load_sample
@@ -139,12 +139,13 @@ def test_reconstruct_near_light_reports_its_fits_to_a_shadow(tmp_path, capsys):
     output = capsys.readouterr().out
     report = json.loads(output.strip().splitlines()[-1])
     expected = reconstruct(load_sample(sample_dir))
-    count = int((expected.at_noise_floor & expected.mask).sum())
-    assert report["solver"] == "near" and report["noise_floor_pixels"] == count > 0
-    assert f"{count} of {int(expected.mask.sum())} solved pixels fitted to a shadow" in output
-    assert json.loads((tmp_path / "out" / "outputs.json").read_text())["noise_floor_pixels"] == count
+    median = float(expected.normal_std[expected.mask].median())
+    assert report["solver"] == "near" and report["normal_std_median_deg"] == pytest.approx(median, rel=1e-5)
+    assert 0 < median < 5 and f"median {median:.3f} deg over the solved pixels" in output
+    assert json.loads((tmp_path / "out" / "outputs.json").read_text())["normal_std_median_deg"] == pytest.approx(
+        median, rel=1e-5)
     assert main(["reconstruct", str(sample_dir), "--out", str(tmp_path / "distant"), "--solver", "distant",
                  "--json"]) == 0
     output = capsys.readouterr().out
-    assert json.loads(output.strip().splitlines()[-1])["noise_floor_pixels"] is None
-    assert "fitted to a shadow" not in output and not (tmp_path / "distant" / "noise_floor.png").exists()
+    assert json.loads(output.strip().splitlines()[-1])["normal_std_median_deg"] is None
+    assert "predicted RMS error" not in output and not (tmp_path / "distant" / "normal_std.npy").exists()

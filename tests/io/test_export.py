@@ -19,8 +19,8 @@ from psmini.io.export import (
     save_albedo_png,
     save_depth,
     save_mesh_ply,
-    save_noise_floor,
     save_normal_png,
+    save_normal_std,
     save_ply,
     write_outputs,
 )
@@ -249,38 +249,40 @@ class TestWriteOutputs:
         write_outputs(tmp_path / "out", rec)
         assert json.loads((tmp_path / "out" / "depth.json").read_text())["units"] == "pixels"
 
-    def test_near_light_noise_floor_flags(self, tmp_path):
-        """A result with near light's ``at_noise_floor`` adds noise_floor.png (255 at the flagged solved pixels)
-        and its counts; a flag outside the mask is not written."""
-        result = reconstruction()
-        flags = torch.zeros(1, 1, H, W, dtype=torch.bool)
-        flags[..., 0, 0] = True  # outside the mask
-        flags[..., 2, 3] = flags[..., 4, 5] = True
-        written = write_outputs(tmp_path / "out", result | {"at_noise_floor": flags})
-        assert [p.name for p in written][-2:] == ["noise_floor.png", "outputs.json"]
-        pixels, bits = read_image_raw(tmp_path / "out" / "noise_floor.png")
-        assert bits == 8
-        expected = np.zeros((H, W), np.uint8)
-        expected[2, 3] = expected[4, 5] = 255
-        np.testing.assert_array_equal(pixels, expected)
+    def test_near_light_normal_std(self, tmp_path):
+        """A result with near light's ``normal_std`` adds normal_std.npy (degrees, NaN outside the mask) and
+        normal_std.png (0 at 0° to 255 at 10° or more, 0 outside), and its median in outputs.json."""
+        result = reconstruct_result = reconstruction()
+        std = torch.full((1, 1, H, W), 1.0)
+        std[..., 2, 3], std[..., 4, 5] = 5.0, 20.0
+        written = write_outputs(tmp_path / "out", result | {"normal_std": std})
+        assert [p.name for p in written][-3:] == ["normal_std.npy", "normal_std.png", "outputs.json"]
+        values = np.load(tmp_path / "out" / "normal_std.npy")
+        inside = reconstruct_result["mask"][0, 0].numpy()
+        assert np.isnan(values[~inside]).all() and values[2, 3] == 5.0 and values[4, 5] == 20.0
+        pixels, bits = read_image_raw(tmp_path / "out" / "normal_std.png")
+        assert bits == 8 and pixels[2, 3] == 128 and pixels[4, 5] == 255 and pixels[1, 1] == 26
+        assert (pixels[~inside] == 0).all()
         summary = json.loads((tmp_path / "out" / "outputs.json").read_text())
-        assert summary["noise_floor_pixels"] == 2 and summary["noise_floor_share"] == pytest.approx(2 / (H * W - 1))
-        assert "noise_floor.png" in summary["files"]
+        assert summary["normal_std_median_deg"] == 1.0 and summary["normal_std_png_max_deg"] == 10.0
+        assert "normal_std.npy" in summary["files"]
         write_outputs(tmp_path / "plain", result)
         plain = json.loads((tmp_path / "plain" / "outputs.json").read_text())
-        assert "noise_floor_pixels" not in plain and "noise_floor.png" not in plain["files"]
+        assert "normal_std_median_deg" not in plain and "normal_std.png" not in plain["files"]
 
-    def test_save_noise_floor(self, tmp_path):
-        flags = torch.tensor([[True, False], [True, True]])
-        counts = save_noise_floor(tmp_path / "f.png", flags, torch.tensor([[True, True], [False, True]]))
-        assert counts == {"noise_floor_pixels": 2, "noise_floor_share": pytest.approx(2 / 3)}
-        np.testing.assert_array_equal(read_image_raw(tmp_path / "f.png")[0], [[255, 0], [0, 255]])
-        assert save_noise_floor(tmp_path / "g.png", flags, torch.zeros(2, 2, dtype=torch.bool)) == {
-            "noise_floor_pixels": 0, "noise_floor_share": 0.0}
+    def test_save_normal_std(self, tmp_path):
+        std = torch.tensor([[0.5, 12.0], [3.0, 1.0]])
+        summary = save_normal_std(tmp_path / "s.npy", std, torch.tensor([[True, True], [False, True]]))
+        assert summary == {"normal_std_median_deg": 1.0, "normal_std_png_max_deg": 10.0}
+        np.testing.assert_array_equal(read_image_raw(tmp_path / "s.png")[0], [[13, 255], [0, 26]])
+        assert save_normal_std(tmp_path / "e.npy", std, torch.zeros(2, 2, dtype=torch.bool))[
+            "normal_std_median_deg"] is None
         with pytest.raises(ShapeError, match="mask must be 2x2"):
-            save_noise_floor(tmp_path / "h.png", flags, torch.ones(2, 3, dtype=torch.bool))
+            save_normal_std(tmp_path / "h.npy", std, torch.ones(2, 3, dtype=torch.bool))
+        with pytest.raises(InputError, match="finite and >= 0"):
+            save_normal_std(tmp_path / "n.npy", torch.tensor([[-1.0, 0.0], [0.0, 0.0]]))
         with pytest.raises(DataFormatError, match="cannot write"):
-            save_noise_floor(tmp_path / "none" / "f.png", flags)
+            save_normal_std(tmp_path / "none" / "s.npy", std)
 
     def test_existing_out_dir(self, tmp_path):
         write_outputs(tmp_path / "out", reconstruction())
@@ -310,8 +312,8 @@ class TestWriteOutputs:
             write_outputs(tmp_path / "out", result, metadata={"x": object()})
         with pytest.raises(InputError, match="bit_depth"):
             write_outputs(tmp_path / "out", result, normal_bit_depth=4)
-        with pytest.raises(ShapeError, match="at_noise_floor must be 6x8"):
-            write_outputs(tmp_path / "out", result | {"at_noise_floor": torch.zeros(1, 1, H + 1, W, dtype=torch.bool)})
+        with pytest.raises(ShapeError, match="normal_std must be 6x8"):
+            write_outputs(tmp_path / "out", result | {"normal_std": torch.zeros(1, 1, H + 1, W)})
         assert os.listdir(tmp_path) == []
 
 
