@@ -119,7 +119,7 @@ _FINE_SEARCH_MM = (-0.5, 0.5)
 # Images at least this large (and of even size) run this many alternations at half resolution first (a coarse level
 # of fewer than 32² pixels is too few to find the height on).
 _MIN_COARSE_SIZE = 64
-_COARSE_ITERATIONS = 3
+_COARSE_ITERATIONS = 2
 # A tilt is kept in full when it stands clear of its standard error and shrunk smoothly toward the integrated plane
 # below: q / (q + this²) of it is kept, q its squared Mahalanobis length (a soft three-sigma test).
 _TILT_SIGMAS = 3.0
@@ -160,11 +160,11 @@ class NearLightOptions:
         3
     """
 
-    max_iterations: int = 3
+    max_iterations: int = 2
     tolerance_deg: float = 0.005
     penalty: str = "welsch"
     robust_scale: float | None = None
-    irls_steps: int = 2
+    irls_steps: int = 1
     estimate_offset: bool = True
     estimate_tilt: bool = True
     initial_height_mm: float = 0.0
@@ -473,9 +473,10 @@ def _initial_fit(data: _Data, lights: Tensor, prior: Tensor) -> _Fit:
     (3\\sigma)^2)`: shadows, penumbras and readings within the noise of zero barely count, so the robust steps start
     near the lit readings' solution (a pixel without any, near the prior, of the pixel's own brightness)."""
     images = data.images * data.valid
-    floor = (_INIT_SHARE * images.amax(dim=1, keepdim=True)).square() + _LIT_SIGMAS**2 * data.variance(images)
+    variance = data.variance(images)
+    floor = (_INIT_SHARE * images.amax(dim=1, keepdim=True)).square() + _LIT_SIGMAS**2 * variance
     lit = images.square() / (images.square() + floor + torch.finfo(images.dtype).tiny)
-    return _Fit(lights, images, data.valid * lit / data.variance(images), prior)
+    return _Fit(lights, images, data.valid * lit / variance, prior)
 
 
 def _start(data: _Data, lights: Tensor, prior: Tensor, penalty: _Penalty) -> Tensor:
@@ -604,11 +605,8 @@ def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float
     confidence = (confidence / _masked_median(confidence, domain)).clamp(max=1) * domain
     decided = 1 / (1 + (normal_std / _FILL_ABOVE_DEG).pow(4))
     support = confidence * -F.max_pool2d(-decided, 3, stride=1, padding=1)
-    def window(x: Tensor) -> Tensor:
-        return F.avg_pool2d(x, _FILL_SIZE, stride=1, padding=_FILL_SIZE // 2, count_include_pad=False)
-
-    local = window(support).clamp_min(torch.finfo(p.dtype).tiny)
-    p, q = (decided * g + (1 - decided) * window(support * g) / local for g in (p, q))
+    local = _box_sum(support).clamp_min(torch.finfo(p.dtype).tiny)
+    p, q = (decided * g + (1 - decided) * _box_sum(support * g) / local for g in (p, q))
     if method not in ("masked", "fill"):
         return integrate(p, q, method, pitch, domain)
     start = dct_poisson(p, q, pitch) if method == "fill" or warm is None else warm
@@ -620,6 +618,24 @@ def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float
     # solution, so the one computed must be it
     tolerance = None if torch.is_grad_enabled() and wu.requires_grad else _CG_TOLERANCE
     return solve_weighted_poisson(wu, wv, tu, tv, domain.to(p.dtype), x0=start, tol=tolerance)
+
+
+def _box_sum(x: Tensor) -> Tensor:
+    """Sums of ``x`` (B, 1, H, W) over each pixel's :data:`_FILL_SIZE`² window (clipped at the borders), from
+    cumulative sums: four passes whatever the window (a 9 × 9 average pool is 81 additions a pixel)."""
+    radius = _FILL_SIZE // 2
+    height, width = x.shape[-2:]
+    # in float64: the differences of sums over the whole image must keep a window's digits
+    table = F.pad(x.double(), (1, 0, 1, 0)).cumsum(-1).cumsum(-2)  # table[i, j]: the sum of x[:i, :j]
+    rows = torch.arange(height, device=x.device)
+    cols = torch.arange(width, device=x.device)
+    top, bottom = (rows - radius).clamp(0, height), (rows + radius + 1).clamp(0, height)
+    left, right = (cols - radius).clamp(0, width), (cols + radius + 1).clamp(0, width)
+
+    def at(r: Tensor, c: Tensor) -> Tensor:
+        return table[..., r, :][..., c]
+
+    return (at(bottom, right) - at(top, right) - at(bottom, left) + at(top, left)).to(x.dtype)
 
 
 def _masked_median(x: Tensor, region: Tensor) -> Tensor:
@@ -688,7 +704,10 @@ def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain:
         curvature = (fit.weights * across.square()).sum(1) * domain[:, 0]
         gradient = (fit.weights * across * residual).sum(1, keepdim=True) * domain
         hessian = torch.einsum("bihw,bjhw,bhw->bij", features, features, curvature) + torch.diag(1 - free)
-        step = torch.linalg.solve(hessian, (features * gradient).sum(dim=(2, 3)))
+        # a ridge of a rounding's size: far from the height every reading is an outlier and the curvature vanishes
+        ridge = torch.finfo(theta.dtype).eps * hessian.diagonal(dim1=1, dim2=2).amax(1) + torch.finfo(theta.dtype).tiny
+        step = torch.linalg.solve(hessian + ridge.view(-1, 1, 1) * torch.eye(3).to(theta),
+                                  (features * gradient).sum(dim=(2, 3)))
         limit = torch.tensor([0.5, 0.05, 0.05], device=step.device, dtype=step.dtype)  # mm, slope
         step = torch.maximum(torch.minimum(step, limit), -limit)
         energies = [_energy(data, predicted, penalty, domain)]
@@ -709,8 +728,9 @@ def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain:
 def _scan_offset(data: _Data, field: _LightField, relative: Tensor, domain: Tensor, basis: Tensor,
                  placement: _Placement, search: tuple[float, float], penalty: _Penalty) -> _Placement:
     """The offset of least energy among heights in ``search`` (mm, around the current one; at most
-    :data:`_SCAN_POINTS`, an eighth of a millimetre apart at least), each with its normals fitted afresh: the start of
-    the Gauss–Newton steps, whose basin is narrower than the search."""
+    :data:`_SCAN_POINTS`, an eighth of a millimetre apart at least), each with its normals fitted afresh (the
+    lit-weighted least squares and a robust step): the start of the Gauss–Newton steps, whose basin is narrower than
+    the search."""
     points = min(_SCAN_POINTS, round((search[1] - search[0]) * 8) + 1)
     offsets = torch.linspace(*search, points, device=relative.device, dtype=relative.dtype)
     prior = (data.images * data.valid).amax(dim=1, keepdim=True) * _up(relative)
@@ -966,7 +986,7 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
             fit = _robust_step(data, lights, m, prior, penalty)
             m = fit.m
         data.set_noise(_fit_noise(data.every(_NOISE_STRIDE), _stride(lights, _NOISE_STRIDE),
-                                  fit.every(_NOISE_STRIDE), penalty))
+                                  fit.every(_NOISE_STRIDE), penalty, rounds=2))
         normal_std = _normal_std_deg(data, lights, fit, prior, penalty.covariance_factor)
         normals = _split(m)[1]
         if before is not None:
@@ -984,8 +1004,12 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
         relative = _integrate(normals, normal_std, domain, pitch, method, state.relative if iteration else None)
         placement = _Placement(state.placement.theta, free)
         sub, sub_relative = data.every(stride), _stride(relative, stride)
-        if scan is not None and iteration == 0:
-            placement = _scan_offset(sub, sub_field, sub_relative, sub_domain, sub_basis, placement, scan, penalty)
+        if scan is not None and iteration == 0:  # on a quarter of the placement's pixels: only a start
+            every = max(1, int((size[0] * size[1] / _PLACE_PIXELS * 4) ** 0.5))
+            scan_field, scan_domain = _LightField(model, size, pitch, card_height, data.images, every), _stride(
+                domain, every)
+            placement = _scan_offset(data.every(every), scan_field, _stride(relative, every), scan_domain,
+                                     _plane_basis(scan_field.xy, scan_domain), placement, scan, penalty)
         placement = _place(sub, sub_field, sub_relative, _stride(m, stride), sub_domain, sub_basis, placement,
                            penalty, steps=2 if iteration == 0 else 1)
         state.relative = _keep(done, state.relative, relative)
