@@ -14,21 +14,22 @@ under a card bright enough and not saturated, so that flat-fielding can divide b
 handled by the solvers, not skipped; the fraction of pixels with fewer is reported), and the
 depth error: RMSE after removing the mean offset (the dome of the distant-light methods shows here), in µm.
 
-Beside each case: the noise floor (per-pixel least squares at the TRUE surface with the TRUE LEDs on the same
-flat-fielded images, using exactly the lit, usable observations) and near_true's excess over it split in two (least
-squares at the true surface with near_true's selection of observations; at near_true's surface with the true selection),
-the share of scored pixels whose near-light depth (true LEDs, mean offset removed) is more than 0.1 mm off, near light's
-absolute height error (the mean offset itself), the alternations run, and the seconds of near light and of
-the distant pipeline (flat-field, least squares, Frankot–Chellappa) in the same run. At the end, near light on a
-batch of 16 captures against 16 single calls (seconds per sample).
+Beside each case: the noise floor, least squares at the TRUE surface with the TRUE LEDs on the images as captured
+(dark-subtracted, not divided by the noisy card: the floor must not carry the card's noise) over the readings the
+renderer lit whose noise-free value is at least one quantisation step (those a solver could tell from a shadow);
+near_true's excess over it; how its predicted errors held (the share of scored pixels whose error is below
+``normal_std``: 63% for 2-D Gaussian errors predicted right, and the mean of error² / predicted²: 1); the share of
+scored pixels whose near-light depth (true LEDs, mean offset removed) is more than 0.1 mm off, near light's absolute
+height error (the mean offset itself), the alternations run, and the seconds of near light and of the distant pipeline
+(flat-field, least squares, Frankot–Chellappa) in the same run. At the end, near light on a batch of 16 captures
+against 16 single calls (seconds per sample).
 
 With ``--speed`` only that last measurement runs (at 400 px by default: the rig's resolution), recorded on its own.
 
 With ``--stability``, how far a rounding-sized change carries: each fabric's noisy 8-bit capture at 0.5 mm is solved,
-then solved again with the card scaled by 1 + 1e-7 (about one float32 ulp: the size of the differences between two
-CPUs, BLAS builds or batch sizes). Printed per fabric: the depth's largest and RMS change, the mean change of the
-normals solved both times and the pixels that moved more than a degree, the pixels whose solved state and the
-observations whose selection changed, and the alternations run each time. Recorded on its own.
+then solved again with the card scaled by 1 + 1e-7 (about one float32 ulp), in float64 instead of float32, and as
+the third item of a batch of four: the mean and the largest change of the normals, and the depth's RMS change, for
+each. Recorded on its own.
 
     python benchmarks/nearlight.py [--quick | --speed | --stability] [--json] [--size N] [--device cpu|cuda]
                                    [--threads N] [--no-record]
@@ -136,16 +137,20 @@ def evaluate_case(fabric, config, offset_mm, calibrated, card, device) -> dict[s
             "seconds": seconds,
             "iterations": getattr(result, "iterations", 0),
         }
-    # the noise floor: least squares at the true surface with the true LEDs, on exactly the usable observations
-    flat = flatfield(images, card.images[None], dark, card.dark[None], CARD_ALBEDO, saturation_level=1.0)
-    vectors = near_light_vectors(capture.lights, truth_depth, pitch, card_height_mm=0.0)
+    # the noise floor: least squares at the true surface with the true LEDs on the images as captured, over the
+    # readings the renderer lit whose noise-free value is at least one quantisation step
+    clean = render_capture(fabric, config.replace(noise=False, bit_depth=16), height_offset_mm=offset_mm,
+                           device=device)
+    step = 1 / (2**config.bit_depth - 1) if config.noise else 0.0
+    readable = capture.lit & ((clean.images - clean.dark) >= step) & (capture.images < capture.saturation_level)
+    vectors = near_light_vectors(capture.lights, truth_depth, pitch, None)
+    raw = (images - dark).clamp_min(0)
     scored = lambda normals: float(angular_error_deg(normals, truth_normals)[0, 0][region[0]].mean())  # noqa: E731
-    results["floor"] = {"angle_deg": scored(albedo_normals(flat.images, vectors, weights=usable[None])[1])}
-    # near_true's excess over the floor, split: its selection of observations at the true surface, and its depth
-    # (light vectors at its own surface) with the true selection
-    near_vectors = near_light_vectors(capture.lights, near_result.depth, pitch, card_height_mm=0.0)
-    results["split"] = {"selection": scored(albedo_normals(flat.images, vectors, weights=near_result.weights)[1]),
-                        "depth": scored(albedo_normals(flat.images, near_vectors, weights=usable[None])[1])}
+    results["floor"] = {"angle_deg": scored(albedo_normals(raw, vectors, weights=readable[None])[1])}
+    error = angular_error_deg(near_result.normals, truth_normals)[0, 0][region[0]]
+    predicted = near_result.normal_std[0, 0][region[0]]
+    results["calibration"] = {"within": float((error < predicted).float().mean()),
+                              "ratio": float((error / predicted).square().mean())}
     results["coverage"] = {"fewer_than_3": 1 - float(region.sum()) / float(cloth.sum())}
     return results
 
@@ -207,26 +212,42 @@ def speed_only(size: int, pitch: float, device: torch.device, args: argparse.Nam
 
 
 def stability_only(size: int, pitch: float, device: torch.device, args: argparse.Namespace) -> int:
-    """How far a change of one part in 10^7 of the card carries through near light (see the module docstring)."""
+    """How far a rounding-sized change carries through near light (see the module docstring)."""
     config = RigConfig(size=size, pixel_pitch_mm=pitch, noise=True, bit_depth=8, intensity_spread=0.05)
     card = render_card(config, CARD_ALBEDO, device=device)
-    rows = []
+    rows, worst = [], {"card": 0.0, "float64": 0.0, "batch": 0.0}
     for name in FULL_FABRICS:
         capture = render_capture(make_fabric(name, size=size, pixel_pitch_mm=pitch, seed=0), config,
                                  height_offset_mm=0.5, device=device)
-        near = PhotometricStereo(capture.lights, pitch, NEAR)
-        a, b = (near(capture.images[None], reference, capture.dark[None], card.dark[None], card_albedo=CARD_ALBEDO,
-                     saturation_level=1.0) for reference in (card.images[None], card.images[None] * (1 + 1e-7)))
-        moved = angular_error_deg(a.normals.double(), b.normals.double())[a.mask & b.mask]
-        depth = (a.depth - b.depth).double()
-        rows.append([name, f"{1e3 * float(depth.abs().max()):.1f}", f"{1e3 * float(depth.square().mean().sqrt()):.2f}",
-                     f"{float(moved.mean()):.4f}", f"{int((moved > 1).sum())}", f"{int((a.mask != b.mask).sum())}",
-                     f"{int((a.weights != b.weights).sum())}", f"{a.iterations} / {b.iterations}"])
-    report = table(["fabric", "depth max (µm)", "depth RMS (µm)", "normals mean (°)", "pixels > 1°", "solved differ",
-                    "selection differs", "alternations"], rows)
+
+        def solve(images, reference, dtype=torch.float32, capture=capture):
+            lights = capture.lights.to(dtype=dtype)
+            return PhotometricStereo(lights, pitch, NEAR)(
+                images.to(dtype), reference.to(dtype), capture.dark[None].to(dtype), card.dark[None].to(dtype),
+                card_albedo=CARD_ALBEDO, saturation_level=1.0)
+
+        images, reference = capture.images[None], card.images[None]
+        base = solve(images, reference)
+        others = {"card": solve(images, reference * (1 + 1e-7)),
+                  "float64": solve(images, reference, torch.float64),
+                  "batch": solve(torch.cat([images.roll(1, -1), images.roll(2, -1), images, images.roll(3, -1)]),
+                                 reference).item(2)}
+        row = [name]
+        for key, other in others.items():
+            moved = angular_error_deg(base.normals.double(), other.normals.double())
+            depth = (base.depth.double() - other.depth.double()).square().mean().sqrt()
+            worst[key] = max(worst[key], float(moved.mean()))
+            row += [f"{float(moved.mean()):.5f} / {float(moved.max()):.3f}", f"{1e3 * float(depth):.3f}"]
+        rows.append(row)
+        print(" | ".join(row), flush=True)
+    report = table(["fabric", "card × (1 + 1e-7): normals mean / max (°)", "depth RMS (µm)",
+                    "float64: normals mean / max (°)", "depth RMS (µm)", "batch of 4: normals mean / max (°)",
+                    "depth RMS (µm)"], rows)
     note = (f"Noisy 8-bit captures, the cloth 0.5 mm above the card, 8 × {size} × {size} px at {pitch:.4f} mm/px, on "
-            f"{device}, {torch.get_num_threads()} thread(s): near light solved twice, the second time with the card "
-            "scaled by 1 + 1e-7. The same input solved twice gives the same bits.")
+            f"{device}, {torch.get_num_threads()} thread(s): near light (float32, alone) against the same capture with "
+            "the card scaled by 1 + 1e-7, solved in float64, and solved as the third item of a batch of four (the "
+            "others shifted copies). Largest mean change over the fabrics: card "
+            f"{worst['card']:.5f}°, float64 {worst['float64']:.5f}°, batch {worst['batch']:.5f}°.")
     print(report)
     print(note)
     if not args.no_record:
@@ -265,6 +286,7 @@ def main(argv: list[str] | None = None) -> int:
         return stability_only(size, pitch, device, args)
 
     rows, summary, worst, floors = [], {}, {}, {False: [], True: []}
+    per_fabric: dict[str, list[tuple[float, float, float, float]]] = {}
     heights = {False: [], True: []}  # near_true's absolute height error per case, µm
     noisy_config = RigConfig(size=size, pixel_pitch_mm=pitch, noise=True, bit_depth=8, intensity_spread=0.05)
     calibrated, fit = calibrate(noisy_config, device)
@@ -279,6 +301,10 @@ def main(argv: list[str] | None = None) -> int:
                 for method in METHODS:
                     collected[method].append(case[method])
                 near_case, far_case = case["near_true"], case["far_flatfield"]
+                if noisy:
+                    per_fabric.setdefault(name, []).append(
+                        (near_case["angle_deg"] - case["floor"]["angle_deg"], case["calibration"]["within"],
+                         case["calibration"]["ratio"], near_case["depth_rmse_um"]))
                 floors[noisy].append(case["floor"]["angle_deg"])
                 heights[noisy].append(near_case["height_error_um"])
                 rows.append([name, f"{offset:g}", "8-bit noisy" if noisy else "noise-free"]
@@ -286,8 +312,7 @@ def main(argv: list[str] | None = None) -> int:
                                for m in METHODS]
                             + [f"{case['floor']['angle_deg']:.3f}",
                                f"{near_case['angle_deg'] - case['floor']['angle_deg']:+.3f}",
-                               f"{case['split']['selection'] - case['floor']['angle_deg']:+.3f} / "
-                               f"{case['split']['depth'] - case['floor']['angle_deg']:+.3f}",
+                               f"{100 * case['calibration']['within']:.0f}% / {case['calibration']['ratio']:.2f}",
                                f"{near_case['depth_rmse_um'] / far_case['depth_rmse_um']:.2f}",
                                f"{100 * near_case['off_0.1mm']:.2f}%", f"{near_case['height_error_um']:+.0f}",
                                f"{100 * case['coverage']['fewer_than_3']:.1f}%", f"{near_case['iterations']}",
@@ -298,7 +323,7 @@ def main(argv: list[str] | None = None) -> int:
             summary[key] = sum(c["angle_deg"] for c in collected[method]) / len(collected[method])
             worst[key] = (max(c["angle_deg"] for c in collected[method]), max(c["dome_um"] for c in collected[method]))
     header = (["fabric", "offset (mm)", "render"] + [f"{m}: ° / µm / dome µm" for m in METHODS]
-              + ["noise floor (°)", "near_true − floor (°)", "of which selection / depth (°)",
+              + ["noise floor (°)", "near_true − floor (°)", "below normal_std / (error / std)²",
                  "depth near / far_flatfield", "near > 0.1 mm off", "near height error (µm)",
                  "lit by < 3", "alternations", "near s", "far_flatfield s"])
     report = table(header, rows)
@@ -308,14 +333,26 @@ def main(argv: list[str] | None = None) -> int:
                     f"{worst[m + '_noisefree'][1]:.1f}", f"{summary[m]:.3f}", f"{worst[m][0]:.3f}"] for m in METHODS]
                   + [["noise floor", f"{sum(floors[False]) / len(floors[False]):.3f}", "", "",
                       f"{sum(floors[True]) / len(floors[True]):.3f}", ""]])
+    def mean(values: list[tuple[float, float, float, float]], index: int) -> float:
+        return sum(v[index] for v in values) / len(values)
+
+    fabric_rows = [[name, f"{mean(values, 0):+.3f}", f"{100 * mean(values, 1):.0f}%", f"{mean(values, 2):.2f}",
+                    f"{mean(values, 3):.1f}"] for name, values in per_fabric.items()]
+    within = sum(mean(values, 0) <= 0.05 for values in per_fabric.values())
+    by_fabric = table(["fabric (8-bit noisy, mean over offsets)", "near_true − floor (°)", "below normal_std",
+                       "(error / normal_std)²", "depth RMSE (µm)"], fabric_rows)
+    by_fabric += f"\n\nWithin 0.05° of the floor: {within} of {len(per_fabric)} fabrics."
     speed = batch_speed(size, pitch, device)
     note = (f"{len(fabrics)} fabrics × offsets {offsets} mm, {size}×{size} px at {pitch:.4f} mm/px, on {device}. "
             "Cells: mean angular error over cloth pixels with ≥ 3 usable LEDs (lit, unsaturated, card usable) / depth "
             "RMSE after removing "
-            f"the mean offset / dome: RMS of that depth error low-passed at σ = 1 mm (normalised convolution over the "
-            f"same pixels), the low-frequency bend without the weave-scale integration error. Of which selection / "
-            f"depth: the excess over the floor of least squares at the true surface with near_true's selection of "
-            f"observations, and at near_true's surface with the true selection. Near height error: the mean of "
+            "the mean offset / dome: RMS of that depth error low-passed at σ = 1 mm (normalised convolution over the "
+            "same pixels), the low-frequency bend without the weave-scale integration error. Noise floor: least "
+            "squares "
+            "at the true surface with the true LEDs on the dark-subtracted images (no card), over the lit readings of "
+            "at least one quantisation step. Below normal_std: the share of scored pixels whose error is below the "
+            "predicted RMS error (63% when right), and the mean of (error / predicted)² (1 when right). Near height "
+            f"error: the mean of "
             f"near_true's depth minus the true height over the same pixels (the absolute height, which the RMSE "
             f"leaves out), {min(heights[False]):+.0f} to {max(heights[False]):+.0f} µm noise-free, "
             f"{min(heights[True]):+.0f} to {max(heights[True]):+.0f} µm noisy. Near light on a batch "
@@ -327,10 +364,11 @@ def main(argv: list[str] | None = None) -> int:
             f"{100 * fit['intensity_error']:.2f}%.")
     print(report)
     print(means)
+    print(by_fabric)
     print(note)
     if not args.no_record:
         title = "Near-light photometric stereo (benchmarks/nearlight.py" + (" --quick)" if args.quick else ")")
-        append_results(title, report + "\n\n" + means + "\n\n" + note, device)
+        append_results(title, report + "\n\n" + means + "\n\n" + by_fabric + "\n\n" + note, device)
     if args.json:
         payload = {m: summary[m] for m in METHODS}
         payload["near_true_noisefree"] = summary["near_true_noisefree"]
