@@ -99,6 +99,9 @@ _SOLVED_BELOW_DEG = 30.0
 _SLOPE_FLOOR = 0.02
 # A normal whose predicted error exceeds this (degrees) has its slopes blended into its neighbourhood's ...
 _FILL_ABOVE_DEG = 10.0
+# ... and so does a slope whose standard error exceeds this (a rise per run known to worse than ±1: a normal too near
+# the horizontal for its rise to be measured, a wall's 80° normal whose slope of 6 would make a spike) ...
+_FILL_SLOPE_STD = 1.0
 # ... a window of this many pixels on a side (a yarn's width at the rig's 25 µm).
 _FILL_SIZE = 9
 # Least weight of a slope in the integration: a filled slope still holds its pixel to its neighbours.
@@ -109,7 +112,7 @@ _CG_TOLERANCE = 1e-2
 _HEIGHT_STEP_MM = 0.01
 # The noise model is fitted on every _NOISE_STRIDE-th pixel in each direction (two parameters), the placement on
 # the stride that leaves about _PLACE_PIXELS of them (three parameters, on a sixteenth of the rig's 400² frame).
-_NOISE_STRIDE = 2
+_NOISE_STRIDE = 4
 _PLACE_PIXELS = 10_000
 # Heights tried by a scan: at most this many, an eighth of a millimetre apart at least.
 _SCAN_POINTS = 13
@@ -131,8 +134,8 @@ class NearLightOptions:
     measures.
 
     Attributes:
-        max_iterations: most alternations (lights → normals → depth) at full resolution (after three at half
-            resolution).
+        max_iterations: most alternations (lights → normals → depth) at full resolution (after two at half
+            resolution, for images of at least 64² pixels).
         tolerance_deg: a sample's alternations stop when its normals moved less than this on average since the
             previous alternation, degrees.
         penalty: the robust penalty of each reading's standardised residual: ``"welsch"`` (the default, Dennis and
@@ -231,7 +234,7 @@ class NearLightResult(Reconstruction):
         normal_std: predicted root-mean-square angular error of each normal, :math:`(B, 1, H, W)`, degrees: from the
             fit's covariance under the fitted noise model (what noise alone would make; a model error such as an
             unmodelled reflection adds to it).
-        weights: each observation's weight in the last fit, :math:`(B, K, H, W)` in [0, 1]: the Cauchy penalty's
+        weights: each observation's weight in the last fit, :math:`(B, K, H, W)` in [0, 1]: the robust penalty's
             (near 0 for a cast shadow or a highlight), 0 in attached shadow and where not valid.
         offset_mm: mean height of the cloth above the card plane, :math:`(B,)`, mm.
         tilt: the plane found from the images, :math:`(B, 2)`: its slopes dz/dx and dz/dy (x right, y up).
@@ -348,6 +351,10 @@ class _Data:
 
     def __init__(self, images: Tensor, valid: Tensor, gain: Tensor, noise: Tensor) -> None:
         self.images, self.valid, self.gain, self.noise = images, valid, gain, noise
+        # the variance's terms in the flat-fielded units, once: s²α (1 where not valid: an untrusted card has a gain
+        # of 0, and the weight there is 0 whatever the variance) and sβ
+        self.read = torch.where(valid > 0, gain.square() * noise[:, 0:1], torch.ones_like(valid))
+        self.shot = gain * noise[:, 1:2] * valid
         reading = images.clamp_min(0)
         # a reading within its noise of zero is as likely a cast shadow as an attached one or a grazing light: it
         # says little about the normal, and a bounded penalty would otherwise rather turn a normal away from the LEDs
@@ -356,12 +363,9 @@ class _Data:
                                                        + torch.finfo(reading.dtype).tiny)
 
     def variance(self, predicted: Tensor) -> Tensor:
-        """:math:`s^2\\alpha + s\\beta\\hat I + \\gamma\\hat I^2` at the predicted readings (1 where not valid: an
-        untrusted card has a gain of 0, and the weight there is 0 whatever the variance)."""
-        alpha, beta, gamma = self.noise[:, 0:1], self.noise[:, 1:2], self.noise[:, 2:3]
+        """:math:`s^2\\alpha + s\\beta\\hat I + \\gamma\\hat I^2` at the predicted readings."""
         reading = predicted.clamp_min(0)
-        variance = self.gain.square() * alpha + self.gain * beta * reading + gamma * reading.square()
-        return torch.where(self.valid > 0, variance, torch.ones_like(variance))
+        return self.read + (self.shot + self.noise[:, 2:3] * reading) * reading
 
     def set_noise(self, noise: Tensor) -> None:
         """Replace the noise model (and the readings' weights that follow from it)."""
@@ -592,7 +596,8 @@ def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float
 
     Each slope is weighted by its inverse variance (from its normal's predicted error, relative to the typical
     pixel's and at most 1: a flat facet is not worth a hundred walls). A normal the readings hardly decide (a crevice,
-    a hole lit by fewer than three LEDs: predicted error beyond :data:`_FILL_ABOVE_DEG`) has its slopes blended
+    a hole lit by fewer than three LEDs: predicted error beyond :data:`_FILL_ABOVE_DEG`), or a slope they do not (a
+    wall's normal near the horizontal: standard error beyond :data:`_FILL_SLOPE_STD`), has its slopes blended
     smoothly into the weighted mean of its :data:`_FILL_SIZE`² neighbourhood, so that it can never make a spike, and
     its neighbours weigh as little (a rim's normal sees the crevice's wall, which the next pixel's depth does not:
     the many crevices of a knit add up to a dome otherwise). ``"masked"``: weighted least squares on the domain by
@@ -603,7 +608,7 @@ def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float
     slope_variance = (normal_std * (math.pi / 180)).square() / normals[:, 2:3].clamp_min(0.05).pow(4)
     confidence = 1 / (slope_variance + _SLOPE_FLOOR**2)
     confidence = (confidence / _masked_median(confidence, domain)).clamp(max=1) * domain
-    decided = 1 / (1 + (normal_std / _FILL_ABOVE_DEG).pow(4))
+    decided = 1 / (1 + (normal_std / _FILL_ABOVE_DEG).pow(4) + slope_variance.square() / _FILL_SLOPE_STD**8)
     support = confidence * -F.max_pool2d(-decided, 3, stride=1, padding=1)
     local = _box_sum(support).clamp_min(torch.finfo(p.dtype).tiny)
     p, q = (decided * g + (1 - decided) * _box_sum(support * g) / local for g in (p, q))
@@ -927,7 +932,7 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, model: nn.Module,
     placement = _Placement(start.expand(batch, 3), free)
     scan = options.search_mm if options.estimate_offset else None
     relative = torch.zeros_like(images[:, :1])
-    iterations, changes = 0, []
+    iterations, changes, coarse_m = 0, [], None
     if height % 2 == 0 and width % 2 == 0 and min(height, width) >= _MIN_COARSE_SIZE:
         small_domain = F.avg_pool2d(domain.to(images.dtype), 2) > 0.5
         small = _Data(F.avg_pool2d(images, 2), (F.avg_pool2d(data.valid, 2) > 0.999).to(images.dtype),
@@ -937,12 +942,14 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, model: nn.Module,
         _alternate(small, small_domain, model, 2 * pitch, card_height, options, coarse, scan, _COARSE_ITERATIONS,
                    final=False)
         relative = F.interpolate(coarse.relative, size=(height, width), mode="bilinear", align_corners=False)
-        placement, iterations, changes = coarse.placement, coarse.iterations, coarse.changes
+        placement, iterations, changes, coarse_m = coarse.placement, coarse.iterations, coarse.changes, coarse.m
         scan = _FINE_SEARCH_MM if options.estimate_offset else None
     state = _State(relative, placement, _plane_basis(_grid(height, width, pitch, images), domain),
                    iterations=iterations, changes=changes)
+    guide = None if coarse_m is None else F.interpolate(coarse_m, size=(height, width), mode="bilinear",
+                                                        align_corners=False)
     sub_field, stride = _alternate(data, domain, model, pitch, card_height, options, state, scan,
-                                   options.max_iterations, final=True)
+                                   options.max_iterations, final=True, guide=guide)
     return _finish(data, sub_field, stride, state, domain, mask is None, pitch, options)
 
 
@@ -954,12 +961,14 @@ def _grid(height: int, width: int, pitch: float, like: Tensor) -> Tensor:
 
 def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card_height: float | None,
                options: NearLightOptions, state: _State, scan: tuple[float, float] | None, iterations: int,
-               final: bool) -> tuple[_LightField, int]:
+               final: bool, guide: Tensor | None = None) -> tuple[_LightField, int]:
     """Alternations at one resolution, updating ``state`` (and ``data``'s noise model): lights at the depth, the
     robust per-pixel fit, the noise model refitted to its residuals, the integration (the Neumann solve at the coarse
-    level, whose depth only places the lights; weighted at full resolution), the placement (after a scan of the height
-    over ``scan``; the tilt at full resolution only). A sample whose normals moved less than the tolerance keeps its
-    state from then on. Returns the level's light field on the placement's grid, and its stride."""
+    level, whose depth only places the lights; weighted at full resolution), the placement (the tilt at full
+    resolution only). The level's first placement follows a scan of the height over ``scan``: after the first
+    integration, or, given the coarse level's normals ``guide``, before the first fit (which then sees the lights at
+    this resolution's height). A sample whose normals moved less than the tolerance keeps its state from then on.
+    Returns the level's light field on the placement's grid, and its stride."""
     size = (data.images.shape[-2], data.images.shape[-1])
     stride = max(1, int((size[0] * size[1] / _PLACE_PIXELS) ** 0.5))
     field = _LightField(model, size, pitch, card_height, data.images)
@@ -969,17 +978,31 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
     free = state.placement.free & torch.tensor([True, final, final], device=domain.device)
     method = "masked" if final or not bool(domain.all()) else "fill"
     done = torch.zeros(data.images.shape[0], dtype=torch.bool, device=data.images.device)
+
+    def place(relative: Tensor, m: Tensor, first: bool) -> _Placement:
+        placement = _Placement(state.placement.theta, free)
+        if scan is not None and first:  # on a quarter of the placement's pixels: only a start
+            every = max(1, int((size[0] * size[1] / _PLACE_PIXELS * 4) ** 0.5))
+            scan_field, scan_domain = _LightField(model, size, pitch, card_height, data.images, every), _stride(
+                domain, every)
+            placement = _scan_offset(data.every(every), scan_field, _stride(relative, every), scan_domain,
+                                     _plane_basis(scan_field.xy, scan_domain), placement, scan, penalty)
+        return _place(data.every(stride), sub_field, _stride(relative, stride), _stride(m, stride), sub_domain,
+                      sub_basis, placement, penalty, steps=2 if first else 1)
+
     before: Tensor | None = None
     for iteration in range(iterations):
         state.iterations += 1
         lights = field(state.depth)
         # every alternation starts afresh from the lit readings (a fit remembers no rejection made at other lights),
-        # with the flat surface, then the current surface's normal as the prior
+        # with the current surface's normal as the prior (at first the coarse level's, or the flat surface's)
         if state.m is None:
             prior = (data.images * data.valid).amax(dim=1, keepdim=True) * _up(state.relative)
             first = _initial_fit(data, lights, prior).every(_NOISE_STRIDE)
             data.set_noise(_fit_noise(data.every(_NOISE_STRIDE), _stride(lights, _NOISE_STRIDE), first, penalty, 6))
-        else:
+        if guide is not None and iteration == 0:
+            prior = vector_length(guide, dim=1) * normals_from_height(state.depth, pitch)
+        elif state.m is not None:
             prior = vector_length(state.m, dim=1) * normals_from_height(state.depth, pitch)
         m = _start(data, lights, prior, penalty)
         for _ in range(options.irls_steps):
@@ -1002,16 +1025,7 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
             state.converged = True
             break
         relative = _integrate(normals, normal_std, domain, pitch, method, state.relative if iteration else None)
-        placement = _Placement(state.placement.theta, free)
-        sub, sub_relative = data.every(stride), _stride(relative, stride)
-        if scan is not None and iteration == 0:  # on a quarter of the placement's pixels: only a start
-            every = max(1, int((size[0] * size[1] / _PLACE_PIXELS * 4) ** 0.5))
-            scan_field, scan_domain = _LightField(model, size, pitch, card_height, data.images, every), _stride(
-                domain, every)
-            placement = _scan_offset(data.every(every), scan_field, _stride(relative, every), scan_domain,
-                                     _plane_basis(scan_field.xy, scan_domain), placement, scan, penalty)
-        placement = _place(sub, sub_field, sub_relative, _stride(m, stride), sub_domain, sub_basis, placement,
-                           penalty, steps=2 if iteration == 0 else 1)
+        placement = place(relative, m, iteration == 0)
         state.relative = _keep(done, state.relative, relative)
         state.placement = _Placement(_keep(done, state.placement.theta, placement.theta), state.placement.free)
     return sub_field, stride

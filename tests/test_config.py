@@ -44,7 +44,7 @@ class TestReconstructionConfig:
             ({"integrator": "fc", "integrator_options": {"iterations": 3}}, "frankot_chellappa takes"),
             ({"integrator": "bilateral", "integrator_options": {"boundary": "mirror"}}, "bilateral_integration takes"),
             ({"solver": "near", "estimator": "tukey"}, "near-light solver has its own"),
-            ({"near": {"max_iterations": 2}, "solver": "distant"}, "solver is 'distant'"),
+            ({"near": {"max_iterations": 3}, "solver": "distant"}, "solver is 'distant'"),
             ({"near": {"speed": "fast"}}, "speed"),
             ({"near": {"max_iterations": 0}}, "max_iterations"),
             ({"solver": "distant", "integrator": "fill"}, "integrator must be one of"),

@@ -87,7 +87,7 @@ def test_evaluate_without_ground_truth_fails_cleanly(tmp_path, capsys):
     [
         (["--integrator", "fc", "--integrator-option", "iterations=3"], "frankot_chellappa takes"),
         (["--light-model", "near", "--estimator", "tukey"], "near-light solver has its own"),
-        (["--light-model", "distant", "--near-option", "max_iterations=2"], "solver is 'distant'"),
+        (["--light-model", "distant", "--near-option", "max_iterations=3"], "solver is 'distant'"),
         (["--near-option", "max_iterations"], "KEY=VALUE"),
         (["--card-smoothing-px", "-2"], "card_smoothing_px"),
     ],
