@@ -157,6 +157,9 @@ def _floats(x: Tensor) -> list:
 # The entry-point group in which a package registers its light models: ``name = "package.module:Class"``.
 LIGHT_MODELS_GROUP = "psmini.light_models"
 
+# The kinds of psmini's own models, which no other class may take.
+_BUILTIN_KINDS = ("directional", "point", "led")
+
 
 @dataclass(frozen=True)
 class LightField:
@@ -295,7 +298,7 @@ class LightModel(nn.Module):
             raise InputError(f"{cls.__qualname__}.kind must be a non-empty string, got {kind!r}")
         existing = LightModel._KINDS.get(kind)
         if existing is not None and f"{existing.__module__}:{existing.__qualname__}" != path:
-            if existing.__module__ == __name__:
+            if kind in _BUILTIN_KINDS:
                 raise InputError(f"light model kind {kind!r} is psmini's built-in {existing.__name__}: give "
                                  f"{cls.__qualname__} another kind, or leave kind out (its import path {path!r})")
             warnings.warn(f"light model kind {kind!r} of {path} replaces the one of "
@@ -445,9 +448,9 @@ def light_model_class(kind: Any) -> type[LightModel]:
             if found is None and ":" in kind:
                 found = _from_import_path(kind)
         if found is None:
-            builtin = sorted(k for k, c in LightModel._KINDS.items() if c.__module__ == __name__)
+            builtin = sorted(_BUILTIN_KINDS)
             imported = sorted(k for k, c in LightModel._KINDS.items()
-                              if c.__module__ != __name__ and not c.__qualname__.startswith("_"))
+                              if k not in _BUILTIN_KINDS and not c.__qualname__.startswith("_"))
             entries = sorted({e.name for e in importlib.metadata.entry_points(group=LIGHT_MODELS_GROUP)})
             raise DataFormatError(
                 f"light model must be one of the built-ins {builtin}, a model already imported "

@@ -59,8 +59,9 @@ class TabulatedBeamLEDs(LightModel):
         to_light = offsets / squared.sqrt()
         axis = _unit(self.principal_directions.to(points))[None, :, :, None, None]
         cosine = -(to_light * axis).sum(dim=2, keepdim=True)
-        # acos has an infinite slope at 1: just off it, the gradient stays finite on the axis itself
-        angle = torch.acos(cosine.clamp(-1.0, 1.0 - 1e-7))
+        # the angle from its cosine and sine: acos loses precision near the axis, and its slope is infinite on it
+        sine = (1 - cosine.square()).clamp_min(torch.finfo(points.dtype).tiny).sqrt()
+        angle = torch.atan2(sine, cosine)
         beam = self.beam.to(points)
         count, samples = beam.shape
         position = angle / torch.deg2rad(self.step_deg.to(points))[None, :, None, None, None]
