@@ -466,6 +466,11 @@ class TestFitLights(BaseTester):
             fit_lights(leds, images, [0.0, 1.0, 2.0], 1.0)
         with pytest.raises(InputError, match="options must be a LightFitOptions"):
             fit_lights(leds, images, HEIGHTS, 1.0, options=LEDFitOptions())
+        step = torch.full((8,), 1.0, requires_grad=True) * 2.5  # a plain attribute that is no leaf: cannot be copied
+        table = TabulatedBeamLEDs(nominal_leds(8).positions_mm, nominal_leds(8).principal_directions, step,
+                                  torch.ones(8, 5), learnable=True)
+        with pytest.raises(InputError, match="cannot be copied for the fit"):
+            fit_lights(table, images, HEIGHTS, 1.0)
         frozen = LEDLights(nominal_leds(8).positions_mm, nominal_leds(8).principal_directions, learnable=True)
         frozen.requires_grad_(False)
         with pytest.raises(InputError, match="every one has requires_grad=False"):

@@ -487,3 +487,21 @@ class TestKindResolution:
                              cwd=tmp_path, check=False)
         assert run.returncode == 0, run.stderr
         assert run.stdout.split() == ["beams_pkg", "GaussianBeamLEDs", "8"]
+
+
+def test_the_guides_model(tmp_path, monkeypatch):
+    """docs/guides/light-models.md's beams.py works as the guide says: it is the model of tests/user_light_models.py,
+    and its JSON names it by its import path."""
+    guide = (REPO / "docs" / "guides" / "light-models.md").read_text(encoding="utf-8")
+    block = guide.split("<!-- beams.py -->", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    (tmp_path / "beams.py").write_text(block)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    from beams import TabulatedBeamLEDs as GuideBeam  # noqa: I001 (written just above)
+
+    reference = TabulatedBeamLEDs.from_leds(_leds())
+    model = GuideBeam(reference.positions_mm, reference.principal_directions, reference.step_deg, reference.beam)
+    for got, want in zip(model(_points()), reference(_points()), strict=True):
+        torch.testing.assert_close(got, want, rtol=0, atol=0)
+    data = json.loads(json.dumps(lights_to_dict(model)))
+    assert data["model"] == "beams:TabulatedBeamLEDs" and set(data) == {"model", *GuideBeam.fields}
+    assert type(lights_from_dict(data)) is GuideBeam
