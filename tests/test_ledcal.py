@@ -451,6 +451,21 @@ class TestFitLights(BaseTester):
                          options=LightFitOptions(optimizer="lbfgs", iterations=20))
         assert fit.stages[0]["iterations"] == 20
 
+    def test_cuda(self, cuda_device):
+        """Images on the GPU, the model on the CPU: the fit (Levenberg–Marquardt's forward-mode Jacobian included)
+        runs on the GPU and the fitted copy lives there."""
+        truth = TabulatedBeamLEDs.from_leds(rig_lights(CLEAN, dtype=torch.float64))
+        config, images, dark = _user_cards(truth)
+        start = TabulatedBeamLEDs.from_leds(rig_lights(CLEAN, dtype=torch.float64), learnable=True)
+        with torch.no_grad():
+            start.positions_mm.add_(_offsets(0.3))
+        fit = fit_lights(start, images.to(cuda_device), HEIGHTS, config.pixel_pitch_mm, card_albedo=0.8,
+                         dark=dark.to(cuda_device), saturation_level=1.0,
+                         options=LightFitOptions(parameters=("positions_mm", "beam")))
+        assert fit.lights.positions_mm.device.type == "cuda" and fit.gain.device.type == "cuda"
+        assert float((fit.lights.positions_mm.detach().cpu() - truth.positions_mm).norm(dim=-1).max()) < 0.01
+        assert start.positions_mm.device.type == "cpu"
+
     def test_errors(self):
         images = torch.rand(2, 8, 8, 8) * 0.5 + 0.25
         with pytest.raises(InputError, match="must be a psmini.lights.LightModel, got Linear"):
