@@ -54,14 +54,16 @@ from psmini.integrate import (
     integrate_normals,
     masked_least_squares,
 )
-from psmini.ledcal import LEDFit, LEDFitOptions, fit_leds
+from psmini.ledcal import LEDFit, LEDFitOptions, LightFit, LightFitOptions, fit_leds, fit_lights
 from psmini.lights import (
     DirectionalLights,
     LEDLights,
+    LightField,
     LightModel,
     PointLights,
     as_batched_lights,
     check_spans_3d,
+    light_model_class,
     lights_from_dict,
     lights_to_dict,
     ring_lights,
@@ -112,6 +114,8 @@ __all__ = [
     "check_spans_3d",
     "as_batched_lights",
     "LightModel",
+    "LightField",
+    "light_model_class",
     "lights_to_dict",
     "lights_from_dict",
     "DirectionalLights",
@@ -171,7 +175,10 @@ __all__ = [
     "Renderer",
     "cast_shadows",
     "normals_from_height",
-    # LED calibration from card images
+    # light-model and LED calibration from card images
+    "fit_lights",
+    "LightFit",
+    "LightFitOptions",
     "fit_leds",
     "LEDFit",
     "LEDFitOptions",

@@ -13,18 +13,28 @@ import torch
 from data_synth.rig import RigConfig, render_card, rig_lights
 from psmini.commands._calibrate_leds import register_leds
 from psmini.errors import CalibrationError, DataFormatError, InputError, ShapeError
-from psmini.io import lights_from_dict, load_rig_calibration_mat, read_lights_file, read_mat, write_capture
+from psmini.io import (
+    lights_from_dict,
+    load_rig_calibration_mat,
+    read_lights_file,
+    read_mat,
+    write_capture,
+    write_lights_file,
+)
 from psmini.ledcal import (
     LEDFit,
     LEDFitOptions,
+    LightFitOptions,
     card_loss,
     card_shading,
     eliminate_gain,
     fit_leds,
+    fit_lights,
     nominal_leds,
 )
 from psmini.lights import DirectionalLights, LEDLights
 from tests.conftest import BaseTester, shared_data
+from tests.user_light_models import GaussianBeamLEDs, TabulatedBeamLEDs
 
 HEIGHTS = (0.0, 1.0)
 
@@ -307,3 +317,185 @@ class TestCommand:
                                           "--heights-mm", "0", "1"])
         with pytest.raises(InputError, match="one height per DIR"):
             args.run(args)
+
+
+# ------------------------------------------------------------------------------------------------ fit_lights
+
+
+def _user_cards(truth, size: int = 16) -> tuple[RigConfig, torch.Tensor, torch.Tensor]:
+    """Noise-free 16-bit cards at 0 and 1 mm rendered with ``truth`` (any light model) in place of the rig's LEDs, at
+    a size the fit takes without pooling (a model evaluated at a block's centre is not the block's mean: 0.6 mm blocks
+    move the fitted LEDs by ~0.05 mm)."""
+    config = CLEAN.replace(size=size, pixel_pitch_mm=10.0 / size)
+    cards = [render_card(config, 0.8, seed=1 + i, height_mm=h, lights=truth) for i, h in enumerate(HEIGHTS)]
+    return config, torch.stack([c.images for c in cards]), torch.stack([c.dark for c in cards])
+
+
+def _offsets(scale: float) -> torch.Tensor:
+    offsets = torch.randn(8, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    return offsets / offsets.norm(dim=-1, keepdim=True) * scale
+
+
+class TestFitLights(BaseTester):
+    def test_recovers_a_tabulated_beam(self):
+        truth = TabulatedBeamLEDs.from_leds(rig_lights(CLEAN, dtype=torch.float64))
+        angles = torch.arange(13, dtype=torch.float64) * 2.5
+        truth.beam = truth.beam * (1 - 0.2 * (angles / 20) ** 2)  # narrower than the LEDs' cos beam
+        config, images, dark = _user_cards(truth)
+        start = TabulatedBeamLEDs.from_leds(rig_lights(CLEAN.replace(intensity_spread=0.0), dtype=torch.float64),
+                                            learnable=True)
+        with torch.no_grad():
+            start.positions_mm.add_(_offsets(0.5))
+        fit = fit_lights(start, images, HEIGHTS, config.pixel_pitch_mm, card_albedo=0.8, dark=dark,
+                         saturation_level=1.0, options=LightFitOptions(parameters=("positions_mm", "beam")))
+        assert isinstance(fit.lights, TabulatedBeamLEDs) and fit.parameters == ("positions_mm", "beam")
+        position = (fit.lights.positions_mm.detach() - truth.positions_mm).norm(dim=-1)
+        assert float(position.max()) < 0.01
+        # the cards see the beams out to ~16° off axis: the samples at 0-15° come back, up to the common scale
+        ratio = (fit.lights.beam.detach() / truth.beam)[:, :7]
+        assert float((ratio / ratio.mean() - 1).abs().max()) < 1e-3
+        assert fit.residual_rms < 1e-4 and fit.stages[-1]["optimizer"] == "lm" and fit.stages[-1]["iterations"] < 20
+        # held parameters and the start are left alone; the model given is not changed
+        self.assert_close(fit.lights.principal_directions, start.principal_directions.detach())
+        assert float((start.positions_mm.detach() - fit.start.positions_mm.detach()).abs().max()) == 0
+        assert start.positions_mm.requires_grad and fit.lights.positions_mm.requires_grad
+
+    def test_recovers_perturbed_leds_in_their_own_units(self):
+        truth = rig_lights(CLEAN, dtype=torch.float64)
+        config, images, dark = _user_cards(truth)
+        nominal = rig_lights(CLEAN.replace(intensity_spread=0.0), dtype=torch.float64)
+        start = LEDLights(nominal.positions_mm + _offsets(1.0), nominal.principal_directions, None,
+                          torch.full((8,), 1.5, dtype=torch.float64), learnable=True)
+        fit = fit_lights(start, images, HEIGHTS, config.pixel_pitch_mm, card_albedo=0.8, dark=dark,
+                         saturation_level=1.0, options=LightFitOptions())
+        lights = fit.lights
+        assert float((lights.positions_mm.detach() - truth.positions_mm).norm(dim=-1).max()) < 0.01
+        relative = lights.intensities.detach() / lights.intensities.detach().mean()
+        assert float((relative / (truth.intensities / truth.intensities.mean()) - 1).abs().max()) < 1e-3
+        assert float((lights.mu.detach() - truth.mu).abs().max()) < 0.01
+        # L-BFGS on the same raw parameters (mm, relative intensities, mu) does not get there: the reason for LM
+        slow = fit_lights(start, images, HEIGHTS, config.pixel_pitch_mm, card_albedo=0.8, dark=dark,
+                          saturation_level=1.0, options=LightFitOptions(optimizer="lbfgs"))
+        assert float((slow.lights.positions_mm.detach() - truth.positions_mm).norm(dim=-1).max()) > 0.1
+
+    def test_recovers_a_gaussian_beam(self):
+        leds = rig_lights(CLEAN, dtype=torch.float64)
+        truth = GaussianBeamLEDs(leds.positions_mm, leds.principal_directions, leds.intensities,
+                                 torch.full((8,), 0.5, dtype=torch.float64))
+        config, images, dark = _user_cards(truth)
+        start = GaussianBeamLEDs(leds.positions_mm + _offsets(0.5), leds.principal_directions, None,
+                                 torch.full((8,), 0.7, dtype=torch.float64), learnable=True)
+        fit = fit_lights(start, images, HEIGHTS, config.pixel_pitch_mm, card_albedo=0.8, dark=dark,
+                         saturation_level=1.0, options=LightFitOptions())
+        assert float((fit.lights.positions_mm.detach() - truth.positions_mm).norm(dim=-1).max()) < 0.02
+        assert float((fit.lights.width.detach() - truth.width).abs().max()) < 1e-3
+
+    def test_adam_and_lbfgs_projection_and_records(self):
+        truth = rig_lights(CLEAN, dtype=torch.float64)
+        config, images, dark = _user_cards(truth)
+        calls = []
+
+        class Counted(LEDLights):
+            def project_(self):
+                calls.append(1)
+                super().project_()
+
+        start = Counted(truth.positions_mm + 0.2, truth.principal_directions * 2, truth.intensities, truth.mu,
+                        learnable=True)
+        fit = fit_lights(start, images - dark, HEIGHTS, config.pixel_pitch_mm,
+                         options=LightFitOptions(adam_iterations=5, optimizer="lbfgs", iterations=40))
+        assert [(r["optimizer"], r["iterations"]) for r in fit.stages] == [("adam", 5), ("lbfgs", 40)]
+        assert len(calls) == 5 + 2 and len(fit.losses) == 7  # after every Adam step, every 20 L-BFGS iterations
+        self.assert_close(fit.lights.principal_directions.detach().norm(dim=-1), torch.ones(8, dtype=torch.float64))
+        assert fit.losses[-1] < fit.losses[0] and fit.loss == fit.stages[-1]["loss"]
+        assert fit.residual_rms_per_light.shape == (8,) and fit.residual_rms_per_height.shape == (2,)
+        assert fit.gain.shape == (1, 1, 16, 16) and fit.gain.dtype == images.dtype
+        assert fit.lights.positions_mm.dtype == torch.float64  # the model's dtype, not the images'
+
+    def test_to_dict_is_a_lights_file(self, tmp_path):
+        truth = TabulatedBeamLEDs.from_leds(rig_lights(CLEAN, dtype=torch.float64))
+        config, images, dark = _user_cards(truth)
+        start = TabulatedBeamLEDs.from_leds(rig_lights(CLEAN, dtype=torch.float64), learnable=True)
+        fit = fit_lights(start, images - dark, HEIGHTS, config.pixel_pitch_mm,
+                         options=LightFitOptions(parameters=("beam",), iterations=2))
+        data = fit.to_dict()
+        assert data["model"] == "tests.user_light_models:TabulatedBeamLEDs"
+        assert data["calibration"]["parameters"] == ["beam"] and len(data["residuals"]["per_led"]) == 8
+        path = write_lights_file(tmp_path / "beam.json", data)
+        back = read_lights_file(path).lights
+        assert isinstance(back, TabulatedBeamLEDs)
+        self.assert_close(back.beam.double(), fit.lights.beam.detach(), rtol=1e-6, atol=1e-9)
+
+    def test_model_without_forward_mode_needs_lbfgs(self):
+        class Opaque(torch.autograd.Function):  # a custom operation with a backward but no forward-mode rule
+            @staticmethod
+            def forward(ctx, x):
+                ctx.save_for_backward(x)
+                return x.clone()
+
+            @staticmethod
+            def backward(ctx, grad):
+                return grad
+
+        class OpaqueLEDs(LEDLights):
+            def forward(self, points):
+                directions, irradiance = super().forward(points)
+                return directions, Opaque.apply(irradiance)
+
+        truth = rig_lights(CLEAN, dtype=torch.float64)
+        config, images, dark = _user_cards(truth)
+        start = OpaqueLEDs(truth.positions_mm + 0.1, truth.principal_directions, learnable=True)
+        with pytest.raises(InputError, match="forward mode.*optimizer='lbfgs'"):
+            fit_lights(start, images - dark, HEIGHTS, config.pixel_pitch_mm)
+        fit = fit_lights(start, images - dark, HEIGHTS, config.pixel_pitch_mm,
+                         options=LightFitOptions(optimizer="lbfgs", iterations=20))
+        assert fit.stages[0]["iterations"] == 20
+
+    def test_cuda(self, cuda_device):
+        """Images on the GPU, the model on the CPU: the fit (Levenberg–Marquardt's forward-mode Jacobian included)
+        runs on the GPU and the fitted copy lives there."""
+        truth = TabulatedBeamLEDs.from_leds(rig_lights(CLEAN, dtype=torch.float64))
+        config, images, dark = _user_cards(truth)
+        start = TabulatedBeamLEDs.from_leds(rig_lights(CLEAN, dtype=torch.float64), learnable=True)
+        with torch.no_grad():
+            start.positions_mm.add_(_offsets(0.3))
+        fit = fit_lights(start, images.to(cuda_device), HEIGHTS, config.pixel_pitch_mm, card_albedo=0.8,
+                         dark=dark.to(cuda_device), saturation_level=1.0,
+                         options=LightFitOptions(parameters=("positions_mm", "beam")))
+        assert fit.lights.positions_mm.device.type == "cuda" and fit.gain.device.type == "cuda"
+        assert float((fit.lights.positions_mm.detach().cpu() - truth.positions_mm).norm(dim=-1).max()) < 0.01
+        assert start.positions_mm.device.type == "cpu"
+
+    def test_errors(self):
+        images = torch.rand(2, 8, 8, 8) * 0.5 + 0.25
+        with pytest.raises(InputError, match="must be a psmini.lights.LightModel, got Linear"):
+            fit_lights(torch.nn.Linear(2, 2), images, HEIGHTS, 1.0)
+        with pytest.raises(InputError, match="no nn.Parameter to fit: build it with learnable=True"):
+            fit_lights(nominal_leds(8), images, HEIGHTS, 1.0)
+        leds = LEDLights(nominal_leds(8).positions_mm, nominal_leds(8).principal_directions, learnable=True)
+        with pytest.raises(InputError, match="no parameter 'position'; its parameters are"):
+            fit_lights(leds, images, HEIGHTS, 1.0, options=LightFitOptions(parameters=("position",)))
+        with pytest.raises(ShapeError, match="the model has 8 lights but the card images have K=6"):
+            fit_lights(leds, images[:, :6], HEIGHTS, 1.0)
+        with pytest.raises(ShapeError, match="one value per card height"):
+            fit_lights(leds, images, [0.0, 1.0, 2.0], 1.0)
+        with pytest.raises(InputError, match="options must be a LightFitOptions"):
+            fit_lights(leds, images, HEIGHTS, 1.0, options=LEDFitOptions())
+        step = torch.full((8,), 1.0, requires_grad=True) * 2.5  # a plain attribute that is no leaf: cannot be copied
+        table = TabulatedBeamLEDs(nominal_leds(8).positions_mm, nominal_leds(8).principal_directions, step,
+                                  torch.ones(8, 5), learnable=True)
+        with pytest.raises(InputError, match="cannot be copied for the fit"):
+            fit_lights(table, images, HEIGHTS, 1.0)
+        frozen = LEDLights(nominal_leds(8).positions_mm, nominal_leds(8).principal_directions, learnable=True)
+        frozen.requires_grad_(False)
+        with pytest.raises(InputError, match="every one has requires_grad=False"):
+            fit_lights(frozen, images, HEIGHTS, 1.0)
+        for bad, message in [({"optimizer": "adam"}, "optimizer must be 'lm' or 'lbfgs'"),
+                             ({"iterations": -1}, "iterations must be an integer >= 0"),
+                             ({"adam_iterations": 1.5}, "adam_iterations must be an integer"),
+                             ({"parameters": "positions_mm"}, "tuple of parameter names"),
+                             ({"max_size": 1}, "max_size"), ({"huber_delta": 0.0}, "huber_delta"),
+                             ({"learning_rate": -1.0}, "learning_rate"), ({"tolerance": -1.0}, "tolerance")]:
+            with pytest.raises(InputError, match=message):
+                LightFitOptions(**bad)
+        assert LightFitOptions().iterations == 50 and LightFitOptions(optimizer="lbfgs").iterations == 400

@@ -107,7 +107,8 @@ def add_reconstruction_flags(parser: argparse.ArgumentParser) -> None:
     ``evaluate``)."""
     parser.add_argument("folder", type=Path, metavar="DIR", help="DiLiGenT object folder or psmini capture folder")
     parser.add_argument("--lights", type=Path, metavar="FILE",
-                        help="lights file (docs/lights-file.md, from 'psmini calibrate sphere') to use instead of "
+                        help="lights file (docs/lights-file.md, from 'psmini calibrate sphere|leds' or any light "
+                        "model's JSON, a model of your own included: docs/guides/light-models.md) to use instead of "
                         "the folder's own lights")
     add_config_flags(parser)
     add_json_flag(parser)

@@ -34,7 +34,7 @@ import torch
 from torch import nn
 
 from psmini.errors import DataFormatError, RigError
-from psmini.lights import DirectionalLights, LEDLights, PointLights
+from psmini.lights import LEDLights, LightModel
 from psmini.rig.camera import FrameCheck, RigCamera
 from psmini.rig.controller import LEDController
 
@@ -79,22 +79,21 @@ def nominal_ring_lights(led_count: int = 8, ring_diameter_mm: float = 31.6, led_
 
 
 def led_azimuths(lights: nn.Module) -> np.ndarray:
-    """Azimuth of each light around the optical axis, radians counter-clockwise from +x.
+    """Azimuth of each light around the optical axis, radians counter-clockwise from +x: that of its light vector at
+    the field centre (the model is asked, so a user's light model works as the built-ins do).
 
     Raises:
-        RigError: for a light model without positions or directions, or a light on the axis.
+        RigError: for anything that is not a light model of :mod:`psmini.lights`, or a light on the axis.
 
     Example:
         >>> led_azimuths(nominal_ring_lights(4)).round(3).tolist()
         [0.0, 1.571, 3.142, -1.571]
     """
-    if isinstance(lights, PointLights):
-        xyz = lights.positions_mm
-    elif isinstance(lights, DirectionalLights):
-        xyz = lights.directions
-    else:
+    if not isinstance(lights, LightModel):
         raise RigError(f"lights must be a psmini.lights model, got {type(lights).__name__}")
-    xy = xyz.detach().cpu().double()[:, :2].numpy()
+    with torch.no_grad():  # models convert their tensors to the points' device and dtype
+        directions, _ = lights(torch.zeros(1, 3, 1, 1, dtype=torch.float64))  # (1, K, 3, 1, 1)
+    xy = directions[0, :, :2, 0, 0].detach().cpu().double().numpy()
     if (np.hypot(xy[:, 0], xy[:, 1]) < 1e-9).any():
         raise RigError("a light on the optical axis has no azimuth; the stale-frame check needs a ring of LEDs")
     return np.arctan2(xy[:, 1], xy[:, 0])

@@ -78,7 +78,7 @@ class TestLightsDict:
             lights_from_dict(data)
 
     def test_to_dict_refuses_other_objects(self):
-        with pytest.raises(InputError, match="DirectionalLights, PointLights or LEDLights"):
+        with pytest.raises(InputError, match="LightModel .DirectionalLights, PointLights, LEDLights or a subclass"):
             lights_to_dict(torch.nn.Linear(2, 2))
 
 
@@ -194,8 +194,8 @@ class TestWriteErrors:
             ({"lights": DirectionalLights(ring_lights(4, 55.0))}, "8 images but 4 lights"),
             ({"lights": None}, "lights are required"),
             # a tensor of directions is not a light model: an argument error, not a file format one
-            ({"lights": ring_lights(K, 55.0)}, "DirectionalLights, PointLights or LEDLights"),
-            ({"gt": {"lights": ring_lights(K, 55.0)}}, "DirectionalLights, PointLights or LEDLights"),
+            ({"lights": ring_lights(K, 55.0)}, "DirectionalLights, PointLights, LEDLights or a subclass"),
+            ({"gt": {"lights": ring_lights(K, 55.0)}}, "DirectionalLights, PointLights, LEDLights or a subclass"),
             ({"kind": "calibration"}, "kind must be one of"),
             ({"bit_depth": 14}, "bit_depth must be one of"),
             ({"pixel_pitch_mm": 0}, "pixel_pitch_mm"),
