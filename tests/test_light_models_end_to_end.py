@@ -34,8 +34,6 @@ from psmini.metrics import angular_error_deg
 from psmini.pipeline import reconstruct
 from tests.user_light_models import GaussianBeamLEDs, TabulatedBeamLEDs
 
-pytestmark = pytest.mark.xfail(reason="needs the energy-based near-light solver", strict=False)
-
 REPO = Path(__file__).resolve().parents[1]
 SIZE = 48
 CONFIG = RigConfig(size=SIZE, pixel_pitch_mm=10.0 / SIZE, noise=False, bit_depth=16)
