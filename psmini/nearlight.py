@@ -4,7 +4,7 @@ At the rig's geometry (LEDs about 10 mm above a 10 mm field) the light of each L
 the height of the cloth. With a light model :math:`L_k(x)` (:mod:`psmini.lights`: unit direction times irradiance at
 the surface point :math:`x`), a Lambertian pixel reads :math:`I_k = \rho \max(n \cdot L_k(x), 0)`. Near light
 minimises, over the albedo :math:`\rho`, the normals :math:`n`, the depth :math:`z` (and with it the surface points
-:math:`x`), the cloth's absolute height and its tilt, one energy:
+:math:`x`), the cloth's absolute height, its tilt and its bend, one energy:
 
 .. math::
     E = \sum_{\text{pixels}} \sum_k \lambda_k\, \psi(r_k), \qquad
@@ -34,10 +34,11 @@ The minimisation alternates (Quéau et al. 2018; Logothetis et al. 2017 use the 
    the penalty's, the Jacobian the :math:`\max`'s), with a faint prior toward the current surface's normal so that a
    crevice lit by fewer than three LEDs keeps a defined normal;
 2. the normals integrated to depth by least squares, each slope weighted by its inverse variance;
-3. the absolute height and the tilt by Gauss–Newton on the same energy with the normals projected out (variable
-   projection, Golub and Pereyra 1973): the light field is not uniform, so the residuals vanish only at the true
-   height. Integration cannot see a step; where a surface steps down the same way again and again (a purl's
-   courses) the lost steps add up to a tilt, which this step restores.
+3. the absolute height, the tilt and the bend (a quadric) by Gauss–Newton on the same energy with the normals
+   projected out (variable projection, Golub and Pereyra 1973): the light field is not uniform, so the residuals
+   vanish only at the true height. Integration cannot see a step; where a surface steps down the same way again and
+   again (a purl's courses) the lost steps add up to a tilt, where the steps lost depend on how the LEDs light them
+   (a knit's or a net's walls, grazing-lit toward the field's edges) to a bowl, which this step restores.
 
 The first alternations run on 2 × 2-averaged images, after a scan of the height over ``options.search_mm``. Each
 alternation is a fixed sequence of differentiable operations, so ``torch.autograd`` differentiates the whole solve;
@@ -108,6 +109,8 @@ _FILL_SIZE = 9
 _WEIGHT_FLOOR = 1e-2
 # Relative residual at which the weighted integration stops (warm-started: within micrometres of converged).
 _CG_TOLERANCE = 1e-2
+# Most a placement's Gauss–Newton step may move any pixel, mm.
+_MAX_STEP_MM = 0.5
 # Step (mm) of the forward difference of the light field in the height (it changes over millimetres).
 _HEIGHT_STEP_MM = 0.01
 # The noise model is fitted on every _NOISE_STRIDE-th pixel in each direction (two parameters), the placement on
@@ -123,8 +126,8 @@ _FINE_SEARCH_MM = (-0.5, 0.5)
 # of fewer than 32² pixels is too few to find the height on).
 _MIN_COARSE_SIZE = 64
 _COARSE_ITERATIONS = 2
-# A tilt is kept in full when it stands clear of its standard error and shrunk smoothly toward the integrated plane
-# below: q / (q + this²) of it is kept, q its squared Mahalanobis length (a soft three-sigma test).
+# A tilt (or a bend) is kept in full when it stands clear of its standard error and shrunk smoothly toward the
+# integrated surface below: q / (q + this²) of it is kept, q its squared Mahalanobis length (a soft 3-sigma test).
 _TILT_SIGMAS = 3.0
 
 
@@ -148,6 +151,8 @@ class NearLightOptions:
         estimate_offset: find the absolute height from the images (the light field is not uniform); otherwise the
             mean height stays ``initial_height_mm``.
         estimate_tilt: find the plane of the height from the images as well (the steps that integration loses).
+        estimate_bend: find the height's quadric (its second derivatives) from the images as well (the steps that
+            integration loses where the LEDs light their walls unevenly across the field).
         initial_height_mm: starting height of the cloth above the card plane's origin, mm.
         search_mm: interval of heights scanned around ``initial_height_mm`` before the first alternation, mm.
         integrator: the final integration of the normals: ``"masked"`` (weighted least squares on the mask, slopes
@@ -170,6 +175,7 @@ class NearLightOptions:
     irls_steps: int = 1
     estimate_offset: bool = True
     estimate_tilt: bool = True
+    estimate_bend: bool = True
     initial_height_mm: float = 0.0
     search_mm: tuple[float, float] = (-3.0, 3.0)
     integrator: str = "masked"
@@ -189,7 +195,7 @@ class NearLightOptions:
                 raise bad(name, "a positive number" + (" or None" if name == "robust_scale" else ""))
         if self.penalty not in _EFFICIENT_SCALES:
             raise bad("penalty", f"one of {', '.join(sorted(_EFFICIENT_SCALES))}")
-        for name in ("estimate_offset", "estimate_tilt"):
+        for name in ("estimate_offset", "estimate_tilt", "estimate_bend"):
             if not isinstance(getattr(self, name), bool):
                 raise bad(name, "a bool")
         if not (isinstance(self.initial_height_mm, (int, float)) and math.isfinite(self.initial_height_mm)):
@@ -238,6 +244,8 @@ class NearLightResult(Reconstruction):
             (near 0 for a cast shadow or a highlight), 0 in attached shadow and where not valid.
         offset_mm: mean height of the cloth above the card plane, :math:`(B,)`, mm.
         tilt: the plane found from the images, :math:`(B, 2)`: its slopes dz/dx and dz/dy (x right, y up).
+        bend: the quadric found from the images, :math:`(B, 3)`: its second derivatives d²z/dx², d²z/dxdy and
+            d²z/dy², 1/mm.
         noise: the fitted noise model :math:`(\\alpha, \\beta, \\gamma)` of each sample, :math:`(B, 3)`: a reading's
             variance is :math:`s^2\\alpha + s\\beta I + \\gamma I^2` (read noise and shot noise of the raw reading,
             :math:`s` the flat-field's gain, and the model's relative error).
@@ -251,6 +259,7 @@ class NearLightResult(Reconstruction):
     weights: Tensor | None = None
     offset_mm: Tensor | None = None
     tilt: Tensor | None = None
+    bend: Tensor | None = None
     noise: Tensor | None = None
     iterations: int = 0
     changes_deg: tuple[float, ...] = ()
@@ -260,7 +269,8 @@ class NearLightResult(Reconstruction):
     def concatenate(cls, parts: list[NearLightResult]) -> NearLightResult:
         """One result from those of consecutive chunks of a batch: tensors concatenated, the alternations' counts
         and changes the largest over the chunks, converged when every chunk converged."""
-        names = ("albedo", "normals", "p", "q", "depth", "mask", "normal_std", "weights", "offset_mm", "tilt", "noise")
+        names = ("albedo", "normals", "p", "q", "depth", "mask", "normal_std", "weights", "offset_mm", "tilt",
+                 "bend", "noise")
         tensors = {name: torch.cat([getattr(part, name) for part in parts]) for name in names}
         longest = max(len(part.changes_deg) for part in parts)
         changes = tuple(max(part.changes_deg[i] for part in parts if i < len(part.changes_deg))
@@ -586,7 +596,7 @@ def _up(like: Tensor) -> Tensor:
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# Depth: integration of the normals, the height and the tilt
+# Depth: integration of the normals, the height, the tilt and the bend
 # ----------------------------------------------------------------------------------------------------------------
 
 
@@ -656,8 +666,8 @@ def _masked_mean(x: Tensor, region: Tensor) -> Tensor:
 
 @dataclass
 class _Placement:
-    """Where a relative depth lies in space: each sample's offset (mm) and tilt (dz/dx, dz/dy), ``theta`` (B, 3), and
-    which of them the images decide (``free``, (3,) bool)."""
+    """Where a relative depth lies in space: each sample's offset (mm), tilt (dz/dx, dz/dy) and bend (second
+    derivatives, 1/mm), ``theta`` (B, 6), and which of them the images decide (``free``, (6,) bool)."""
 
     theta: Tensor
     free: Tensor
@@ -668,10 +678,13 @@ class _Placement:
 
 
 def _plane_basis(xy: Tensor, domain: Tensor) -> Tensor:
-    """1 and the coordinates x, y (mm) centred on the domain, (B, 3, h, w): the offset is the domain's mean height
-    whatever the tilt."""
-    xy = xy.expand(domain.shape[0], -1, -1, -1)
-    return torch.cat([torch.ones_like(xy[:, :1]), xy - _masked_mean(xy, domain)], dim=1)
+    """The placement's shapes, (B, 6, h, w): 1, the coordinates x, y (mm) centred on the domain, and the quadric's
+    x²/2, xy, y²/2 of those, less their mean: the offset is the domain's mean height whatever the tilt and bend."""
+    x, y = (xy.expand(domain.shape[0], -1, -1, -1) - _masked_mean(xy.expand(domain.shape[0], -1, -1, -1), domain)
+            ).unbind(1)
+    quadric = torch.stack([x.square() / 2, x * y, y.square() / 2], dim=1)
+    return torch.cat([torch.ones_like(x[:, None]), x[:, None], y[:, None], quadric - _masked_mean(quadric, domain)],
+                     dim=1)
 
 
 def _energy(data: _Data, predicted: Tensor, penalty: _Penalty, domain: Tensor) -> Tensor:
@@ -682,20 +695,21 @@ def _energy(data: _Data, predicted: Tensor, penalty: _Penalty, domain: Tensor) -
 
 def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain: Tensor, basis: Tensor,
            placement: _Placement, penalty: _Penalty, steps: int) -> _Placement:
-    r"""Gauss–Newton steps of the energy in the offset and tilt, on the grid of ``field`` (a stride of the image).
+    r"""Gauss–Newton steps of the energy in the offset, tilt and bend, on the grid of ``field`` (a stride of the image).
 
     The normals are projected out (variable projection, Golub and Pereyra 1973): the derivative of each prediction in
     the height, :math:`g_k = m \cdot \partial L_k / \partial z`, loses its part that a change of :math:`m` would absorb,
     :math:`g - L A^{-1} \sum_k w_k L_k g_k`, so the step follows the energy with the normals re-fitted at each height.
     The penalty is not convex: a step is the better of the Gauss–Newton step and its half, or none (a line search on
-    the energy itself). Afterwards the tilt is kept in the share :math:`q / (q + 3^2)` that stands clear of its noise,
-    :math:`q` its squared length in standard errors (the inverse Hessian's block).
+    the energy itself), in a trust region of :data:`_MAX_STEP_MM` at any pixel. Afterwards the tilt and the bend are
+    each kept in the share :math:`q / (q + 3^2)` that stands clear of its noise, :math:`q` its squared length in
+    standard errors (the inverse Hessian's block).
     """
     if not bool(placement.free.any()):
         return placement
     free, theta = placement.free.to(relative.dtype), placement.theta
     features = basis * free[None, :, None, None]
-    hessian = torch.eye(3, dtype=theta.dtype, device=theta.device).expand(theta.shape[0], 3, 3)
+    hessian = torch.eye(6, dtype=theta.dtype, device=theta.device).expand(theta.shape[0], 6, 6)
     for _ in range(steps):
         depth = _Placement(theta, placement.free).depth(relative, basis)
         lights = field(depth)
@@ -711,10 +725,11 @@ def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain:
         hessian = torch.einsum("bihw,bjhw,bhw->bij", features, features, curvature) + torch.diag(1 - free)
         # a ridge of a rounding's size: far from the height every reading is an outlier and the curvature vanishes
         ridge = torch.finfo(theta.dtype).eps * hessian.diagonal(dim1=1, dim2=2).amax(1) + torch.finfo(theta.dtype).tiny
-        step = torch.linalg.solve(hessian + ridge.view(-1, 1, 1) * torch.eye(3).to(theta),
+        step = torch.linalg.solve(hessian + ridge.view(-1, 1, 1) * torch.eye(6).to(theta),
                                   (features * gradient).sum(dim=(2, 3)))
-        limit = torch.tensor([0.5, 0.05, 0.05], device=step.device, dtype=step.dtype)  # mm, slope
-        step = torch.maximum(torch.minimum(step, limit), -limit)
+        # a trust region: no pixel moves by more than half a millimetre in one step
+        largest = ((basis * step[:, :, None, None]).sum(1, keepdim=True).abs() * domain).amax(dim=(1, 2, 3))
+        step = step * (_MAX_STEP_MM / largest.clamp_min(_MAX_STEP_MM)).unsqueeze(1)
         energies = [_energy(data, predicted, penalty, domain)]
         for fraction in (0.5, 1.0):
             trial_lights = field(_Placement(theta + fraction * step, placement.free).depth(relative, basis))
@@ -723,10 +738,13 @@ def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain:
         best = torch.tensor([0.0, 0.5, 1.0], device=step.device, dtype=step.dtype)[
             torch.stack(energies, dim=1).argmin(dim=1)]
         theta = theta + best.unsqueeze(1) * step
-    if bool(placement.free[1:].all()):
-        tilt = theta[:, 1:]
-        q = (tilt.unsqueeze(1) @ torch.linalg.solve(torch.linalg.inv(hessian)[:, 1:, 1:], tilt.unsqueeze(2)))
-        theta = torch.cat([theta[:, :1], tilt * q.view(-1, 1) / (q.view(-1, 1) + _TILT_SIGMAS**2)], dim=1)
+    covariance = torch.linalg.inv(hessian)
+    for block in (slice(1, 3), slice(3, 6)):
+        if bool(placement.free[block].all()):
+            shape = theta[:, block]
+            q = shape.unsqueeze(1) @ torch.linalg.solve(covariance[:, block, block], shape.unsqueeze(2))
+            theta = torch.cat([theta[:, :block.start], shape * q.view(-1, 1) / (q.view(-1, 1) + _TILT_SIGMAS**2),
+                               theta[:, block.stop:]], dim=1)
     return _Placement(theta, placement.free)
 
 
@@ -741,12 +759,12 @@ def _scan_offset(data: _Data, field: _LightField, relative: Tensor, domain: Tens
     prior = (data.images * data.valid).amax(dim=1, keepdim=True) * _up(relative)
     energies = []
     for offset in offsets:
-        shift = offset * torch.tensor([1.0, 0.0, 0.0], device=offset.device, dtype=offset.dtype)
+        shift = F.pad(offset.view(1), (0, 5))
         lights = field(_Placement(placement.theta + shift, placement.free).depth(relative, basis))
         m = _robust_step(data, lights, _initial_fit(data, lights, prior).m, prior, penalty).m
         energies.append(_energy(data, _predict(m, lights), penalty, domain))
     best = offsets[torch.stack(energies, dim=1).argmin(dim=1)]
-    return _Placement(placement.theta + torch.stack([best, 0 * best, 0 * best], dim=1), placement.free)
+    return _Placement(placement.theta + F.pad(best[:, None], (0, 5)), placement.free)
 
 
 def near_light_energy(intensities: Tensor, light_model: nn.Module, result: Reconstruction, pixel_pitch_mm: float,
@@ -927,9 +945,10 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, model: nn.Module,
     alpha = (1e-6 * _masked_mean(raw.square(), valid)).clamp_min(torch.finfo(images.dtype).tiny)
     data = _Data(images, valid.to(images.dtype), gain,
                  torch.cat([alpha, torch.zeros_like(alpha), torch.full_like(alpha, _MODEL_ERROR**2)], dim=1))
-    start = torch.tensor([options.initial_height_mm, 0.0, 0.0], device=images.device, dtype=images.dtype)
-    free = torch.tensor([options.estimate_offset, options.estimate_tilt, options.estimate_tilt], device=images.device)
-    placement = _Placement(start.expand(batch, 3), free)
+    start = F.pad(torch.tensor([options.initial_height_mm], device=images.device, dtype=images.dtype), (0, 5))
+    free = torch.tensor([options.estimate_offset] + [options.estimate_tilt] * 2 + [options.estimate_bend] * 3,
+                        device=images.device)
+    placement = _Placement(start.expand(batch, 6), free)
     scan = options.search_mm if options.estimate_offset else None
     relative = torch.zeros_like(images[:, :1])
     iterations, changes, coarse_m = 0, [], None
@@ -964,7 +983,7 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
                final: bool, guide: Tensor | None = None) -> tuple[_LightField, int]:
     """Alternations at one resolution, updating ``state`` (and ``data``'s noise model): lights at the depth, the
     robust per-pixel fit, the noise model refitted to its residuals, the integration (the Neumann solve at the coarse
-    level, whose depth only places the lights; weighted at full resolution), the placement (the tilt at full
+    level, whose depth only places the lights; weighted at full resolution), the placement (the tilt and bend at full
     resolution only). The level's first placement follows a scan of the height over ``scan``: after the first
     integration, or, given the coarse level's normals ``guide``, before the first fit (which then sees the lights at
     this resolution's height). A sample whose normals moved less than the tolerance keeps its state from then on.
@@ -975,7 +994,7 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
     sub_field = _LightField(model, size, pitch, card_height, data.images, stride)
     sub_domain, sub_basis = domain[..., ::stride, ::stride], _plane_basis(sub_field.xy, domain[..., ::stride, ::stride])
     penalty = options.penalty_function()
-    free = state.placement.free & torch.tensor([True, final, final], device=domain.device)
+    free = state.placement.free & torch.tensor([True] + [final] * 5, device=domain.device)
     method = "masked" if final or not bool(domain.all()) else "fill"
     done = torch.zeros(data.images.shape[0], dtype=torch.bool, device=data.images.device)
 
@@ -1067,6 +1086,7 @@ def _finish(data: _Data, sub_field: _LightField, stride: int, state: _State, dom
     p, q = _slopes_of(normals)
     return NearLightResult(albedo * inside, normals, p, q, depth, domain & (state.normal_std < _SOLVED_BELOW_DEG),
                            normal_std=state.normal_std, weights=state.weights * inside,
-                           offset_mm=_masked_mean(depth, domain).view(-1), tilt=placement.theta[:, 1:],
+                           offset_mm=_masked_mean(depth, domain).view(-1), tilt=placement.theta[:, 1:3],
+                           bend=placement.theta[:, 3:],
                            noise=data.noise.view(-1, 3), iterations=state.iterations,
                            changes_deg=tuple(state.changes), converged=state.converged)

@@ -185,8 +185,8 @@ class TestNearLightOptions:
 
     @pytest.mark.parametrize("bad", [{"max_iterations": 0}, {"irls_steps": True}, {"tolerance_deg": -1.0},
                                      {"robust_scale": 0.0}, {"penalty": "huber"}, {"estimate_tilt": 1},
-                                     {"initial_height_mm": math.nan}, {"search_mm": (1.0, -1.0)},
-                                     {"integrator": "fill"}])
+                                     {"estimate_bend": "yes"}, {"initial_height_mm": math.nan},
+                                     {"search_mm": (1.0, -1.0)}, {"integrator": "fill"}])
     def test_bad_values_raise(self, bad):
         with pytest.raises(InputError, match=next(iter(bad))):
             NearLightOptions(**bad)
@@ -256,7 +256,7 @@ class TestSolveNearLight(BaseTester):
         leds, height, normals, images, card = _capture(offset_mm=0.4, dtype=torch.float64)
         flat = _flat(images, card)
         options = NearLightOptions(initial_height_mm=float(height.mean()), estimate_offset=False,
-                                   estimate_tilt=False)
+                                   estimate_tilt=False, estimate_bend=False)
         result = solve_near_light(flat.images, leds, PITCH, 0.0, flat.valid, options=options)
         assert abs(float(result.depth.mean() - height.mean())) < 1e-9
 
@@ -299,13 +299,42 @@ class TestSolveNearLight(BaseTester):
         assert float(plain.tilt.abs().max()) == 0.0 and float(found.tilt[0, 1]) < -0.1
         assert rmse(found) < 0.25 * rmse(plain)
 
-    def test_no_tilt_from_noise(self):
-        """A smooth surface loses no step: on noisy captures the tilt found stays within its noise (a few µm/mm)."""
+    def test_lost_steps_are_found_as_a_bend(self):
+        """Courses that rise gently away from the middle and drop outward by a cliff whose foot lies in its own
+        shadow: integration loses the drops on both sides, which add up to a V (0.25 mm/mm either way) that the
+        images' near-light cue finds as a bend (estimate_bend), a negative d²z/dx²."""
+        dtype = torch.float64
+        leds = _rig(dtype=dtype)
+        coords = (torch.arange(48, dtype=dtype) - 23.5) * PITCH
+        y, x = torch.meshgrid(-coords, coords, indexing="ij")
+        phase = torch.remainder(x.abs(), 0.8)
+        height = (0.2 * phase / 0.8 + 0.5 + 0.03 * torch.sin(2 * math.pi * y / 1.3))[None, None]
+        images = render(depth_to_points(height, PITCH), normals_from_height(height, PITCH),
+                        torch.full_like(height, 0.6), leds)
+        images = torch.where(((phase < 0.15) | (phase > 0.75))[None, None], torch.zeros_like(images), images)
+        card = render(depth_to_points(torch.zeros_like(height), PITCH),
+                      normals_from_height(torch.zeros_like(height), PITCH), torch.full_like(height, 0.8), leds)
+        flat = _flat(images, card)
+        plain = solve_near_light(flat.images, leds, PITCH, 0.0, flat.valid,
+                                 options=NearLightOptions(estimate_bend=False))
+        found = solve_near_light(flat.images, leds, PITCH, 0.0, flat.valid)
+
+        def rmse(result) -> float:
+            difference = (result.depth - height)[0, 0]
+            return float((difference - difference.mean()).square().mean().sqrt())
+
+        assert float(plain.bend.abs().max()) == 0.0 and float(found.bend[0, 0]) < -0.05
+        assert rmse(found) < 0.5 * rmse(plain)
+
+    def test_no_tilt_or_bend_from_noise(self):
+        """A smooth surface loses no step: on noisy captures the tilt and bend found stay within their noise (a few
+        µm/mm, a few µm over the field)."""
         leds, height, normals, images, card = _capture(size=64, offset_mm=0.5, dtype=torch.float64)
         for seed in range(3):
             flat = _flat(_noisy(images, seed), card)
             result = solve_near_light(flat.images, leds, PITCH, 0.0, flat.valid)
             assert float(result.tilt.abs().max()) < 0.005, seed
+            assert float(result.bend.abs().max()) < 0.005, seed
 
     def test_predicted_errors_hold(self):
         """On noisy captures (Gaussian noise of 1% of the brightest reading) the normals' errors are as predicted:
@@ -432,7 +461,8 @@ class TestSolveNearLight(BaseTester):
         both = NearLightResult.concatenate([single, single.to("cpu")])
         second = both.item(-1)
         assert isinstance(second, NearLightResult) and second.iterations == single.iterations
-        for name in ("albedo", "normals", "depth", "mask", "weights", "offset_mm", "tilt", "normal_std", "noise"):
+        for name in ("albedo", "normals", "depth", "mask", "weights", "offset_mm", "tilt", "bend", "normal_std",
+                     "noise"):
             assert torch.equal(getattr(second, name), getattr(single, name)), name
         with pytest.raises(InputError, match="index 2 is outside the batch of 2"):
             both.item(2)
