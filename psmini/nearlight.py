@@ -279,9 +279,7 @@ class NearLightResult(Reconstruction):
                    converged=all(part.converged for part in parts))
 
 
-# ----------------------------------------------------------------------------------------------------------------
-# The light field: a light model evaluated on the pixel grid at a height map
-# ----------------------------------------------------------------------------------------------------------------
+# --- The light field: a light model evaluated on the pixel grid at a height map ---------------------------------
 
 
 class _LightField:
@@ -349,9 +347,7 @@ def near_light_vectors(light_model: nn.Module, depth: Tensor, pixel_pitch_mm: fl
     return _LightField(light_model, (sizes["H"], sizes["W"]), pixel_pitch_mm, card_height_mm, depth)(depth)
 
 
-# ----------------------------------------------------------------------------------------------------------------
-# The robust per-pixel fit at fixed lights
-# ----------------------------------------------------------------------------------------------------------------
+# --- The robust per-pixel fit at fixed lights -------------------------------------------------------------------
 
 
 class _Data:
@@ -595,9 +591,7 @@ def _up(like: Tensor) -> Tensor:
     return torch.cat([torch.zeros_like(like), torch.zeros_like(like), torch.ones_like(like)], dim=1)
 
 
-# ----------------------------------------------------------------------------------------------------------------
-# Depth: integration of the normals, the height, the tilt and the bend
-# ----------------------------------------------------------------------------------------------------------------
+# --- Depth: integration of the normals, the height, the tilt and the bend ---------------------------------------
 
 
 def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float, method: str,
@@ -693,8 +687,8 @@ def _energy(data: _Data, predicted: Tensor, penalty: _Penalty, domain: Tensor) -
     return (penalty.value(residual_sq) * data.reliability * domain).sum(dim=(1, 2, 3))
 
 
-def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain: Tensor, basis: Tensor,
-           placement: _Placement, penalty: _Penalty, steps: int) -> _Placement:
+def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain: Tensor, placement: _Placement,
+           penalty: _Penalty, steps: int) -> _Placement:
     r"""Gauss–Newton steps of the energy in the offset, tilt and bend, on the grid of ``field`` (a stride of the image).
 
     The normals are projected out (variable projection, Golub and Pereyra 1973): the derivative of each prediction in
@@ -707,7 +701,7 @@ def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain:
     """
     if not bool(placement.free.any()):
         return placement
-    free, theta = placement.free.to(relative.dtype), placement.theta
+    free, theta, basis = placement.free.to(relative.dtype), placement.theta, _plane_basis(field.xy, domain)
     features = basis * free[None, :, None, None]
     hessian = torch.eye(6, dtype=theta.dtype, device=theta.device).expand(theta.shape[0], 6, 6)
     for _ in range(steps):
@@ -748,8 +742,8 @@ def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain:
     return _Placement(theta, placement.free)
 
 
-def _scan_offset(data: _Data, field: _LightField, relative: Tensor, domain: Tensor, basis: Tensor,
-                 placement: _Placement, search: tuple[float, float], penalty: _Penalty) -> _Placement:
+def _scan_offset(data: _Data, field: _LightField, relative: Tensor, domain: Tensor, placement: _Placement,
+                 search: tuple[float, float], penalty: _Penalty) -> _Placement:
     """The offset of least energy among heights in ``search`` (mm, around the current one; at most
     :data:`_SCAN_POINTS`, an eighth of a millimetre apart at least), each with its normals fitted afresh (the
     lit-weighted least squares and a robust step): the start of the Gauss–Newton steps, whose basin is narrower than
@@ -757,7 +751,7 @@ def _scan_offset(data: _Data, field: _LightField, relative: Tensor, domain: Tens
     points = min(_SCAN_POINTS, round((search[1] - search[0]) * 8) + 1)
     offsets = torch.linspace(*search, points, device=relative.device, dtype=relative.dtype)
     prior = (data.images * data.valid).amax(dim=1, keepdim=True) * _up(relative)
-    energies = []
+    basis, energies = _plane_basis(field.xy, domain), []
     for offset in offsets:
         shift = F.pad(offset.view(1), (0, 5))
         lights = field(_Placement(placement.theta + shift, placement.free).depth(relative, basis))
@@ -818,9 +812,7 @@ def near_light_energy(intensities: Tensor, light_model: nn.Module, result: Recon
     return (_check_options(options).penalty_function().value(residual_sq) * weight).sum(dim=(1, 2, 3))
 
 
-# ----------------------------------------------------------------------------------------------------------------
-# The solver
-# ----------------------------------------------------------------------------------------------------------------
+# --- The solver -------------------------------------------------------------------------------------------------
 
 
 def _check_light_model(light_model: object) -> None:
@@ -961,14 +953,14 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, model: nn.Module,
         _alternate(small, small_domain, model, 2 * pitch, card_height, options, coarse, scan, _COARSE_ITERATIONS,
                    final=False)
         relative = F.interpolate(coarse.relative, size=(height, width), mode="bilinear", align_corners=False)
-        placement, iterations, changes, coarse_m = coarse.placement, coarse.iterations, coarse.changes, coarse.m
+        placement, iterations, changes = coarse.placement, coarse.iterations, coarse.changes
+        assert coarse.m is not None
+        coarse_m = F.interpolate(coarse.m, size=(height, width), mode="bilinear", align_corners=False)
         scan = _FINE_SEARCH_MM if options.estimate_offset else None
-    state = _State(relative, placement, _plane_basis(_grid(height, width, pitch, images), domain),
+    state = _State(relative, placement, _plane_basis(_grid(height, width, pitch, images), domain), m=coarse_m,
                    iterations=iterations, changes=changes)
-    guide = None if coarse_m is None else F.interpolate(coarse_m, size=(height, width), mode="bilinear",
-                                                        align_corners=False)
     sub_field, stride = _alternate(data, domain, model, pitch, card_height, options, state, scan,
-                                   options.max_iterations, final=True, guide=guide)
+                                   options.max_iterations, final=True)
     return _finish(data, sub_field, stride, state, domain, mask is None, pitch, options)
 
 
@@ -980,35 +972,20 @@ def _grid(height: int, width: int, pitch: float, like: Tensor) -> Tensor:
 
 def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card_height: float | None,
                options: NearLightOptions, state: _State, scan: tuple[float, float] | None, iterations: int,
-               final: bool, guide: Tensor | None = None) -> tuple[_LightField, int]:
+               final: bool) -> tuple[_LightField, int]:
     """Alternations at one resolution, updating ``state`` (and ``data``'s noise model): lights at the depth, the
     robust per-pixel fit, the noise model refitted to its residuals, the integration (the Neumann solve at the coarse
-    level, whose depth only places the lights; weighted at full resolution), the placement (the tilt and bend at full
-    resolution only). The level's first placement follows a scan of the height over ``scan``: after the first
-    integration, or, given the coarse level's normals ``guide``, before the first fit (which then sees the lights at
-    this resolution's height). A sample whose normals moved less than the tolerance keeps its state from then on.
-    Returns the level's light field on the placement's grid, and its stride."""
+    level, whose depth only places the lights; weighted at full resolution), the placement (after a scan of the height
+    over ``scan`` at first; the tilt and bend at full resolution only). A sample whose normals moved less than the
+    tolerance keeps its state from then on. Returns the level's light field on the placement's grid, and its stride."""
     size = (data.images.shape[-2], data.images.shape[-1])
     stride = max(1, int((size[0] * size[1] / _PLACE_PIXELS) ** 0.5))
     field = _LightField(model, size, pitch, card_height, data.images)
     sub_field = _LightField(model, size, pitch, card_height, data.images, stride)
-    sub_domain, sub_basis = domain[..., ::stride, ::stride], _plane_basis(sub_field.xy, domain[..., ::stride, ::stride])
     penalty = options.penalty_function()
     free = state.placement.free & torch.tensor([True] + [final] * 5, device=domain.device)
     method = "masked" if final or not bool(domain.all()) else "fill"
     done = torch.zeros(data.images.shape[0], dtype=torch.bool, device=data.images.device)
-
-    def place(relative: Tensor, m: Tensor, first: bool) -> _Placement:
-        placement = _Placement(state.placement.theta, free)
-        if scan is not None and first:  # on a quarter of the placement's pixels: only a start
-            every = max(1, int((size[0] * size[1] / _PLACE_PIXELS * 4) ** 0.5))
-            scan_field, scan_domain = _LightField(model, size, pitch, card_height, data.images, every), _stride(
-                domain, every)
-            placement = _scan_offset(data.every(every), scan_field, _stride(relative, every), scan_domain,
-                                     _plane_basis(scan_field.xy, scan_domain), placement, scan, penalty)
-        return _place(data.every(stride), sub_field, _stride(relative, stride), _stride(m, stride), sub_domain,
-                      sub_basis, placement, penalty, steps=2 if first else 1)
-
     before: Tensor | None = None
     for iteration in range(iterations):
         state.iterations += 1
@@ -1017,12 +994,11 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
         # with the current surface's normal as the prior (at first the coarse level's, or the flat surface's)
         if state.m is None:
             prior = (data.images * data.valid).amax(dim=1, keepdim=True) * _up(state.relative)
+        else:
+            prior = vector_length(state.m, dim=1) * normals_from_height(state.depth, pitch)
+        if state.weights is None:  # the level's first fit: a noise model from the lit readings' least squares
             first = _initial_fit(data, lights, prior).every(_NOISE_STRIDE)
             data.set_noise(_fit_noise(data.every(_NOISE_STRIDE), _stride(lights, _NOISE_STRIDE), first, penalty, 6))
-        if guide is not None and iteration == 0:
-            prior = vector_length(guide, dim=1) * normals_from_height(state.depth, pitch)
-        elif state.m is not None:
-            prior = vector_length(state.m, dim=1) * normals_from_height(state.depth, pitch)
         m = _start(data, lights, prior, penalty)
         for _ in range(options.irls_steps):
             fit = _robust_step(data, lights, m, prior, penalty)
@@ -1044,7 +1020,14 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
             state.converged = True
             break
         relative = _integrate(normals, normal_std, domain, pitch, method, state.relative if iteration else None)
-        placement = place(relative, m, iteration == 0)
+        placement = _Placement(state.placement.theta, free)
+        if scan is not None and iteration == 0:  # on a quarter of the placement's pixels: only a start
+            every = max(1, int((size[0] * size[1] / _PLACE_PIXELS * 4) ** 0.5))
+            placement = _scan_offset(data.every(every), _LightField(model, size, pitch, card_height, data.images,
+                                                                    every), _stride(relative, every),
+                                     _stride(domain, every), placement, scan, penalty)
+        placement = _place(data.every(stride), sub_field, _stride(relative, stride), _stride(m, stride),
+                           _stride(domain, stride), placement, penalty, steps=2 if iteration == 0 else 1)
         state.relative = _keep(done, state.relative, relative)
         state.placement = _Placement(_keep(done, state.placement.theta, placement.theta), state.placement.free)
     return sub_field, stride
@@ -1078,8 +1061,7 @@ def _finish(data: _Data, sub_field: _LightField, stride: int, state: _State, dom
         # the rectangle, where the integration ran
         relative = _undo_edge_averaging(relative)
     placement = _place(data.every(stride), sub_field, _stride(relative, stride), _stride(state.m, stride),
-                       _stride(domain, stride), _plane_basis(sub_field.xy, _stride(domain, stride)), state.placement,
-                       options.penalty_function(), 1)
+                       _stride(domain, stride), state.placement, options.penalty_function(), 1)
     depth = placement.depth(relative, state.basis)
     inside = domain.to(albedo.dtype)
     normals = torch.where(domain, normals, _up(albedo))
