@@ -55,6 +55,7 @@ from data_synth.rig import RigConfig, render_capture, render_card  # noqa: E402
 from psmini import PhotometricStereo, albedo_normals, angular_error_deg, fit_leds, flatfield  # noqa: E402
 from psmini.config import ReconstructionConfig  # noqa: E402
 from psmini.nearlight import near_light_vectors  # noqa: E402
+from tests.user_light_models import GaussianBeamLEDs  # noqa: E402
 
 NEAR, DISTANT = ReconstructionConfig(solver="near"), ReconstructionConfig(solver="distant")
 
@@ -168,6 +169,9 @@ def batch_speed(size: int, pitch: float, device: torch.device, count: int = 16) 
     lights = captures[0].lights
     near = PhotometricStereo(lights, pitch, NEAR)
     far = PhotometricStereo(lights, pitch, DISTANT)
+    # a user's model as cheap as the LED's (tests/user_light_models.py: a Gaussian beam overriding forward)
+    user = PhotometricStereo(GaussianBeamLEDs(lights.positions_mm, lights.principal_directions, lights.intensities),
+                             pitch, NEAR)
 
     def timed(run) -> float:
         start = time.perf_counter()
@@ -181,14 +185,15 @@ def batch_speed(size: int, pitch: float, device: torch.device, count: int = 16) 
         return min(timed(lambda: method(images[i : i + 1], reference, dark[i : i + 1], reference_dark,
                                         card_albedo=CARD_ALBEDO, saturation_level=1.0)) for _ in range(2))
 
-    single = distant = 0.0
+    single = distant = users = 0.0
     for i in range(count):
         single += single_call(near, i) / count
         distant += single_call(far, i) / count
+        users += single_call(user, i) / count
     # the batch timed twice too, the faster kept, like each single call
     batch = min(timed(lambda: near(images, reference, dark, reference_dark, card_albedo=CARD_ALBEDO,
                                    saturation_level=1.0)) for _ in range(2)) / count
-    return {"single": single, "batch": batch, "far": distant}
+    return {"single": single, "batch": batch, "far": distant, "user": users}
 
 
 def speed_only(size: int, pitch: float, device: torch.device, args: argparse.Namespace) -> int:
@@ -196,11 +201,15 @@ def speed_only(size: int, pitch: float, device: torch.device, args: argparse.Nam
     speed = batch_speed(size, pitch, device)
     rows = [["near light, single calls", f"{speed['single']:.3f}", f"{speed['single'] / speed['far']:.1f}"],
             ["near light, batch of 16", f"{speed['batch']:.3f}", f"{speed['batch'] / speed['far']:.1f}"],
+            ["near light, a user's Gaussian-beam model, single calls", f"{speed['user']:.3f}",
+             f"{speed['user'] / speed['far']:.1f}"],
             ["distant pipeline, single calls", f"{speed['far']:.3f}", "1.0"]]
     report = table(["run", "s per sample", "× distant"], rows)
     note = (f"16 noisy 8-bit captures of the 11 fabrics, 8 × {size} × {size} px at {pitch:.4f} mm/px, on {device}, "
             f"{torch.get_num_threads()} thread(s): flat-field, normals and depth. Each single call and the batch timed "
-            f"twice, the faster kept. Batch / single: {speed['batch'] / speed['single']:.2f}. Load average at the end: "
+            f"twice, the faster kept. Batch / single: {speed['batch'] / speed['single']:.2f}; the user's model (a "
+            f"LEDLights subclass overriding forward, tests/user_light_models.py) / the built-in LED: "
+            f"{speed['user'] / speed['single']:.2f}. Load average at the end: "
             f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores.")
     print(report)
     print(note)

@@ -16,7 +16,6 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -150,28 +149,22 @@ def test_with_lights_file_of_a_user_model(captures, tmp_path):
     assert _mean_error(reconstruct(replaced, NEAR), replaced) < _mean_error(reconstruct(sample, NEAR), sample) + 0.05
 
 
-@pytest.mark.slow
-def test_speed_of_a_model_as_cheap_as_the_led(tmp_path):
-    """At most 1.5x the built-in LED's time when the model's forward is as cheap (the issue's target), warm, one
-    thread, a 200 px capture."""
-    config = CONFIG.replace(size=200, pixel_pitch_mm=0.05)
-    sample_dir, _ = write_synthetic_capture(tmp_path, "twill", size=200, noise=True, config=config)
-    sample = load_sample(sample_dir)
+def test_a_user_model_is_called_as_often_as_the_led(captures):
+    """The solver treats a user's model as it treats the built-in LED: the same calls of its ``forward``, on points of
+    the same shapes (what makes its time the LED's when its ``forward`` is as cheap; the times themselves are
+    measured by ``benchmarks/nearlight.py --speed``, not here)."""
+    sample = load_sample(captures["led"])
     gaussian = GaussianBeamLEDs(sample.lights.positions_mm, sample.lights.principal_directions,
                                 sample.lights.intensities)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        def best(lights) -> float:
-            candidate = dataclasses.replace(sample, lights=lights)
-            reconstruct(candidate, NEAR)  # warm
-            times = []
-            for _ in range(3):
-                start = time.perf_counter()
-                reconstruct(candidate, NEAR)
-                times.append(time.perf_counter() - start)
-            return min(times)
 
-        assert best(gaussian) <= 1.5 * best(sample.lights)
-    finally:
-        torch.set_num_threads(threads)
+    def calls(lights) -> list[tuple[int, ...]]:
+        shapes: list[tuple[int, ...]] = []
+        handle = lights.register_forward_hook(lambda module, args, output: shapes.append(tuple(args[0].shape)))
+        try:
+            reconstruct(dataclasses.replace(sample, lights=lights), NEAR)
+        finally:
+            handle.remove()
+        return shapes
+
+    led_calls = calls(sample.lights)
+    assert len(led_calls) > 0 and calls(gaussian) == led_calls
