@@ -53,30 +53,36 @@ PUBLISHED = {
     "bi-polynomial BRDF (Shi et al. 2014)": {"ball": 1.74, "cat": 6.12},
 }
 TUNING = {"huber": 1.345, "cauchy": 2.385, "tukey": 4.685}
+# psmini.robust's cast-shadow stage: the model error, the costs of its mixture, the upper band and the support
+CAST = {"tau": 0.05, "upper": 0.75, "support": 6,
+        "shadow_cost": 2 * np.log(0.5 / (np.sqrt(2 * np.pi) * 0.05)), "outlier_cost": 2 * np.log(2 / (np.sqrt(2 * np.pi) * 0.05))}
 DEFAULTS = {k: v for k, v in RobustOptions().to_dict().items() if v is not None}
 # psmini.nonlambertian's defaults and constants, for the per-pixel loop
 NL = {**{k: v for k, v in NonLambertianOptions().to_dict().items() if v is not None},
       "race": 6, "faint": (0.01, 30.0), "peak_ratio": 4.0}
 
 
-def _loop_irls(values, lights, kept, m, method, iterations, attached):
-    """IRLS iterations of psmini.robust on one pixel's thresholded readings (``kept``, bool (K,))."""
+def _loop_irls(values, lights, kept, m, method, iterations, cast):
+    """IRLS iterations of psmini.robust on one pixel's thresholded readings (``kept``, bool (K,)); with ``cast``,
+    only the readings the current estimate explains as lit (|I - p| < I: p > 0 and I >= p / 2) count, and the scale
+    is taken over the readings lit at the first of these iterations."""
     sub_lights, sub_values = lights[kept], values[kept]
     floor = 1e-6 * np.abs(values).max() + 1e-38
+    scale_set = None
     for _ in range(iterations):
         prediction = sub_lights @ m
         residuals = sub_values - prediction
         use = np.ones_like(residuals)
-        if attached:  # leave out the readings the estimate puts in attached shadow; clamped-model residuals
-            lit = prediction > 0
-            use = lit.astype(float)
-            residuals = np.where(lit, residuals, sub_values)
+        if cast:
+            use = (np.abs(residuals) < sub_values).astype(float)
+            scale_set = use > 0 if scale_set is None else scale_set
         size = np.abs(residuals)
         if method == "l1":
             weights = 1.0 / np.maximum(size, DEFAULTS["l1_epsilon"] * np.abs(values).mean())
         else:
-            # the lower median over every thresholded reading, as psmini.robust selects it
-            scale = 1.4826 * np.sort(size)[(len(size) - 1) // 2] + floor
+            # the lower median over every thresholded reading (or the stage's lit ones), as psmini.robust selects it
+            chosen = size if scale_set is None else size[scale_set]
+            scale = (1.4826 * np.sort(chosen)[(len(chosen) - 1) // 2] if len(chosen) else np.inf) + floor
             u = size / (TUNING[method] * scale)
             if method == "huber":
                 weights = 1.0 / np.maximum(u, 1.0)
@@ -115,11 +121,30 @@ def loop_pixel(values: np.ndarray, lights: np.ndarray, method: str) -> np.ndarra
     if band.sum() >= 3:  # the more consistent of the two starts
         m = _more_consistent(values, lights, m, np.linalg.lstsq(lights[band], values[band], rcond=None)[0])
     shadow = min(DEFAULTS["shadow_iterations"], DEFAULTS["iterations"])
-    m = _loop_irls(values, lights, kept, m, method, DEFAULTS["iterations"] - shadow, attached=False)
+    m = _loop_irls(values, lights, kept, m, method, DEFAULTS["iterations"] - shadow, cast=False)
     if shadow == 0:
         return m
-    m_attached = _loop_irls(values, lights, kept, m, method, shadow, attached=True)
-    return _more_consistent(values, lights, m, m_attached)
+    # the cast-shadow stage: from the brightest quarter of the thresholded readings when the estimate so far
+    # explains fewer than half of them as lit; the more likely of its result and that estimate
+    plain_cost, plain_lit = _likelihood(values, lights, kept, m)
+    upper = kept & (values >= ordered[int(np.floor(n * CAST["upper"]))])
+    start = m
+    if 2 * plain_lit < n and upper.sum() >= 3:
+        start = np.linalg.lstsq(lights[upper], values[upper], rcond=None)[0]
+    m_cast = _loop_irls(values, lights, kept, start, method, shadow, cast=True)
+    cast_cost, cast_lit = _likelihood(values, lights, kept, m_cast)
+    return m_cast if cast_cost < plain_cost and cast_lit >= CAST["support"] else m
+
+
+def _likelihood(values, lights, kept, m):
+    """psmini.robust's mixture cost of m over the kept readings (lit: Gaussian of sd tau (p+ + t); cast shadow,
+    I < p / 2: its own cost; other: the outlier cost) and the count of readings better explained as lit."""
+    tau, level = CAST["tau"], DEFAULTS["shadow"] * values[kept].max() + 1e-38
+    prediction = lights @ m
+    positive = np.maximum(prediction, 0)
+    lit_cost = ((values - positive) / (tau * (positive + level))) ** 2
+    cost = np.where(2 * values < prediction, CAST["shadow_cost"], np.minimum(lit_cost, CAST["outlier_cost"]))
+    return float(cost[kept].sum()), int((kept & (lit_cost < CAST["shadow_cost"])).sum())
 
 
 def _more_consistent(values, lights, first, second):
@@ -196,7 +221,8 @@ def _nl_iterate(values, usable, sigma, most, lights, energy, half, state, dampin
 
 def loop_nonlambertian(values: np.ndarray, lights: np.ndarray, rho0: float, n0: np.ndarray) -> np.ndarray:
     """One pixel's normal by the per-pixel version of psmini.nonlambertian (``values`` (K,), robust start)."""
-    usable = (values > NL["shadow"] * values.max()).astype(float)
+    # the thresholded readings that the start explains as lit (|I - p| < I), as psmini.nonlambertian keeps them
+    usable = ((values > NL["shadow"] * values.max()) & (np.abs(values - lights @ (rho0 * n0)) < values)).astype(float)
     energy = np.linalg.norm(lights, axis=1)
     half = lights / energy[:, None] + np.array([0, 0, 1.0])
     half /= np.linalg.norm(half, axis=1, keepdims=True)
