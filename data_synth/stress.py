@@ -58,7 +58,7 @@ __all__ = ["STRESS_SCENES", "StressCase", "diligent_directions", "make_stress_ca
 
 _CELL = 16  # side of the albedo and material cells, pixels
 _BOUNCE_RAYS = 32  # rays per pixel of the one-bounce gather
-_BOUNCE_REACH = 48  # pixels of horizontal travel after which a bounce ray counts as leaving
+_BOUNCE_REACH = 48  # pixels of travel after which a bounce ray counts as leaving
 
 
 @dataclass
@@ -218,13 +218,14 @@ def _cells(size: int, gen: torch.Generator, values: Tensor) -> Tensor:
     return values[pick].repeat_interleave(_CELL, 0).repeat_interleave(_CELL, 1)[:size, :size]
 
 
-def _bounce_hits(height: Tensor, normals: Tensor, pitch: float, gen: torch.Generator) -> tuple[Tensor, Tensor]:
+def _bounce_hits(height: Tensor, normals: Tensor, pitch: float, gen: torch.Generator,
+                 reach: int = _BOUNCE_REACH) -> tuple[Tensor, Tensor]:
     """Where :data:`_BOUNCE_RAYS` cosine-distributed rays from each pixel first meet the height field.
 
     ``height`` (H, W) mm, ``normals`` (3, H, W). Each ray leaves the surface point (lifted by a quarter pixel along the
     normal against self-intersection) and is marched in steps of half a pixel; it hits where it passes below the
     bilinearly sampled field, and leaves once it climbs over the field's top, leaves the image or has travelled
-    :data:`_BOUNCE_REACH` pixels. Returns the flat index of the hit pixel and whether there is one, each
+    ``reach`` pixels (:data:`_BOUNCE_REACH`). Returns the flat index of the hit pixel and whether there is one, each
     (S, H·W).
     """
     rows, cols = height.shape
@@ -251,7 +252,7 @@ def _bounce_hits(height: Tensor, normals: Tensor, pitch: float, gen: torch.Gener
     gone = torch.zeros_like(hit)
     index = torch.zeros(_BOUNCE_RAYS, count, dtype=torch.long)
     source = field[None, None]
-    for t in range(1, 2 * _BOUNCE_REACH + 1):  # a loop over ray steps; every pixel and ray moves at once
+    for t in range(1, 2 * reach + 1):  # a loop over ray steps; every pixel and ray moves at once
         point = start + t * step
         inside = (point[0] >= 0) & (point[0] <= cols - 1) & (point[1] >= 0) & (point[1] <= rows - 1)
         gone = gone | ~inside | (point[2] > top)

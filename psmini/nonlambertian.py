@@ -43,13 +43,11 @@ freedom left), it did so on 23% of the matte satin's pixels and lost 0.05° to i
 keeps the start on 99% of them. The test uses the pooled noise level, so it also decides pixels with too few readings
 to estimate their own (a glossy thread seen under 5 lights).
 
-The fit must also have found its lobe's peak among the observed half vectors: its normal must lie within the cone
-of the lights' half vectors (see :func:`_peak_observed`). Beyond them the readings see only a lobe's tail, which for
-a broad lobe has the shape of the diffuse term and of inter-reflection; on concave scenes (the V-grooves and folds
-of ``data_synth.stress``, where two bounces add 10–25% to the lit readings) such fits moved the normals by more
-than the lobe explained and made them worse than the robust start (grooves 13.7° against 9.7°); without this rule
-the fit's gain on DiLiGenT cat is larger (4.42° against 5.29°, robust 6.43°), with it no case is worse than the
-start.
+The readings must also locate the lobe: its peak must lie within the cone of the lights' half vectors, or the lobe
+be at most half that cone wide (see :func:`_peak_observed`). Beyond the half vectors the readings see only a lobe's
+tail, which for a broad lobe has the shape of the diffuse term and of inter-reflection; on concave scenes (the
+V-grooves and folds of ``data_synth.stress``, where two bounces add 10–25% to the lit readings) such fits moved the
+normals by more than the lobe explained and made them worse than the robust start (grooves 13.7° against 9.7°).
 
 All pixels are solved at once as the rows of :math:`N \times K` matrices (blocks of :data:`_CHUNK` that stay in
 the CPU caches, each pixel's readings contiguous); the normal equations of all pixels are one batched product and
@@ -416,25 +414,31 @@ def _fit_rows(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor, no
                .sum(dim=1, keepdim=True) for x in (state, start)]
     fitted = [state[1], state[0], state[2], state[3].exp()]
     statistics = torch.cat(squares + [median, usable.sum(dim=1, keepdim=True)], dim=1)  # (N, 4)
-    return fitted + [albedo, normals, statistics, _peak_observed(state[0], half)]
+    return fitted + [albedo, normals, statistics, _peak_observed(state[0], state[3].exp(), half)]
 
 
-def _peak_observed(normals: Tensor, half: Tensor) -> Tensor:
-    r"""Whether each fitted normal (N, 3) lies within the cone of the lights' half vectors, bool (N, 1).
+def _peak_observed(normals: Tensor, shininess: Tensor, half: Tensor) -> Tensor:
+    r"""Whether each fitted lobe (normals (N, 3), exponents (N, 1)) is located by the readings, bool (N, 1).
 
-    A Blinn–Phong lobe peaks where the half vector :math:`h_k` meets the normal. When the normal lies among the
-    observed half vectors, the readings sample the lobe about its peak and locate it; beyond them they see only its
-    tail, and a tail broad enough to reach them is the shape of the diffuse term (:math:`\cos^2(\theta/2)` is affine
-    in :math:`\cos\theta`) and of inter-reflection, so a fit there extrapolates the normal from a confusion of the
-    two. The cone: about the mean half vector, out to the widest one (``half`` (K, 3), or per pixel (N, K, 3)).
+    A Blinn–Phong lobe peaks where the half vector :math:`h_k` meets the normal. When the normal lies within the cone
+    of the lights' half vectors (about their mean, out to the widest one: radius :math:`\Theta`), the readings sample
+    the lobe about its peak. Beyond them they see only its tail: a narrow lobe's tail is confined to the cone's edge
+    and still locates it, but a tail broad enough to reach across the cone has the shape of the diffuse term
+    (:math:`\cos^2(\theta/2)` is affine in :math:`\cos\theta`) and of inter-reflection, and a fit there
+    extrapolates the normal from a confusion of the two. So a lobe whose peak lies outside the cone must be at most
+    half the cone wide: its half width at half maximum :math:`\arccos 2^{-1/\alpha} \le \Theta / 2` (for
+    DiLiGenT's lights :math:`\Theta` = 21.6°, :math:`\alpha \ge 39`; for the rig's, 28.8° and 21). ``half``
+    (K, 3), or per pixel (N, K, 3).
     """
     axis = half.mean(dim=-2)
     axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(half.dtype).tiny)
     if half.ndim == 2:
-        widest = (half @ axis).amin()
-        return (normals @ axis >= widest)[:, None]
-    widest = (half * axis[:, None]).sum(dim=-1).amin(dim=1)
-    return ((normals * axis).sum(dim=-1) >= widest)[:, None]
+        widest, facing = (half @ axis).amin(), normals @ axis
+    else:
+        widest, facing = (half * axis[:, None]).sum(dim=-1).amin(dim=1), (normals * axis).sum(dim=-1)
+    radius = torch.acos(widest.clamp(-1, 1))
+    half_width = torch.acos(torch.exp2(-1 / shininess[:, 0]))
+    return ((facing >= widest) | (half_width <= radius / 2))[:, None]
 
 
 def _wilson_hilferty_median(degrees: Tensor) -> Tensor:
