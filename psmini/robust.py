@@ -34,18 +34,25 @@ self-occluding surface (grooves, folds, a bowl) cast shadows are a large share o
 least-squares start and to inflate the residual scale so that the M-estimator keeps them. So the IRLS estimators
 (the scheme of an MM-estimator, Yohai 1987: a start that resists many outliers, then an efficient M-step):
 
-1. start from the more consistent (step 4's criterion) of least squares on the thresholded readings and least
-   squares on their rank-trimmed band (the darkest ``low`` and brightest ``high`` fractions dropped), which dark
-   cast shadows cannot pull;
+1. start from the more consistent of least squares on the thresholded readings and least squares on their
+   rank-trimmed band (the darkest ``low`` and brightest ``high`` fractions dropped), by the smaller median absolute
+   residual of the clamped model (Rousseeuw's least median of squares, 1984), which dark cast shadows cannot pull;
 2. run ``iterations - shadow_iterations`` IRLS iterations on the thresholded readings;
-3. run ``shadow_iterations`` more that also leave out the readings the current estimate puts in attached shadow
-   (:math:`l_k \cdot m \le 0`): the clamped model :math:`\max(l_k \cdot m, 0)` the images follow has no slope
-   there, and a bright reading there is a cast-shadow bounce or a glint, not information on :math:`m`; the scale is
-   that of the clamped model's residuals. This stage detects cast shadow from the readings' own consistency with
-   the estimate rather than from a level;
-4. keep, per pixel, the estimate of step 2 or 3 whose clamped model has the smaller median absolute residual on all
-   usable readings (Rousseeuw's least median of squares, 1984). With 8 grazing lights (the rig) step 3 can drop
-   lit readings; this choice then keeps step 2's estimate.
+3. the cast-shadow stage: ``shadow_iterations`` IRLS iterations that use only the readings the current estimate
+   explains as lit, a positive prediction :math:`p_k = l_k \cdot m` and a reading of at least half of it
+   (equivalently :math:`|I_k - p_k| < I_k`): below that, more than half of the light the estimate sends is missing,
+   which no lit Lambertian facet does, and a reading in attached shadow (:math:`p_k \le 0`) has no slope in the
+   clamped model :math:`\max(p_k, 0)` the images follow. The stage starts from step 2's estimate, or, where that
+   estimate explains fewer than half of the thresholded readings as lit (a pixel at the bottom of a crevice, where
+   most lights are cast-shadowed and a median-based estimate, breakdown point one half, follows the shadows), from
+   least squares on the brightest quarter of them, which such a pixel's few lit readings fill;
+4. keep, per pixel, the more likely of the estimates of steps 2 and 3 under a mixture model of each reading: lit
+   (Gaussian about the clamped model, standard deviation 5% of the prediction: :data:`_MODEL_ERROR`), cast-shadowed
+   (uniform below half the prediction) or an outlier (uniform up to twice it); see :class:`_Likelihood`. The cost is
+   a sum over the readings, so it tells the estimate through a few lit readings (the rest explained as shadows)
+   from one through the shadows (the lit readings left as outliers), where a median cannot. Step 3's estimate must
+   leave at least :data:`_SUPPORT` readings lit. With 8 grazing lights (the rig) step 3 can drop lit readings; the
+   choice then keeps step 2's estimate.
 
 Every stage runs a fixed number of iterations, so the estimate is differentiable (almost everywhere: the median,
 the ranks and the choices are piecewise smooth). Pixels are the rows of an :math:`N \times K`
@@ -134,8 +141,8 @@ class RobustOptions:
         rpca_iterations: ``"rpca"``: inexact ALM iterations (fixed, so the result is differentiable).
         rpca_lambda: ``"rpca"``: weight of the sparse term (> 0); ``None`` takes :math:`1/\sqrt{\max(K, N)}` with N
             the image's number of solved pixels.
-        shadow_iterations: the IRLS estimators' last iterations that also leave out the readings the current
-            estimate puts in attached shadow (at most ``iterations``; 0 turns the cast-shadow stage off).
+        shadow_iterations: the IRLS estimators' last iterations, the cast-shadow stage, which use only the readings
+            the current estimate explains as lit (at most ``iterations``; 0 turns the stage off).
 
     Raises:
         InputError: naming the field, what it must be and what came.
@@ -539,9 +546,9 @@ def _solve_one(
     """Robust m (3, N) and solvability (N,) for the pixel rows (N, K) of one batch element.
 
     The IRLS estimators run the scheme of the module docstring: the more consistent of least squares on the
-    thresholded readings and on their rank-trimmed band, ``iterations - shadow_iterations`` IRLS iterations on the thresholded readings, ``shadow_iterations``
-    more that also leave out the readings the current estimate puts in attached shadow, and per pixel the more
-    consistent of the last two estimates (:func:`_more_consistent`).
+    thresholded readings and on their rank-trimmed band, ``iterations - shadow_iterations`` IRLS iterations on the
+    thresholded readings, the cast-shadow stage's ``shadow_iterations`` from that estimate or from the brightest
+    quarter, and per pixel the more likely of the two (:class:`_Likelihood`).
     """
     kept = _rejection(rows, base, method, options)
     if method in ("trimmed", "threshold"):
@@ -635,7 +642,9 @@ def _irls(rows: Tensor, design: tuple[Tensor, Tensor], kept: Tensor, padding: Te
     :func:`_median_padding` for them, None for l1); with ``cast``, each iteration uses only the readings the current
     estimate explains as lit: a positive prediction :math:`p_k = l_k \cdot m` (else attached shadow, where the clamped
     model :math:`\max(p_k, 0)` has no slope) and a reading of at least :data:`_CAST_RATIO` of it (else cast shadow:
-    most of the light the estimate sends is missing). The residual scale is then that of those readings."""
+    most of the light the estimate sends is missing). The residual scale is then that of the readings lit at the
+    first of these iterations (one padding of :func:`_median_padding` per stage: rebuilding it every iteration cost a
+    fifth of the estimator's time and moved no case's mean error by more than 0.02°)."""
     first = True
     for _ in range(iterations):
         residuals = torch.addmm(rows, m.T, design[1], alpha=-1)  # rows - m^T lights^T in one pass
