@@ -40,9 +40,9 @@ from benchmarks._ledger import SHARED_DATA, append_results, best_time, table  # 
 from benchmarks.diligent import object_folders  # noqa: E402
 from psmini.io import load_sample  # noqa: E402
 from psmini.metrics import mean_angular_error, median_angular_error  # noqa: E402
+from psmini.nonlambertian import NonLambertianOptions, nonlambertian_normals  # noqa: E402
 from psmini.normals import albedo_normals  # noqa: E402
 from psmini.pipeline import distant_light_matrix  # noqa: E402
-from psmini.nonlambertian import NonLambertianOptions, nonlambertian_normals  # noqa: E402
 from psmini.robust import RECOMMENDED_ROBUST_METHOD, ROBUST_METHODS, RobustOptions, robust_normals  # noqa: E402
 
 # Mean angular error (degrees) on ball / cat, DiLiGenT benchmark (Shi et al., TPAMI 2019, Table 2).
@@ -55,7 +55,8 @@ PUBLISHED = {
 TUNING = {"huber": 1.345, "cauchy": 2.385, "tukey": 4.685}
 # psmini.robust's cast-shadow stage: the model error, the costs of its mixture, the upper band and the support
 CAST = {"tau": 0.05, "upper": 0.75, "support": 6,
-        "shadow_cost": 2 * np.log(0.5 / (np.sqrt(2 * np.pi) * 0.05)), "outlier_cost": 2 * np.log(2 / (np.sqrt(2 * np.pi) * 0.05))}
+        "shadow_cost": 2 * np.log(0.5 / (np.sqrt(2 * np.pi) * 0.05)),
+        "outlier_cost": 2 * np.log(2 / (np.sqrt(2 * np.pi) * 0.05))}
 DEFAULTS = {k: v for k, v in RobustOptions().to_dict().items() if v is not None}
 # psmini.nonlambertian's defaults and constants, for the per-pixel loop
 NL = {**{k: v for k, v in NonLambertianOptions().to_dict().items() if v is not None},
@@ -219,8 +220,10 @@ def _nl_iterate(values, usable, sigma, most, lights, energy, half, state, dampin
     return (n, rho, s, log_alpha), cost, damping
 
 
-def loop_nonlambertian(values: np.ndarray, lights: np.ndarray, rho0: float, n0: np.ndarray) -> np.ndarray:
-    """One pixel's normal by the per-pixel version of psmini.nonlambertian (``values`` (K,), robust start)."""
+def loop_nonlambertian(values: np.ndarray, lights: np.ndarray, rho0: float,
+                       n0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+    """One pixel's fitted and starting normals, its lobe-test statistics and whether the readings locate the lobe,
+    by the per-pixel version of psmini.nonlambertian (``values`` (K,), robust start)."""
     # the thresholded readings that the start explains as lit (|I - p| < I), as psmini.nonlambertian keeps them
     usable = ((values > NL["shadow"] * values.max()) & (np.abs(values - lights @ (rho0 * n0)) < values)).astype(float)
     energy = np.linalg.norm(lights, axis=1)
@@ -251,9 +254,13 @@ def loop_nonlambertian(values: np.ndarray, lights: np.ndarray, rho0: float, n0: 
                               NL["iterations"] - NL["race"])
     # the statistics of the likelihood-ratio test (psmini.nonlambertian._keep_lobe): both models' residual sums of
     # squares on the usable readings, the median usable reading and the count; the test pools over pixels
-    squares = [float((usable * (values - _nl_shade(*x, lights, energy, half)[3]) ** 2).sum())
-               for x in ((state[0], state[1], state[2], np.exp(state[3])), (n0, rho0, 0.0, 1.0))]
-    return state[0], n0, np.array(squares + [kept[(len(kept) - 1) // 2], usable.sum()])
+    squares = [float((usable * (values - _nl_shade(n, rho, s, alpha, lights, energy, half)[3]) ** 2).sum())
+               for n, rho, s, alpha in ((state[0], state[1], state[2], np.exp(state[3])), (n0, rho0, 0.0, 1.0))]
+    # the lobe's peak among the half vectors, or the lobe at most half their cone wide (psmini's _peak_observed)
+    axis = half.mean(axis=0) / np.linalg.norm(half.mean(axis=0))
+    widest = (half @ axis).min()
+    observed = state[0] @ axis >= widest or np.arccos(2 ** (-1 / np.exp(state[3]))) <= np.arccos(widest) / 2
+    return state[0], n0, np.array(squares + [kept[(len(kept) - 1) // 2], usable.sum()]), bool(observed)
 
 
 def lobe_test(statistics: np.ndarray) -> np.ndarray:
@@ -285,8 +292,8 @@ def loop_time(method, values_np, lights_np, start, ours):
     elif method == "nonlambertian":
         rho0, n0 = start
         fits = [loop_nonlambertian(values_np[:, i], lights_np, rho0[i], n0[:, i]) for i in range(values_np.shape[1])]
-        lobe = lobe_test(np.stack([f[2] for f in fits]))
-        loop_m = np.stack([f[0] if keep else f[1] for f, keep in zip(fits, lobe)], 1)
+        lobe = lobe_test(np.stack([f[2] for f in fits])) & np.array([f[3] for f in fits])
+        loop_m = np.stack([f[0] if keep else f[1] for f, keep in zip(fits, lobe, strict=True)], 1)
     else:
         loop_m = np.stack([loop_pixel(values_np[:, i], lights_np, method) for i in range(values_np.shape[1])], 1)
     per_pixel = (time.perf_counter() - begin) / values_np.shape[1]
@@ -347,6 +354,7 @@ def main(argv: list[str] | None = None) -> int:
     rows, errors = [], {}
     for folder in folders:
         sample = load_sample(folder)
+        assert sample.mask is not None and sample.normals_gt is not None, f"{folder} lacks a mask or normals"
         images = sample.images.to(device).unsqueeze(0)
         mask = sample.mask.to(device).unsqueeze(0).bool()
         normals_gt = torch.nan_to_num(sample.normals_gt.to(device).unsqueeze(0))
@@ -365,7 +373,10 @@ def main(argv: list[str] | None = None) -> int:
         for method in methods:
             # the non-Lambertian fit takes seconds: time it once (its first run is the timed one)
             repeat, warmup = (1, 0) if method == "nonlambertian" else (args.repeat, 1)
-            seconds = best_time(lambda: torch_normals(images, lights, mask, method), repeat, warmup, args.device)
+            def solve(images=images, lights=lights, mask=mask, method=method):
+                return torch_normals(images, lights, mask, method)
+
+            seconds = best_time(solve, repeat, warmup, args.device)
             normals = torch_normals(images, lights, mask, method)
             ours = normals[0][:, mask[0, 0]].double().cpu().numpy()
             if method == "rpca":
@@ -390,10 +401,10 @@ def main(argv: list[str] | None = None) -> int:
               "loop (µs/px)", "speed-up", "loop vs torch (°)"]
     report = table(header, rows)
     names = [f.name for f in folders]
-    published = table(["method (published)"] + names,
-                      [[m] + [by.get(n, "—") for n in names] for m, by in PUBLISHED.items()]
-                      + [[f"psmini {m}" + (" (= robust)" if m == RECOMMENDED_ROBUST_METHOD else "")]
-                         + [errors[(n, m)] for n in names] for m in methods])
+    published_rows: list[list[object]] = [[m, *(by.get(n, "—") for n in names)] for m, by in PUBLISHED.items()]
+    published_rows += [[f"psmini {m}" + (" (= robust)" if m == RECOMMENDED_ROBUST_METHOD else ""),
+                        *(errors[(n, m)] for n in names)] for m in methods]
+    published = table(["method (published)"] + names, published_rows)
     note = (f"Loop: per-pixel NumPy (np.linalg.lstsq per pixel and IRLS iteration), timed on {args.loop_pixels} "
             "random mask pixels and extrapolated linearly to the whole mask (speed-up = loop time for the mask / "
             "torch time for the mask). rpca: the same inexact ALM in NumPy with np.linalg.svd of the whole matrix "

@@ -59,6 +59,7 @@ def cases(root: Path, size: int, fabric_size: int, fabrics: list[str], seeds: tu
         if folder.name not in ("ball", "cat"):
             continue
         sample = load_sample(folder)
+        assert sample.mask is not None and sample.normals_gt is not None, f"{folder} lacks a mask or normals"
         images = sample.images.unsqueeze(0)
         yield (folder.name, images, distant_light_matrix(sample.lights, False, images), sample.mask.unsqueeze(0).bool(),
                torch.nan_to_num(sample.normals_gt.unsqueeze(0)))
@@ -83,7 +84,8 @@ def cases(root: Path, size: int, fabric_size: int, fabrics: list[str], seeds: tu
 
 def summarise(errors: dict[tuple[str, str], float], names: list[str]) -> tuple[dict, dict]:
     """Worst case (largest error / best robust error over the cases) and mean rank among ROBUST_METHODS."""
-    worst, ranks = {}, {m: [] for m in ROBUST_METHODS}
+    worst: dict[str, float] = {}
+    ranks: dict[str, list[int]] = {m: [] for m in ROBUST_METHODS}
     for name in names:
         best = min(errors[(name, m)] for m in ROBUST_METHODS)
         for m in METHODS:
@@ -126,12 +128,13 @@ def main(argv: list[str] | None = None) -> int:
             + [f"{worst[m]:.3f}", f"{rank[m]:.2f}" if m in rank else "—", f"{seconds[m]:.1f}"] for m in METHODS]
     report = table(["estimator"] + [f"{n} (°)" for n in names] + ["worst case (× best)", "mean rank", "total s"], rows)
     nl_ok = [n for n in names if errors[(n, "nonlambertian")] <= errors[(n, RECOMMENDED_ROBUST_METHOD)]]
+    excepted = f" ({', '.join(n for n in names if n not in nl_ok)} excepted)" if len(nl_ok) < len(names) else ""
     note = (f"Mean angular error (°) over each case's mask. Worst case: the largest ratio, over the cases, of the "
             f"estimator's error to the best error of {', '.join(ROBUST_METHODS)} on that case; mean rank among those. "
             f"Least worst case: {chosen} ({worst[chosen]:.3f}); RECOMMENDED_ROBUST_METHOD = "
             f"{RECOMMENDED_ROBUST_METHOD} ({worst[RECOMMENDED_ROBUST_METHOD]:.3f}). nonlambertian no worse than "
             f"robust on {len(nl_ok)} of {len(names)} cases"
-            f"{' (' + ', '.join(n for n in names if n not in nl_ok) + ' excepted)' if len(nl_ok) < len(names) else ''}. "
+            f"{excepted}. "
             f"Pixels: {pixels}. Stress set: data_synth.stress at {args.size}² px under DiLiGenT's 96 directions, seeds "
             f"{list(seeds)}; share of pixels with most readings shadowed: "
             f"{ {n: round(v, 3) for n, v in MAJORITY.items()} }; fabrics at {args.fabric_size}² px, rig LEDs as "

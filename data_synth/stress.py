@@ -31,9 +31,9 @@ with :math:`v_k` the cast-shadow visibility, :math:`a` an ambient term (light fr
 :math:`E_k = v_k \max(n \cdot l_k, 0)`, where :math:`B(E)(x) = \frac{1}{S}\sum_s \rho(y_s) E(y_s)` gathers the
 irradiance that the surface points :math:`y_s` hit by :math:`S` cosine-distributed rays from :math:`x` reflect to it
 (the Monte-Carlo estimate of one diffuse bounce, whose form factors the rays sample; rays that leave the field see
-a dark room). :math:`\kappa` scales each bounce around its physical value 1. Sensor: the images are scaled so that the 99.5th percentile of the diffuse readings
-sits at 0.8 of full scale, then shot noise (``full_well`` electrons at full scale), read noise, clipping at full
-scale and 16-bit quantisation.
+a dark room). :math:`\kappa` scales each bounce around its physical value 1. Sensor: the images are scaled so
+that the 99.5th percentile of the diffuse readings sits at 0.8 of full scale, then shot noise (``full_well``
+electrons at full scale), read noise, clipping at full scale and 16-bit quantisation.
 
 The lights are the caller's (``benchmarks/robust_stress.py`` uses DiLiGenT's 96 directions, read by
 :func:`diligent_directions`).
@@ -160,7 +160,8 @@ def _folds(size: int, pitch: float, gen: torch.Generator, params: dict) -> tuple
     angle = params.setdefault("angle_deg", _uniform(gen, 0.0, 180.0))
     x, y = _grid(size, pitch, math.radians(angle))
     period = params.setdefault("period_px", _uniform(gen, 32.0, 48.0)) * pitch
-    meander = params.setdefault("meander", _uniform(gen, 0.05, 0.2)) * period * torch.sin(2 * math.pi * y / (1.3 * period))
+    meander = params.setdefault("meander", _uniform(gen, 0.05, 0.2)) * period
+    meander = meander * torch.sin(2 * math.pi * y / (1.3 * period))
     phase = torch.remainder((x + meander) / period, 1.0)
     back = params.setdefault("back_share", _uniform(gen, 0.78, 0.9))  # the gentle back's share of the period
     back_slope = math.tan(math.radians(params.setdefault("back_deg", _uniform(gen, 42.0, 52.0))))
@@ -245,8 +246,9 @@ def _bounce_hits(height: Tensor, normals: Tensor, pitch: float, gen: torch.Gener
     col = torch.arange(cols, dtype=height.dtype).repeat(rows)
     row = torch.arange(rows, dtype=height.dtype).repeat_interleave(cols)
     field = height / pitch
-    start = torch.stack([col, row, field.flatten()]).view(3, 1, count) + 0.25 * n * torch.tensor([1.0, -1.0, 1.0], dtype=height.dtype).view(3, 1, 1)
-    step = 0.5 * direction * torch.tensor([1.0, -1.0, 1.0], dtype=height.dtype).view(3, 1, 1)
+    flip = torch.tensor([1.0, -1.0, 1.0], dtype=height.dtype).view(3, 1, 1)  # y up is row down
+    start = torch.stack([col, row, field.flatten()]).view(3, 1, count) + 0.25 * n * flip
+    step = 0.5 * direction * flip
     top = float(field.max())
     hit = torch.zeros(_BOUNCE_RAYS, count, dtype=torch.bool)
     gone = torch.zeros_like(hit)
@@ -323,7 +325,8 @@ def make_stress_case(
         raise InputError(f"scene must be one of {sorted(STRESS_SCENES)}, got {name!r}")
     if not (isinstance(directions, Tensor) and directions.ndim == 2 and directions.shape[1] == 3
             and directions.shape[0] >= 3):
-        raise InputError(f"directions must be a (K, 3) tensor with K >= 3, got {getattr(directions, 'shape', directions)}")
+        got = getattr(directions, "shape", directions)
+        raise InputError(f"directions must be a (K, 3) tensor with K >= 3, got {got}")
     if size < 32:
         raise InputError(f"size must be at least 32 pixels, got {size}")
     checks = {"interreflection": (interreflection, 0.0, 2.0), "ambient": (ambient, 0.0, 1.0 - 1e-9),
@@ -341,9 +344,10 @@ def make_stress_case(
     albedo_values = torch.linspace(low, _uniform(gen, 0.75, 0.95), 6, dtype=torch.float64)
     lobes = [(math.exp(_uniform(gen, math.log(5.0), math.log(500.0))), _uniform(gen, 0.2, 1.0)) for _ in range(3)]
     drawn = {"interreflection": _uniform(gen, 0.5, 1.2), "ambient": _uniform(gen, 0.0, 0.03),
-             "full_well": math.exp(_uniform(gen, math.log(5e3), math.log(5e4))), "read_noise": _uniform(gen, 1e-4, 1e-3)}
+             "full_well": math.exp(_uniform(gen, math.log(5e3), math.log(5e4))),
+             "read_noise": _uniform(gen, 1e-4, 1e-3)}
     given = {"interreflection": interreflection, "ambient": ambient, "full_well": full_well, "read_noise": read_noise}
-    transport = {key: drawn[key] if given[key] is None else float(given[key]) for key in drawn}
+    transport = {key: drawn[key] if (value := given[key]) is None else float(value) for key in drawn}
     params.update(albedo=[float(albedo_values[0]), float(albedo_values[-1])],
                   lobes=[[round(a, 2), round(w, 3)] for a, w in lobes], **transport)
 

@@ -36,12 +36,13 @@ estimate, the nested model with :math:`s = 0`): the drop of the residual sum of 
 variance, must exceed the :math:`1 - \alpha` quantile of :math:`\chi^2_2` (``significance`` :math:`\alpha`,
 1e-6 by default: an image of N matte pixels keeps about :math:`\alpha N` false lobes, fewer than one up to a
 megapixel, where the former 1% kept 210 on the matte satin's 40,000 pixels and cost it 0.001°; the lobes of glossy
-pixels pass at any level, so ball, cat and lurex moved by at most 0.01°), with the noise a fraction of the pixel's median reading estimated once per image as the median over its
-pixels of the fit's residual variance (see :func:`_keep_lobe`). Otherwise it keeps the start, lobe 0. With the rig's
-8 lights a lobe can fit the noise of a matte pixel; judged on each pixel's own residual alone (3 degrees of
-freedom left), it did so on 23% of the matte satin's pixels and lost 0.05° to its start, where the pooled test
-keeps the start on 99% of them. The test uses the pooled noise level, so it also decides pixels with too few readings
-to estimate their own (a glossy thread seen under 5 lights).
+pixels pass at any level, so ball, cat and lurex moved by at most 0.01°), with the noise a fraction of the
+pixel's median reading estimated once per image as the median over its pixels of the fit's residual variance
+(see :func:`_keep_lobe`). Otherwise it keeps the start, lobe 0. With the rig's 8 lights a lobe can fit the noise
+of a matte pixel; judged on each pixel's own residual alone (3 degrees of freedom left), it did so on 23% of the
+matte satin's pixels and lost 0.05° to its start, where the pooled test keeps the start on 99% of them. The test
+uses the pooled noise level, so it also decides pixels with too few readings to estimate their own (a glossy
+thread seen under 5 lights).
 
 The readings must also locate the lobe: its peak must lie within the cone of the lights' half vectors, or the lobe
 be at most half that cone wide (see :func:`_peak_observed`). Beyond the half vectors the readings see only a lobe's
@@ -67,10 +68,19 @@ from psmini._checks import check_finite, check_mask, check_shape, check_tensor
 from psmini.errors import InputError, ShapeError
 from psmini.lights import as_batched_lights
 from psmini.normals import _check_lights, _check_weights, albedo_normals
-from psmini.robust import (RobustOptions, _float_mask, _median, _median_padding, _scatter, _tracked,
-                           robust_normals, threshold_weights)
+from psmini.robust import (
+    RobustOptions,
+    _float_mask,
+    _median,
+    _median_padding,
+    _scatter,
+    _tracked,
+    robust_normals,
+    threshold_weights,
+)
 
-__all__ = ["BlinnPhongFit", "NonLambertianNormals", "NonLambertianOptions", "blinn_phong_images", "fit_blinn_phong", "nonlambertian_normals"]
+__all__ = ["BlinnPhongFit", "NonLambertianNormals", "NonLambertianOptions", "blinn_phong_images", "fit_blinn_phong",
+           "nonlambertian_normals"]
 
 # Pixels solved together: the (chunk, K) arrays of one iteration stay in cache (the normal equations ran ~5x faster
 # in blocks of 4096 pixels than over DiLiGenT cat's 45,200 at once, one CPU thread).
@@ -179,7 +189,7 @@ def _dot(vectors: Tensor, normals: Tensor) -> Tensor:
 
 
 def _shade(normals: Tensor, albedo: Tensor, specular: Tensor, shininess: Tensor, lights: Tensor, energy: Tensor,
-           half: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+           half: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """The model on pixel rows: normals (N, 3), maps (N, 1).
 
     Returns cosine E(n·u), where it is positive (0/1 floats), lit lobe E g^α, g = n·h, log g and the images, each
@@ -248,7 +258,7 @@ def blinn_phong_images(normals: Tensor, albedo: Tensor, specular: Tensor, shinin
         rows = lights[b].to(normals).flatten(2).permute(2, 0, 1) if lights.ndim == 5 else lights[b]
         energy, half = _split_lights(rows)
         maps = [x[b].flatten(1).T for x in (albedo, specular, shininess)]
-        images.append(_shade(normals[b].flatten(1).T, *maps, rows, energy, half)[-1].T)
+        images.append(_shade(normals[b].flatten(1).T, maps[0], maps[1], maps[2], rows, energy, half)[-1].T)
     return torch.stack(images).view(sizes["B"], -1, sizes["H"], sizes["W"])
 
 
@@ -297,7 +307,8 @@ def _starts(values: Tensor, usable: Tensor, albedo: Tensor, normals: Tensor, lig
     tiny = torch.finfo(values.dtype).tiny
     most = _PEAK_RATIO * (usable * values / energy).amax(dim=1, keepdim=True)
     faint = [normals, albedo, _FAINT_LOBE * albedo, torch.full_like(albedo, math.log(_FAINT_SHININESS))]
-    best, best_cost = None, None
+    best: list[Tensor] | None = None
+    best_cost = torch.zeros_like(albedo)
     peak = _brightest_half(values, usable, half)
     bisector = normals + peak
     bisector = bisector / bisector.norm(dim=1, keepdim=True).clamp_min(tiny)
@@ -316,8 +327,9 @@ def _starts(values: Tensor, usable: Tensor, albedo: Tensor, normals: Tensor, lig
                 best, best_cost = candidate, cost
                 continue
             better = cost < best_cost
-            best = [torch.where(better, new, old) for new, old in zip(candidate, best)]
+            best = [torch.where(better, new, old) for new, old in zip(candidate, best, strict=True)]
             best_cost = torch.where(better, cost, best_cost)
+    assert best is not None  # options.shininess is never empty
     return faint, best
 
 
@@ -373,7 +385,7 @@ def _iterate(values: Tensor, usable: Tensor, sigma: Tensor, lights: Tensor, ener
                                                   half)[-1], usable, sigma)
         better = trial_cost < cost  # per pixel: accept and trust the model more, or reject and damp
         normals, albedo, specular, log_alpha = [torch.where(better, new, old) for new, old in
-                                                zip(trial, (normals, albedo, specular, log_alpha))]
+                                                zip(trial, (normals, albedo, specular, log_alpha), strict=True)]
         cost = torch.where(better, trial_cost, cost)
         damping = torch.where(better, damping / 3, damping * 4).clamp(1e-7, 1e7)
     return [normals, albedo, specular, log_alpha], cost, damping
@@ -399,9 +411,10 @@ def _fit_rows(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor, no
     race = min(_RACE, options.iterations)
     both = [torch.cat(pair) for pair in ((values, values), (usable, usable), (sigma, sigma))]
     per_row = [x if lights.ndim == 2 else torch.cat([x, x]) for x in (lights, energy, half)]
-    state = [torch.cat(pair) for pair in zip(faint, strong)]
+    state = [torch.cat(pair) for pair in zip(faint, strong, strict=True)]
     damping = torch.full_like(state[1], 1e-2)
-    state, cost, damping = _iterate(*both, *per_row, state, damping, race, top)
+    state, cost, damping = _iterate(both[0], both[1], both[2], per_row[0], per_row[1], per_row[2], state, damping,
+                                    race, top)
     count = values.shape[0]
     first = cost[:count] <= cost[count:]
     state = [torch.where(first, x[:count], x[count:]) for x in state]
@@ -489,8 +502,8 @@ def _fit_chunked(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor,
     if not parts:
         return [albedo, normals, albedo, albedo]
     # the test of the lobe takes one noise level for the whole image: all blocks first, then the choice
-    albedo_fit, normals_fit, specular, shininess, albedo_start, normals_start, statistics, observed = [torch.cat(x)
-                                                                                             for x in zip(*parts)]
+    albedo_fit, normals_fit, specular, shininess, albedo_start, normals_start, statistics, observed = [
+        torch.cat(x) for x in zip(*parts, strict=True)]
     lobe = _keep_lobe(statistics, options.significance)[:, None] & observed
     maps = [torch.where(lobe, albedo_fit, albedo_start), torch.where(lobe, normals_fit, normals_start),
             torch.where(lobe, specular, torch.zeros_like(specular)),
@@ -554,10 +567,6 @@ def fit_blinn_phong(
         lights = lights.to(intensities)
     else:
         lights = as_batched_lights(lights, sizes["B"], intensities)
-    # the readings the start explains as shadows (a prediction p <= 0, or a reading below p / 2: the cast shadows of
-    # psmini.robust) are left out: visibility, not reflectance, accounts for them, and a lobe fitted to them moves the
-    # normal (the bottom of a crevice, where most readings are cast shadows lifted by inter-reflection)
-    usable = usable & _lit_by(intensities, lights, (start_albedo * start_normals).detach())
 
     maps = []
     for b in range(sizes["B"]):  # a loop over images, not pixels: each image's pixels are one set of columns
@@ -565,9 +574,14 @@ def fit_blinn_phong(
         if mask is not None:
             solved = solved & mask[b, 0].flatten().bool()
         columns_lights = lights[b].flatten(2)[..., solved] if lights.ndim == 5 else lights[b]
-        fitted = _fit_chunked(intensities[b].flatten(1)[:, solved], columns_lights,
-                              usable[b].flatten(1)[:, solved].to(intensities.dtype),
-                              start_albedo[b].flatten(1)[:, solved], start_normals[b].flatten(1)[:, solved], options)
+        values = intensities[b].flatten(1)[:, solved]
+        columns_albedo, columns_normals = start_albedo[b].flatten(1)[:, solved], start_normals[b].flatten(1)[:, solved]
+        # the readings the start explains as shadows (a prediction p <= 0, or a reading below p / 2: the cast shadows
+        # of psmini.robust) are left out: visibility, not reflectance, accounts for them, and a lobe fitted to them
+        # moves the normal (the bottom of a crevice, where most readings are cast shadows lifted by inter-reflection)
+        lit = _lit_by(values, columns_lights, (columns_albedo * columns_normals).detach())
+        fitted = _fit_chunked(values, columns_lights, (usable[b].flatten(1)[:, solved] & lit).to(intensities.dtype),
+                              columns_albedo, columns_normals, options)
         total = solved.numel()
         up = torch.zeros(3, total, device=intensities.device, dtype=intensities.dtype)
         up[2] = 1
@@ -576,19 +590,16 @@ def fit_blinn_phong(
         shininess_map = torch.where(solved[None], _scatter(fitted[3], solved, total), ones)
         maps.append([_scatter(fitted[0], solved, total), normals, _scatter(fitted[2], solved, total), shininess_map])
     albedo, normals, specular_map, shininess_map = (torch.stack(parts).view(sizes["B"], -1, sizes["H"], sizes["W"])
-                                                    for parts in zip(*maps))
+                                                    for parts in zip(*maps, strict=True))
     return BlinnPhongFit(albedo, normals, specular_map, shininess_map)
 
 
-def _lit_by(intensities: Tensor, lights: Tensor, m: Tensor) -> Tensor:
-    r"""Readings (B, K, H, W) that the Lambertian estimate m = albedo × normal (B, 3, H, W) explains as lit:
-    :math:`|I_k - p_k| < I_k` with :math:`p_k = l_k \cdot m` (a positive prediction and a reading of at least half
-    of it; :func:`psmini.robust._lit`). ``lights`` (B, K, 3) or per pixel (B, K, 3, H, W)."""
-    if lights.ndim == 5:
-        predicted = (lights * m[:, None]).sum(dim=2)
-    else:
-        predicted = torch.einsum("bkc,bchw->bkhw", lights, m)
-    readings = intensities.detach()
+def _lit_by(values: Tensor, lights: Tensor, m: Tensor) -> Tensor:
+    r"""Readings (K, N) that the Lambertian estimate m = albedo × normal (3, N) explains as lit:
+    :math:`|I_k - p_k| < I_k` with :math:`p_k = l_k \cdot m` (a positive prediction and a reading of more than half of
+    it; :func:`psmini.robust._lit`). ``values`` (K, N), ``lights`` (K, 3) or per pixel (K, 3, N)."""
+    predicted = lights @ m if lights.ndim == 2 else (lights * m[None]).sum(dim=1)
+    readings = values.detach()
     return (readings - predicted).abs() < readings
 
 
@@ -680,4 +691,5 @@ class NonLambertianNormals(nn.Module):
         self, intensities: Tensor, mask: Tensor | None = None, weights: Tensor | None = None
     ) -> tuple[Tensor, Tensor]:
         """Albedo :math:`(B, 1, H, W)` and normals :math:`(B, 3, H, W)` of ``intensities`` :math:`(B, K, H, W)`."""
-        return nonlambertian_normals(intensities, self.lights, mask, weights, self.options)
+        lights: Tensor = self.lights  # type: ignore[assignment]  # a registered buffer
+        return nonlambertian_normals(intensities, lights, mask, weights, self.options)

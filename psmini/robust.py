@@ -220,8 +220,8 @@ def rank_trim_weights(
     """
     check_shape(intensities, ["B", "K", "H", "W"], "intensities")
     _check_fractions(low, high)
-    usable = None if weights is None else _check_weights(weights, intensities.shape) > 0
-    return _trim_keep(intensities, low, high, usable, dim=1)
+    checked = _check_weights(weights, intensities.shape)
+    return _trim_keep(intensities, low, high, None if checked is None else checked > 0, dim=1)
 
 
 def _trim_keep(values: Tensor, low: float, high: float, usable: Tensor | None, dim: int) -> Tensor:
@@ -289,8 +289,8 @@ def threshold_weights(
         raise InputError(f"shadow must lie in [0, 1) (a fraction of the brightest reading), got {shadow}")
     if saturation is not None and not saturation > 0:
         raise InputError(f"saturation must be positive, got {saturation}")
-    usable = None if weights is None else _check_weights(weights, intensities.shape) > 0
-    return _threshold_keep(intensities, shadow, saturation, usable, dim=1)
+    checked = _check_weights(weights, intensities.shape)
+    return _threshold_keep(intensities, shadow, saturation, None if checked is None else checked > 0, dim=1)
 
 
 def _threshold_keep(values: Tensor, shadow: float, saturation: float | None, usable: Tensor | None, dim: int) -> Tensor:
@@ -556,9 +556,7 @@ def _solve_one(
     # start: the more consistent of least squares on the thresholded readings and on their rank-trimmed band
     # (a pixel with too few trimmed readings starts from the thresholded ones)
     m_kept, solved = _solve_rows(rows, design, kept)
-    cast = options.shadow_iterations > 0
-    bands = ((options.low, options.high), (_UPPER_BAND, 0.0)) if cast else ((options.low, options.high),)
-    band, *upper = (_float_mask(b, kept.dtype) for b in _trim_bands(rows, bands, kept > 0))
+    band = _float_mask(_trim_band(rows, options.low, options.high, kept > 0), kept.dtype)
     m, trimmed = _solve_rows(rows, design, kept * band)
     m = torch.where(trimmed, _more_consistent(rows, design[1], m_kept, m, None), m_kept)
     solved = solved | trimmed
@@ -568,14 +566,19 @@ def _solve_one(
     m, solved = _irls(rows, design, kept, padding, m, solved, method, options, floor, plain, cast=False)
     if plain == options.iterations:
         return m, solved
-    # the cast-shadow stage: from the more likely (see _most_likely) of the estimate so far and least squares on the
-    # brightest quarter of the thresholded readings (which a pixel at the bottom of a crevice that sees a quarter of
-    # its lights still fits), iterations that leave out the readings the current estimate puts in shadow; then per
-    # pixel the more likely of its result and the estimate before it
+    # the cast-shadow stage: from the estimate so far, or where that explains fewer than half of the thresholded
+    # readings as lit, from least squares on their brightest quarter (which a pixel at the bottom of a crevice that
+    # sees a quarter of its lights still fits); iterations that leave out the readings the current estimate puts in
+    # shadow; then per pixel the more likely of its result and the estimate before it
     judge = _Likelihood(rows, design[1], kept, options.shadow)
-    m_upper, from_upper = _solve_rows(rows, design, kept * upper[0])
     plain_cost, plain_lit = judge(m)
-    start = torch.where(from_upper & (2 * plain_lit < kept.sum(dim=1)), m_upper, m)
+    restart = (2 * plain_lit < kept.sum(dim=1)).nonzero()[:, 0]  # few pixels: the brightest quarter only for them
+    start = m
+    if restart.numel():
+        some_rows, some_kept = rows.index_select(0, restart), kept.index_select(0, restart)
+        upper = _float_mask(_trim_band(some_rows, _UPPER_BAND, 0.0, some_kept > 0), kept.dtype)
+        m_upper, from_upper = _solve_rows(some_rows, design, some_kept * upper)
+        start = m.index_copy(1, restart, torch.where(from_upper, m_upper, m.index_select(1, restart)))
     m_cast, _ = _irls(rows, design, kept, padding, start, solved, method, options, floor,
                       options.iterations - plain, cast=True)
     cast_cost, lit = judge(m_cast)
@@ -590,33 +593,14 @@ def _trim_band(rows: Tensor, low: float, high: float, usable: Tensor) -> Tensor:
     4096 × 96; the start of the IRLS estimators needs no tie-breaking. On CPU the whole band is NumPy's (SIMD sort,
     and comparisons measured 3x faster than torch's bool-valued ones).
     """
-    return _trim_bands(rows, ((low, high),), usable)[0]
-
-
-def _trim_bands(rows: Tensor, bands: tuple[tuple[float, float], ...], usable: Tensor) -> list[Tensor]:
-    """:func:`_trim_band` for several ``(low, high)`` pairs from one sort of the readings."""
-    size = rows.shape[1]
     if rows.device.type == "cpu":
         kept = usable.numpy()
         values = np.where(kept, rows.detach().numpy(), np.inf)
         ordered = np.sort(values, axis=1)
-        count = torch.from_numpy(kept.sum(axis=1, keepdims=True))
-        out = []
-        for low, high in bands:
-            bounds = _band_ranks(count, low, high, size)
-            lower, upper = np.split(np.take_along_axis(ordered, bounds.numpy(), axis=1), 2, axis=1)
-            band = kept & (values >= lower)
-            # with high = 0 the upper bound is the brightest usable reading: nothing to compare
-            out.append(torch.from_numpy(band if high == 0 else band & (values <= upper)))
-        return out
-    values = rows.detach().masked_fill(~usable, float("inf"))
-    ordered = values.sort(dim=1).values
-    count = usable.sum(dim=1, keepdim=True)
-    out = []
-    for low, high in bands:
-        bounds = ordered.gather(1, _band_ranks(count, low, high, size))
-        out.append(usable & (values >= bounds[:, :1]) & (values <= bounds[:, 1:]))
-    return out
+        bounds = _band_ranks(torch.from_numpy(kept.sum(axis=1, keepdims=True)), low, high, rows.shape[1])
+        lower, upper = np.split(np.take_along_axis(ordered, bounds.numpy(), axis=1), 2, axis=1)
+        return torch.from_numpy(kept & (values >= lower) & (values <= upper))
+    return _trim_band_torch(rows, low, high, usable)
 
 
 def _trim_band_torch(rows: Tensor, low: float, high: float, usable: Tensor) -> Tensor:
@@ -646,15 +630,17 @@ def _irls(rows: Tensor, design: tuple[Tensor, Tensor], kept: Tensor, padding: Te
     first of these iterations (one padding of :func:`_median_padding` per stage: rebuilding it every iteration cost a
     fifth of the estimator's time and moved no case's mean error by more than 0.02°)."""
     first = True
+    # the kept readings, 0 elsewhere: |r| < I then also leaves out the readings that are not kept
+    kept_rows = rows.detach() * kept.detach() if cast else None
     for _ in range(iterations):
         residuals = torch.addmm(rows, m.T, design[1], alpha=-1)  # rows - m^T lights^T in one pass
         lit = None
-        if cast:
-            lit = _lit(rows.detach(), residuals.detach()).mul_(kept.detach())
+        if kept_rows is not None:
+            lit = _lit(kept_rows, residuals.detach())
             if method != "l1" and first:  # l1 takes no scale
                 padding = _median_padding(lit, rows.dtype)
                 first = False
-        weights = _irls_weights(residuals, padding, method, options.tuning, floor)
+        weights = _irls_weights(residuals, padding, method, options.tuning or 1.0, floor)
         if _tracked(weights, kept):
             weights = weights * kept if lit is None else weights * lit
         else:
@@ -692,23 +678,29 @@ class _Likelihood:
     """
 
     def __init__(self, rows: Tensor, lights_t: Tensor, usable: Tensor, shadow: float) -> None:
-        self.rows, self.lights_t, self.usable = rows.detach(), lights_t.detach(), usable.detach()
-        self.twice = 2 * self.rows  # a cast shadow: 2 I < p
-        self.level = shadow * (self.rows * self.usable).amax(dim=1, keepdim=True) + torch.finfo(rows.dtype).tiny
+        with torch.no_grad():
+            self.rows, self.lights_t = rows.detach(), lights_t.detach()
+            usable = usable.detach()
+            # a cast shadow is 2 I < p; +inf on the readings not usable, which then never are
+            self.twice = torch.where(usable > 0, 2 * self.rows, torch.inf)
+            # the readings not usable are pushed beyond every cost, so that they count at _OUTLIER_COST each (taken
+            # back in `unused`) and are never lit: one pass per call instead of a product with the mask per sum
+            self.beyond = (1 - usable).mul_(torch.finfo(rows.dtype).max / 4)
+            self.unused = (rows.shape[1] - usable.sum(dim=1)) * _OUTLIER_COST
+            self.level = shadow * (self.rows * usable).amax(dim=1, keepdim=True) + torch.finfo(rows.dtype).tiny
 
     def __call__(self, m: Tensor) -> tuple[Tensor, Tensor]:
         with torch.no_grad():
-            usable = self.usable
             predicted = m.detach().T @ self.lights_t
-            shadows = torch.lt(self.twice, predicted, out=torch.empty_like(predicted)).mul_(usable).sum(dim=1)
+            shadows = torch.lt(self.twice, predicted, out=torch.empty_like(predicted)).sum(dim=1)
             # ((I - max(p, 0)) / (max(p, 0) + t))^2: the lit explanation's cost times _MODEL_ERROR^2. A kept reading
             # with p <= 0 costs at least 1 here (I >= t), a cast shadow (I < p / 2, kept) at least _OUTLIER_COST: so
             # each reading's cost is min(lit, _OUTLIER_COST), less the difference to _SHADOW_COST for each shadow,
             # and the lit test needs no sign of p
             positive = predicted.clamp_min_(0)
-            cost = torch.sub(self.rows, positive).div_(positive.add_(self.level)).square_()
-            lit = torch.lt(cost, _SHADOW_COST * _MODEL_ERROR**2, out=positive).mul_(usable).sum(dim=1)
-            total = cost.clamp_max_(_OUTLIER_COST * _MODEL_ERROR**2).mul_(usable).sum(dim=1) / _MODEL_ERROR**2
+            cost = torch.sub(self.rows, positive).div_(positive.add_(self.level)).square_().add_(self.beyond)
+            lit = torch.lt(cost, _SHADOW_COST * _MODEL_ERROR**2, out=positive).sum(dim=1)
+            total = cost.clamp_max_(_OUTLIER_COST * _MODEL_ERROR**2).sum(dim=1) / _MODEL_ERROR**2 - self.unused
             return total - (_OUTLIER_COST - _SHADOW_COST) * shadows, lit
 
 
@@ -781,7 +773,8 @@ def robust_normals(
     options = RobustOptions() if options is None else options
     if not isinstance(options, RobustOptions):
         raise InputError(f"options must be a RobustOptions, got {type(options).__name__}")
-    base = None if weights is None else _check_weights(weights, intensities.shape).to(intensities.dtype)
+    checked = _check_weights(weights, intensities.shape)
+    base = None if checked is None else checked.to(intensities.dtype)
     options = replace(options, tuning=options.tuning or _TUNING.get(method, 1.0))  # the method's own constant
 
     batch_m, batch_solved = [], []
@@ -844,4 +837,5 @@ class RobustNormals(nn.Module):
         self, intensities: Tensor, mask: Tensor | None = None, weights: Tensor | None = None
     ) -> tuple[Tensor, Tensor]:
         """Albedo :math:`(B, 1, H, W)` and normals :math:`(B, 3, H, W)` of ``intensities`` :math:`(B, K, H, W)`."""
-        return robust_normals(intensities, self.lights, self.method, mask, weights, self.options)
+        lights: Tensor = self.lights  # type: ignore[assignment]  # a registered buffer
+        return robust_normals(intensities, lights, self.method, mask, weights, self.options)

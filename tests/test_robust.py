@@ -94,7 +94,8 @@ class TestWeights(BaseTester):
         self.assert_close(_trim_band(rows, 0.25, 0.10, usable).float(), _trim_keep(rows, 0.25, 0.10, usable, 1).float())
         tied = torch.tensor([[0.1, 0.1, 0.5, 0.5, 0.5, 0.9, 0.9, 0.9]], device=device, dtype=dtype)
         # ranks 2 .. 7 kept by rank; the band keeps every reading equal to a bound as well
-        assert _trim_band(tied, 0.25, 0.0, torch.ones_like(tied, dtype=torch.bool)).tolist() == [[False, False] + [True] * 6]
+        everything = torch.ones_like(tied, dtype=torch.bool)
+        assert _trim_band(tied, 0.25, 0.0, everything).tolist() == [[False, False] + [True] * 6]
 
     def test_trim_band_numpy_path_matches_torch_path(self):
         """The CPU band (NumPy) and the device band (torch) agree, ties and unusable readings included."""
@@ -144,7 +145,8 @@ class TestRobustNormals(BaseTester):
         # where every light sees the surface, the glint is the only outlier
         lit = inside & (torch.einsum("kc,bchw->bkhw", lights, normals) > 0.05).all(1, keepdim=True)
         assert int(lit.sum()) > 100
-        error = lambda n: float(torch.rad2deg(torch.acos((n * normals).sum(1).clamp(-1, 1)))[lit[:, 0]].mean())
+        def error(n):
+            return float(torch.rad2deg(torch.acos((n * normals).sum(1).clamp(-1, 1)))[lit[:, 0]].mean())
         assert error(plain) > 5.0
         assert error(robust) < (0.05 if method == "tukey" else 0.3) * error(plain)
 
@@ -199,7 +201,8 @@ class TestRobustNormals(BaseTester):
         # differences must not straddle a change of order; seeded noise keeps the point the same on every run
         noise = torch.rand(images.shape, generator=torch.Generator().manual_seed(0), dtype=images.dtype)
         images = (images + 0.05 * noise).requires_grad_()
-        self.gradcheck(lambda x: robust_normals(x, lights, method, options=RobustOptions(iterations=3, shadow=0.0)), (images,))
+        options = RobustOptions(iterations=3, shadow=0.0)
+        self.gradcheck(lambda x: robust_normals(x, lights, method, options=options), (images,))
 
     def test_gradcheck_trimmed(self):
         generator = torch.Generator().manual_seed(0)  # distinct readings, far from ties, on every run
@@ -249,7 +252,8 @@ class TestRpca(BaseTester):
 
     def test_recovers_sparse_corruption(self, device, dtype):
         normals, albedo, lights, images = self._corrupted(device, dtype)
-        error = lambda n: angular_error_deg(n, normals)
+        def error(n):
+            return angular_error_deg(n, normals)
         assert float(error(albedo_normals(images, lights)[1]).mean()) > 10.0
         est_albedo, est = robust_normals(images, lights, "rpca")
         # measured: mean 0.004° and 1 pixel of 512 above 0.5° (several of its readings corrupted) in float64; mean
@@ -364,7 +368,8 @@ class TestCastShadows(BaseTester):
     def test_cast_shadow_stage_survives_majority_shadows(self, crevices):
         """Measured (64 px, 48 lights): robust 7.17 deg, without the cast-shadow stage 16.02, trimmed 18.28, least
         squares 18.37, nonlambertian 6.70."""
-        error = lambda n: float(mean_angular_error(n, crevices.normals, crevices.mask)[0])  # noqa: E731
+        def error(n):
+            return float(mean_angular_error(n, crevices.normals, crevices.mask)[0])
         args = (crevices.images, crevices.lights)
         assert crevices.majority_fraction() > 0.2
         plain = error(albedo_normals(*args, crevices.mask)[1])
@@ -509,8 +514,8 @@ class TestStressSet(BaseTester):
         assert float(directions[:, 2].min()) > 0.7  # DiLiGenT's lights lie within ~45° of the view
 
     def test_errors(self, tmp_path):
-        from psmini.errors import DataFormatError
         from data_synth.stress import diligent_directions, make_stress_case
+        from psmini.errors import DataFormatError
 
         lights = _ring_dome()
         with pytest.raises(InputError, match="scene"):
