@@ -156,12 +156,12 @@ class RobustOptions:
     high: float = 0.10
     shadow: float = 0.05
     saturation: float | None = None
-    iterations: int = 6
+    iterations: int = 5
     tuning: float | None = None
     l1_epsilon: float = 1e-3
     rpca_iterations: int = 30
     rpca_lambda: float | None = None
-    shadow_iterations: int = 2
+    shadow_iterations: int = 1
 
     def __post_init__(self) -> None:
         if not (0.0 <= self.low < 1.0 and 0.0 <= self.high < 1.0 and self.low + self.high < 1.0):
