@@ -54,7 +54,7 @@ def _worker(package_root: str, data: str, methods: list[str], repeat: int) -> No
     for method in methods:
         call = calls.get(method, lambda method=method: robust_normals(images, lights, method, mask))
         call()  # warm-up: first-call allocations and lazy imports
-        times = []
+        times: list[float] = []
         # at least `repeat` calls, and for the cheap estimators as many as fill MIN_SECONDS (at most MAX_CALLS):
         # their best of 3 moved by +-10% between runs on the shared machine
         while len(times) < (repeat if method != "nonlambertian" else 1) or (
@@ -72,6 +72,7 @@ def _prepare(folder: Path, path: Path) -> int:
     from psmini.pipeline import distant_light_matrix
 
     sample = load_sample(folder)
+    assert sample.mask is not None, f"{folder} has no mask"
     images = sample.images.unsqueeze(0)
     mask = sample.mask.unsqueeze(0).bool()
     torch.save({"images": images, "mask": mask, "lights": distant_light_matrix(sample.lights, False, images)}, path)
@@ -115,11 +116,11 @@ def main(argv: list[str] | None = None) -> int:
     if not folder.is_dir():
         print(f"no DiLiGenT object at {folder}", file=sys.stderr)
         return 1
-    with tempfile.TemporaryDirectory() as temporary:
-        temporary = Path(temporary)
+    with tempfile.TemporaryDirectory() as name:
+        temporary = Path(name)
         pixels = _prepare(folder, temporary / "sample.pt")
         reference = _extract(args.against, temporary)
-        roots = {"now": REPO, reference: temporary}
+        roots: dict[str, Path] = {"now": REPO, reference: temporary}
         best = {(version, method): float("inf") for version in roots for method in methods}
         for round_ in range(args.rounds):
             order = list(roots) if round_ % 2 == 0 else list(roots)[::-1]

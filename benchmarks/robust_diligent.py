@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -54,30 +53,37 @@ PUBLISHED = {
     "bi-polynomial BRDF (Shi et al. 2014)": {"ball": 1.74, "cat": 6.12},
 }
 TUNING = {"huber": 1.345, "cauchy": 2.385, "tukey": 4.685}
+# psmini.robust's cast-shadow stage: the model error, the costs of its mixture, the upper band and the support
+CAST = {"tau": 0.05, "upper": 0.75, "support": 6,
+        "shadow_cost": 2 * np.log(0.5 / (np.sqrt(2 * np.pi) * 0.05)),
+        "outlier_cost": 2 * np.log(2 / (np.sqrt(2 * np.pi) * 0.05))}
 DEFAULTS = {k: v for k, v in RobustOptions().to_dict().items() if v is not None}
 # psmini.nonlambertian's defaults and constants, for the per-pixel loop
 NL = {**{k: v for k, v in NonLambertianOptions().to_dict().items() if v is not None},
       "race": 6, "faint": (0.01, 30.0), "peak_ratio": 4.0}
 
 
-def _loop_irls(values, lights, kept, m, method, iterations, attached):
-    """IRLS iterations of psmini.robust on one pixel's thresholded readings (``kept``, bool (K,))."""
+def _loop_irls(values, lights, kept, m, method, iterations, cast):
+    """IRLS iterations of psmini.robust on one pixel's thresholded readings (``kept``, bool (K,)); with ``cast``,
+    only the readings the current estimate explains as lit (|I - p| < I: p > 0 and I >= p / 2) count, and the scale
+    is taken over the readings lit at the first of these iterations."""
     sub_lights, sub_values = lights[kept], values[kept]
     floor = 1e-6 * np.abs(values).max() + 1e-38
+    scale_set = None
     for _ in range(iterations):
         prediction = sub_lights @ m
         residuals = sub_values - prediction
         use = np.ones_like(residuals)
-        if attached:  # leave out the readings the estimate puts in attached shadow; clamped-model residuals
-            lit = prediction > 0
-            use = lit.astype(float)
-            residuals = np.where(lit, residuals, sub_values)
+        if cast:
+            use = (np.abs(residuals) < sub_values).astype(float)
+            scale_set = use > 0 if scale_set is None else scale_set
         size = np.abs(residuals)
         if method == "l1":
             weights = 1.0 / np.maximum(size, DEFAULTS["l1_epsilon"] * np.abs(values).mean())
         else:
-            # the lower median over every thresholded reading, as psmini.robust selects it
-            scale = 1.4826 * np.sort(size)[(len(size) - 1) // 2] + floor
+            # the lower median over every thresholded reading (or the stage's lit ones), as psmini.robust selects it
+            chosen = size if scale_set is None else size[scale_set]
+            scale = (1.4826 * np.sort(chosen)[(len(chosen) - 1) // 2] if len(chosen) else np.inf) + floor
             u = size / (TUNING[method] * scale)
             if method == "huber":
                 weights = 1.0 / np.maximum(u, 1.0)
@@ -116,11 +122,30 @@ def loop_pixel(values: np.ndarray, lights: np.ndarray, method: str) -> np.ndarra
     if band.sum() >= 3:  # the more consistent of the two starts
         m = _more_consistent(values, lights, m, np.linalg.lstsq(lights[band], values[band], rcond=None)[0])
     shadow = min(DEFAULTS["shadow_iterations"], DEFAULTS["iterations"])
-    m = _loop_irls(values, lights, kept, m, method, DEFAULTS["iterations"] - shadow, attached=False)
+    m = _loop_irls(values, lights, kept, m, method, DEFAULTS["iterations"] - shadow, cast=False)
     if shadow == 0:
         return m
-    m_attached = _loop_irls(values, lights, kept, m, method, shadow, attached=True)
-    return _more_consistent(values, lights, m, m_attached)
+    # the cast-shadow stage: from the brightest quarter of the thresholded readings when the estimate so far
+    # explains fewer than half of them as lit; the more likely of its result and that estimate
+    plain_cost, plain_lit = _likelihood(values, lights, kept, m)
+    upper = kept & (values >= ordered[int(np.floor(n * CAST["upper"]))])
+    start = m
+    if 2 * plain_lit < n and upper.sum() >= 3:
+        start = np.linalg.lstsq(lights[upper], values[upper], rcond=None)[0]
+    m_cast = _loop_irls(values, lights, kept, start, method, shadow, cast=True)
+    cast_cost, cast_lit = _likelihood(values, lights, kept, m_cast)
+    return m_cast if cast_cost < plain_cost and cast_lit >= CAST["support"] else m
+
+
+def _likelihood(values, lights, kept, m):
+    """psmini.robust's mixture cost of m over the kept readings (lit: Gaussian of sd tau (p+ + t); cast shadow,
+    I < p / 2: its own cost; other: the outlier cost) and the count of readings better explained as lit."""
+    tau, level = CAST["tau"], DEFAULTS["shadow"] * values[kept].max() + 1e-38
+    prediction = lights @ m
+    positive = np.maximum(prediction, 0)
+    lit_cost = ((values - positive) / (tau * (positive + level))) ** 2
+    cost = np.where(2 * values < prediction, CAST["shadow_cost"], np.minimum(lit_cost, CAST["outlier_cost"]))
+    return float(cost[kept].sum()), int((kept & (lit_cost < CAST["shadow_cost"])).sum())
 
 
 def _more_consistent(values, lights, first, second):
@@ -195,9 +220,12 @@ def _nl_iterate(values, usable, sigma, most, lights, energy, half, state, dampin
     return (n, rho, s, log_alpha), cost, damping
 
 
-def loop_nonlambertian(values: np.ndarray, lights: np.ndarray, rho0: float, n0: np.ndarray) -> np.ndarray:
-    """One pixel's normal by the per-pixel version of psmini.nonlambertian (``values`` (K,), robust start)."""
-    usable = (values > NL["shadow"] * values.max()).astype(float)
+def loop_nonlambertian(values: np.ndarray, lights: np.ndarray, rho0: float,
+                       n0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+    """One pixel's fitted and starting normals, its lobe-test statistics and whether the readings locate the lobe,
+    by the per-pixel version of psmini.nonlambertian (``values`` (K,), robust start)."""
+    # the thresholded readings that the start explains as lit (|I - p| < I), as psmini.nonlambertian keeps them
+    usable = ((values > NL["shadow"] * values.max()) & (np.abs(values - lights @ (rho0 * n0)) < values)).astype(float)
     energy = np.linalg.norm(lights, axis=1)
     half = lights / energy[:, None] + np.array([0, 0, 1.0])
     half /= np.linalg.norm(half, axis=1, keepdims=True)
@@ -226,9 +254,13 @@ def loop_nonlambertian(values: np.ndarray, lights: np.ndarray, rho0: float, n0: 
                               NL["iterations"] - NL["race"])
     # the statistics of the likelihood-ratio test (psmini.nonlambertian._keep_lobe): both models' residual sums of
     # squares on the usable readings, the median usable reading and the count; the test pools over pixels
-    squares = [float((usable * (values - _nl_shade(*x, lights, energy, half)[3]) ** 2).sum())
-               for x in ((state[0], state[1], state[2], np.exp(state[3])), (n0, rho0, 0.0, 1.0))]
-    return state[0], n0, np.array(squares + [kept[(len(kept) - 1) // 2], usable.sum()])
+    squares = [float((usable * (values - _nl_shade(n, rho, s, alpha, lights, energy, half)[3]) ** 2).sum())
+               for n, rho, s, alpha in ((state[0], state[1], state[2], np.exp(state[3])), (n0, rho0, 0.0, 1.0))]
+    # the lobe's peak among the half vectors, or the lobe at most half their cone wide (psmini's _peak_observed)
+    axis = half.mean(axis=0) / np.linalg.norm(half.mean(axis=0))
+    widest = (half @ axis).min()
+    observed = state[0] @ axis >= widest or np.arccos(2 ** (-1 / np.exp(state[3]))) <= np.arccos(widest) / 2
+    return state[0], n0, np.array(squares + [kept[(len(kept) - 1) // 2], usable.sum()]), bool(observed)
 
 
 def lobe_test(statistics: np.ndarray) -> np.ndarray:
@@ -260,7 +292,7 @@ def loop_time(method, values_np, lights_np, start, ours):
     elif method == "nonlambertian":
         rho0, n0 = start
         fits = [loop_nonlambertian(values_np[:, i], lights_np, rho0[i], n0[:, i]) for i in range(values_np.shape[1])]
-        lobe = lobe_test(np.stack([f[2] for f in fits]))
+        lobe = lobe_test(np.stack([f[2] for f in fits])) & np.array([f[3] for f in fits])
         loop_m = np.stack([f[0] if keep else f[1] for f, keep in zip(fits, lobe, strict=True)], 1)
     else:
         loop_m = np.stack([loop_pixel(values_np[:, i], lights_np, method) for i in range(values_np.shape[1])], 1)
@@ -322,6 +354,7 @@ def main(argv: list[str] | None = None) -> int:
     rows, errors = [], {}
     for folder in folders:
         sample = load_sample(folder)
+        assert sample.mask is not None and sample.normals_gt is not None, f"{folder} lacks a mask or normals"
         images = sample.images.to(device).unsqueeze(0)
         mask = sample.mask.to(device).unsqueeze(0).bool()
         normals_gt = torch.nan_to_num(sample.normals_gt.to(device).unsqueeze(0))
@@ -340,7 +373,10 @@ def main(argv: list[str] | None = None) -> int:
         for method in methods:
             # the non-Lambertian fit takes seconds: time it once (its first run is the timed one)
             repeat, warmup = (1, 0) if method == "nonlambertian" else (args.repeat, 1)
-            seconds = best_time(partial(torch_normals, images, lights, mask, method), repeat, warmup, args.device)
+            def solve(images=images, lights=lights, mask=mask, method=method):
+                return torch_normals(images, lights, mask, method)
+
+            seconds = best_time(solve, repeat, warmup, args.device)
             normals = torch_normals(images, lights, mask, method)
             ours = normals[0][:, mask[0, 0]].double().cpu().numpy()
             if method == "rpca":
@@ -365,10 +401,10 @@ def main(argv: list[str] | None = None) -> int:
               "loop (µs/px)", "speed-up", "loop vs torch (°)"]
     report = table(header, rows)
     names = [f.name for f in folders]
-    published = table(["method (published)"] + names,
-                      [[m] + [by.get(n, "—") for n in names] for m, by in PUBLISHED.items()]
-                      + [[f"psmini {m}" + (" (= robust)" if m == RECOMMENDED_ROBUST_METHOD else "")]
-                         + [errors[(n, m)] for n in names] for m in methods])
+    published_rows: list[list[object]] = [[m, *(by.get(n, "—") for n in names)] for m, by in PUBLISHED.items()]
+    published_rows += [[f"psmini {m}" + (" (= robust)" if m == RECOMMENDED_ROBUST_METHOD else ""),
+                        *(errors[(n, m)] for n in names)] for m in methods]
+    published = table(["method (published)"] + names, published_rows)
     note = (f"Loop: per-pixel NumPy (np.linalg.lstsq per pixel and IRLS iteration), timed on {args.loop_pixels} "
             "random mask pixels and extrapolated linearly to the whole mask (speed-up = loop time for the mask / "
             "torch time for the mask). rpca: the same inexact ALM in NumPy with np.linalg.svd of the whole matrix "

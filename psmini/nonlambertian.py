@@ -19,7 +19,10 @@ bivariate regression of Ikehata & Aizawa (CVPR 2014) fit low-dimensional isotrop
 The fit minimises the Cauchy loss :math:`\sum_k \log(1 + (r_k / \sigma)^2)` of the residuals, with :math:`\sigma` a
 fraction (``scale``) of the pixel's median reading, over the pixel's usable readings: readings darker than
 ``shadow`` times the pixel's brightest are dropped first, since a cast shadow reads about 0 where the model predicts
-light and an attached one carries no information on the lobe. It starts from the robust Lambertian estimate
+light and an attached one carries no information on the lobe; so are the readings that the start explains as
+shadows (a prediction :math:`p_k = l_k \cdot \rho n \le 0`, or a reading below :math:`p_k / 2`, the cast-shadow
+rule of :mod:`psmini.robust`), which inter-reflection lifts above any threshold and which a lobe would otherwise
+fit. It starts from the robust Lambertian estimate
 (:func:`psmini.robust.robust_normals`, or weighted least squares for per-pixel lights) with a faint lobe, raced for a
 few iterations against a start sized on the data (albedos by linear least squares, the normal possibly moved to the
 half vector of the brightest reading; see :func:`_starts`), and runs a fixed number of
@@ -30,13 +33,22 @@ decision per pixel. The five unknowns are two tangent-plane steps of the normal,
 
 A pixel keeps the fit only when its lobe passes a likelihood-ratio test against the start (the robust Lambertian
 estimate, the nested model with :math:`s = 0`): the drop of the residual sum of squares, in units of the noise
-variance, must exceed the :math:`1 - \alpha` quantile of :math:`\chi^2_2` (``significance`` :math:`\alpha`, 1% by
-default), with the noise a fraction of the pixel's median reading estimated once per image as the median over its
-pixels of the fit's residual variance (see :func:`_keep_lobe`). Otherwise it keeps the start, lobe 0. With the rig's
-8 lights a lobe can fit the noise of a matte pixel; judged on each pixel's own residual alone (3 degrees of
-freedom left), it did so on 23% of the matte satin's pixels and lost 0.05° to its start, where the pooled test
-keeps the start on 99% of them. The test uses the pooled noise level, so it also decides pixels with too few readings
-to estimate their own (a glossy thread seen under 5 lights).
+variance, must exceed the :math:`1 - \alpha` quantile of :math:`\chi^2_2` (``significance`` :math:`\alpha`,
+1e-6 by default: an image of N matte pixels keeps about :math:`\alpha N` false lobes, fewer than one up to a
+megapixel, where the former 1% kept 210 on the matte satin's 40,000 pixels and cost it 0.001°; the lobes of glossy
+pixels pass at any level, so ball, cat and lurex moved by at most 0.01°), with the noise a fraction of the
+pixel's median reading estimated once per image as the median over its pixels of the fit's residual variance
+(see :func:`_keep_lobe`). Otherwise it keeps the start, lobe 0. With the rig's 8 lights a lobe can fit the noise
+of a matte pixel; judged on each pixel's own residual alone (3 degrees of freedom left), it did so on 23% of the
+matte satin's pixels and lost 0.05° to its start, where the pooled test keeps the start on 99% of them. The test
+uses the pooled noise level, so it also decides pixels with too few readings to estimate their own (a glossy
+thread seen under 5 lights).
+
+The readings must also locate the lobe: its peak must lie within the cone of the lights' half vectors, or the lobe
+be at most half that cone wide (see :func:`_peak_observed`). Beyond the half vectors the readings see only a lobe's
+tail, which for a broad lobe has the shape of the diffuse term and of inter-reflection; on concave scenes (the
+V-grooves and folds of ``data_synth.stress``, where two bounces add 10–25% to the lit readings) such fits moved the
+normals by more than the lobe explained and made them worse than the robust start (grooves 13.7° against 9.7°).
 
 All pixels are solved at once as the rows of :math:`N \times K` matrices (blocks of :data:`_CHUNK` that stay in
 the CPU caches, each pixel's readings contiguous); the normal equations of all pixels are one batched product and
@@ -111,7 +123,7 @@ class NonLambertianOptions:
     saturation: float | None = None
     shininess: tuple[float, ...] = (4.0, 16.0, 64.0, 256.0)
     max_shininess: float = 2000.0
-    significance: float = 0.01
+    significance: float = 1e-6
 
     def __post_init__(self) -> None:
         if isinstance(self.iterations, bool) or int(self.iterations) != self.iterations or self.iterations < 0:
@@ -245,8 +257,8 @@ def blinn_phong_images(normals: Tensor, albedo: Tensor, specular: Tensor, shinin
     for b in range(sizes["B"]):  # a loop over images, not pixels
         rows = lights[b].to(normals).flatten(2).permute(2, 0, 1) if lights.ndim == 5 else lights[b]
         energy, half = _split_lights(rows)
-        rho, s, alpha = (x[b].flatten(1).T for x in (albedo, specular, shininess))
-        images.append(_shade(normals[b].flatten(1).T, rho, s, alpha, rows, energy, half)[-1].T)
+        maps = [x[b].flatten(1).T for x in (albedo, specular, shininess)]
+        images.append(_shade(normals[b].flatten(1).T, maps[0], maps[1], maps[2], rows, energy, half)[-1].T)
     return torch.stack(images).view(sizes["B"], -1, sizes["H"], sizes["W"])
 
 
@@ -295,31 +307,29 @@ def _starts(values: Tensor, usable: Tensor, albedo: Tensor, normals: Tensor, lig
     tiny = torch.finfo(values.dtype).tiny
     most = _PEAK_RATIO * (usable * values / energy).amax(dim=1, keepdim=True)
     faint = [normals, albedo, _FAINT_LOBE * albedo, torch.full_like(albedo, math.log(_FAINT_SHININESS))]
+    best: list[Tensor] | None = None
+    best_cost = torch.zeros_like(albedo)
     peak = _brightest_half(values, usable, half)
     bisector = normals + peak
     bisector = bisector / bisector.norm(dim=1, keepdim=True).clamp_min(tiny)
-
-    def candidate(start_normals: Tensor, exponent: float) -> tuple[list[Tensor], Tensor]:
-        """The state from one starting normal and exponent, and its Cauchy cost (N, 1)."""
-        log_alpha = torch.full_like(albedo, math.log(exponent))
-        cosine, _, lobe, _, _, _ = _shade(start_normals, albedo, albedo, log_alpha.exp(), lights, energy, half)
-        diffuse = cosine.clamp_min(0)
-        a, b, d, r1, r2 = [(usable * x * y).sum(dim=1, keepdim=True) for x, y in (
-            (diffuse, diffuse), (diffuse, lobe), (lobe, lobe), (diffuse, values), (lobe, values))]
-        specular = ((a * r2 - b * r1) / (a * d - b * b).clamp_min(tiny)).clamp_min(0).minimum(most)
-        rho = ((r1 - b * specular) / a.clamp_min(tiny)).clamp_min(0)
-        return [start_normals, rho, specular, log_alpha], _cauchy_cost(values - rho * diffuse - specular * lobe,
-                                                                       usable, sigma)
-
-    # options.shininess is never empty (NonLambertianOptions checks it)
-    starts = [(start_normals, exponent)
-              for start_normals in (normals, peak, bisector) for exponent in options.shininess]
-    best, best_cost = candidate(*starts[0])
-    for start in starts[1:]:
-        state, cost = candidate(*start)
-        better = cost < best_cost
-        best = [torch.where(better, new, old) for new, old in zip(state, best, strict=True)]
-        best_cost = torch.where(better, cost, best_cost)
+    for start_normals in (normals, peak, bisector):
+        for exponent in options.shininess:
+            log_alpha = torch.full_like(albedo, math.log(exponent))
+            cosine, _, lobe, _, _, _ = _shade(start_normals, albedo, albedo, log_alpha.exp(), lights, energy, half)
+            diffuse = cosine.clamp_min(0)
+            a, b, d, r1, r2 = [(usable * x * y).sum(dim=1, keepdim=True) for x, y in (
+                (diffuse, diffuse), (diffuse, lobe), (lobe, lobe), (diffuse, values), (lobe, values))]
+            specular = ((a * r2 - b * r1) / (a * d - b * b).clamp_min(tiny)).clamp_min(0).minimum(most)
+            rho = ((r1 - b * specular) / a.clamp_min(tiny)).clamp_min(0)
+            candidate = [start_normals, rho, specular, log_alpha]
+            cost = _cauchy_cost(values - rho * diffuse - specular * lobe, usable, sigma)
+            if best is None:
+                best, best_cost = candidate, cost
+                continue
+            better = cost < best_cost
+            best = [torch.where(better, new, old) for new, old in zip(candidate, best, strict=True)]
+            best_cost = torch.where(better, cost, best_cost)
+    assert best is not None  # options.shininess is never empty
     return faint, best
 
 
@@ -399,12 +409,12 @@ def _fit_rows(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor, no
     top = math.log(options.max_shininess)
     faint, strong = _starts(values, usable, albedo, normals, lights, energy, half, sigma, options)
     race = min(_RACE, options.iterations)
-    # both starts' rows, one after the other; distant lights (K, 3) serve both as they are
-    values2, usable2, sigma2 = (torch.cat([x, x]) for x in (values, usable, sigma))
-    lights2, energy2, half2 = (x if lights.ndim == 2 else torch.cat([x, x]) for x in (lights, energy, half))
+    both = [torch.cat(pair) for pair in ((values, values), (usable, usable), (sigma, sigma))]
+    per_row = [x if lights.ndim == 2 else torch.cat([x, x]) for x in (lights, energy, half)]
     state = [torch.cat(pair) for pair in zip(faint, strong, strict=True)]
     damping = torch.full_like(state[1], 1e-2)
-    state, cost, damping = _iterate(values2, usable2, sigma2, lights2, energy2, half2, state, damping, race, top)
+    state, cost, damping = _iterate(both[0], both[1], both[2], per_row[0], per_row[1], per_row[2], state, damping,
+                                    race, top)
     count = values.shape[0]
     first = cost[:count] <= cost[count:]
     state = [torch.where(first, x[:count], x[count:]) for x in state]
@@ -417,7 +427,31 @@ def _fit_rows(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor, no
                .sum(dim=1, keepdim=True) for x in (state, start)]
     fitted = [state[1], state[0], state[2], state[3].exp()]
     statistics = torch.cat(squares + [median, usable.sum(dim=1, keepdim=True)], dim=1)  # (N, 4)
-    return fitted + [albedo, normals, statistics]
+    return fitted + [albedo, normals, statistics, _peak_observed(state[0], state[3].exp(), half)]
+
+
+def _peak_observed(normals: Tensor, shininess: Tensor, half: Tensor) -> Tensor:
+    r"""Whether each fitted lobe (normals (N, 3), exponents (N, 1)) is located by the readings, bool (N, 1).
+
+    A Blinn–Phong lobe peaks where the half vector :math:`h_k` meets the normal. When the normal lies within the cone
+    of the lights' half vectors (about their mean, out to the widest one: radius :math:`\Theta`), the readings sample
+    the lobe about its peak. Beyond them they see only its tail: a narrow lobe's tail is confined to the cone's edge
+    and still locates it, but a tail broad enough to reach across the cone has the shape of the diffuse term
+    (:math:`\cos^2(\theta/2)` is affine in :math:`\cos\theta`) and of inter-reflection, and a fit there
+    extrapolates the normal from a confusion of the two. So a lobe whose peak lies outside the cone must be at most
+    half the cone wide: its half width at half maximum :math:`\arccos 2^{-1/\alpha} \le \Theta / 2` (for
+    DiLiGenT's lights :math:`\Theta` = 21.6°, :math:`\alpha \ge 39`; for the rig's, 28.8° and 21). ``half``
+    (K, 3), or per pixel (N, K, 3).
+    """
+    axis = half.mean(dim=-2)
+    axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(half.dtype).tiny)
+    if half.ndim == 2:
+        widest, facing = (half @ axis).amin(), normals @ axis
+    else:
+        widest, facing = (half * axis[:, None]).sum(dim=-1).amin(dim=1), (normals * axis).sum(dim=-1)
+    radius = torch.acos(widest.clamp(-1, 1))
+    half_width = torch.acos(torch.exp2(-1 / shininess[:, 0]))
+    return ((facing >= widest) | (half_width <= radius / 2))[:, None]
 
 
 def _wilson_hilferty_median(degrees: Tensor) -> Tensor:
@@ -468,9 +502,9 @@ def _fit_chunked(values: Tensor, lights: Tensor, usable: Tensor, albedo: Tensor,
     if not parts:
         return [albedo, normals, albedo, albedo]
     # the test of the lobe takes one noise level for the whole image: all blocks first, then the choice
-    albedo_fit, normals_fit, specular, shininess, albedo_start, normals_start, statistics = [
+    albedo_fit, normals_fit, specular, shininess, albedo_start, normals_start, statistics, observed = [
         torch.cat(x) for x in zip(*parts, strict=True)]
-    lobe = _keep_lobe(statistics, options.significance)[:, None]
+    lobe = _keep_lobe(statistics, options.significance)[:, None] & observed
     maps = [torch.where(lobe, albedo_fit, albedo_start), torch.where(lobe, normals_fit, normals_start),
             torch.where(lobe, specular, torch.zeros_like(specular)),
             torch.where(lobe, shininess, torch.ones_like(shininess))]
@@ -537,9 +571,14 @@ def fit_blinn_phong(
         if mask is not None:
             solved = solved & mask[b, 0].flatten().bool()
         columns_lights = lights[b].flatten(2)[..., solved] if lights.ndim == 5 else lights[b]
-        fitted = _fit_chunked(intensities[b].flatten(1)[:, solved], columns_lights,
-                              usable[b].flatten(1)[:, solved].to(intensities.dtype),
-                              start_albedo[b].flatten(1)[:, solved], start_normals[b].flatten(1)[:, solved], options)
+        values = intensities[b].flatten(1)[:, solved]
+        columns_albedo, columns_normals = start_albedo[b].flatten(1)[:, solved], start_normals[b].flatten(1)[:, solved]
+        # the readings the start explains as shadows (a prediction p <= 0, or a reading below p / 2: the cast shadows
+        # of psmini.robust) are left out: visibility, not reflectance, accounts for them, and a lobe fitted to them
+        # moves the normal (the bottom of a crevice, where most readings are cast shadows lifted by inter-reflection)
+        lit = _lit_by(values, columns_lights, (columns_albedo * columns_normals).detach())
+        fitted = _fit_chunked(values, columns_lights, (usable[b].flatten(1)[:, solved] & lit).to(intensities.dtype),
+                              columns_albedo, columns_normals, options)
         total = solved.numel()
         up = torch.zeros(3, total, device=intensities.device, dtype=intensities.dtype)
         up[2] = 1
@@ -550,6 +589,15 @@ def fit_blinn_phong(
     albedo, normals, specular_map, shininess_map = (torch.stack(parts).view(sizes["B"], -1, sizes["H"], sizes["W"])
                                                     for parts in zip(*maps, strict=True))
     return BlinnPhongFit(albedo, normals, specular_map, shininess_map)
+
+
+def _lit_by(values: Tensor, lights: Tensor, m: Tensor) -> Tensor:
+    r"""Readings (K, N) that the Lambertian estimate m = albedo × normal (3, N) explains as lit:
+    :math:`|I_k - p_k| < I_k` with :math:`p_k = l_k \cdot m` (a positive prediction and a reading of more than half of
+    it; :func:`psmini.robust._lit`). ``values`` (K, N), ``lights`` (K, 3) or per pixel (K, 3, N)."""
+    predicted = lights @ m if lights.ndim == 2 else (lights * m[None]).sum(dim=1)
+    readings = values.detach()
+    return (readings - predicted).abs() < readings
 
 
 def _check_options(options: NonLambertianOptions | None) -> NonLambertianOptions:
@@ -627,8 +675,6 @@ class NonLambertianNormals(nn.Module):
         torch.Size([1, 3, 4, 4])
     """
 
-    lights: Tensor  # a buffer
-
     def __init__(self, lights: Tensor, options: NonLambertianOptions | None = None) -> None:
         super().__init__()
         options = _check_options(options)
@@ -642,4 +688,5 @@ class NonLambertianNormals(nn.Module):
         self, intensities: Tensor, mask: Tensor | None = None, weights: Tensor | None = None
     ) -> tuple[Tensor, Tensor]:
         """Albedo :math:`(B, 1, H, W)` and normals :math:`(B, 3, H, W)` of ``intensities`` :math:`(B, K, H, W)`."""
-        return nonlambertian_normals(intensities, self.lights, mask, weights, self.options)
+        lights: Tensor = self.lights  # type: ignore[assignment]  # a registered buffer
+        return nonlambertian_normals(intensities, lights, mask, weights, self.options)

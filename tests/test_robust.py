@@ -94,9 +94,8 @@ class TestWeights(BaseTester):
         self.assert_close(_trim_band(rows, 0.25, 0.10, usable).float(), _trim_keep(rows, 0.25, 0.10, usable, 1).float())
         tied = torch.tensor([[0.1, 0.1, 0.5, 0.5, 0.5, 0.9, 0.9, 0.9]], device=device, dtype=dtype)
         # ranks 2 .. 7 kept by rank; the band keeps every reading equal to a bound as well
-        assert _trim_band(tied, 0.25, 0.0, torch.ones_like(tied, dtype=torch.bool)).tolist() == [
-            [False, False] + [True] * 6
-        ]
+        everything = torch.ones_like(tied, dtype=torch.bool)
+        assert _trim_band(tied, 0.25, 0.0, everything).tolist() == [[False, False] + [True] * 6]
 
     def test_trim_band_numpy_path_matches_torch_path(self):
         """The CPU band (NumPy) and the device band (torch) agree, ties and unusable readings included."""
@@ -146,10 +145,8 @@ class TestRobustNormals(BaseTester):
         # where every light sees the surface, the glint is the only outlier
         lit = inside & (torch.einsum("kc,bchw->bkhw", lights, normals) > 0.05).all(1, keepdim=True)
         assert int(lit.sum()) > 100
-
         def error(n):
             return float(torch.rad2deg(torch.acos((n * normals).sum(1).clamp(-1, 1)))[lit[:, 0]].mean())
-
         assert error(plain) > 5.0
         assert error(robust) < (0.05 if method == "tukey" else 0.3) * error(plain)
 
@@ -204,9 +201,8 @@ class TestRobustNormals(BaseTester):
         # differences must not straddle a change of order; seeded noise keeps the point the same on every run
         noise = torch.rand(images.shape, generator=torch.Generator().manual_seed(0), dtype=images.dtype)
         images = (images + 0.05 * noise).requires_grad_()
-        self.gradcheck(
-            lambda x: robust_normals(x, lights, method, options=RobustOptions(iterations=3, shadow=0.0)), (images,)
-        )
+        options = RobustOptions(iterations=3, shadow=0.0)
+        self.gradcheck(lambda x: robust_normals(x, lights, method, options=options), (images,))
 
     def test_gradcheck_trimmed(self):
         generator = torch.Generator().manual_seed(0)  # distinct readings, far from ties, on every run
@@ -256,10 +252,8 @@ class TestRpca(BaseTester):
 
     def test_recovers_sparse_corruption(self, device, dtype):
         normals, albedo, lights, images = self._corrupted(device, dtype)
-
         def error(n):
             return angular_error_deg(n, normals)
-
         assert float(error(albedo_normals(images, lights)[1]).mean()) > 10.0
         est_albedo, est = robust_normals(images, lights, "rpca")
         # measured: mean 0.004° and 1 pixel of 512 above 0.5° (several of its readings corrupted) in float64; mean
@@ -348,9 +342,9 @@ def _ring_dome(dtype=torch.float32):
 class TestRobustOptions:
     def test_defaults_and_dict(self):
         options = RobustOptions()
-        assert options.to_dict() == {"low": 0.25, "high": 0.10, "shadow": 0.05, "saturation": None, "iterations": 7,
+        assert options.to_dict() == {"low": 0.25, "high": 0.10, "shadow": 0.05, "saturation": None, "iterations": 5,
                                      "tuning": None, "l1_epsilon": 1e-3, "rpca_iterations": 30, "rpca_lambda": None,
-                                     "shadow_iterations": 3}
+                                     "shadow_iterations": 1}
         with pytest.raises(dataclasses.FrozenInstanceError):
             options.iterations = 3
 
@@ -362,65 +356,139 @@ class TestRobustOptions:
 
 
 @pytest.fixture(scope="module")
-def folds():
-    """data_synth.stress "folds": asymmetric folds whose crests cast shadows lifted by inter-reflection."""
+def crevices():
+    """data_synth.stress "crevices": slots and pits 2-4 times deeper than wide, where a quarter of the pixels see
+    fewer than half of the lights (cast shadows lifted by two bounces of inter-reflection)."""
     from data_synth.stress import make_stress_case
 
-    return make_stress_case("folds", _ring_dome(), size=64)
+    return make_stress_case("crevices", _ring_dome(), size=64, seed=0)
 
 
 class TestCastShadows(BaseTester):
-    def test_attached_shadow_stage_survives_cast_shadows(self, folds):
-        """Measured (64 px, 48 lights): tukey 3.72°, without the attached-shadow stage 4.96°, trimmed 5.60°,
-        least squares 8.34°, nonlambertian 2.05°."""
-
+    def test_cast_shadow_stage_survives_majority_shadows(self, crevices):
+        """Measured (64 px, 48 lights): robust 7.14 deg, without the cast-shadow stage 16.01, trimmed 18.28, least
+        squares 18.37, nonlambertian 6.65."""
         def error(n):
-            return float(mean_angular_error(n, folds.normals, folds.mask)[0])
-
-        args = (folds.images, folds.lights)
-        plain = error(albedo_normals(*args, folds.mask)[1])
-        trimmed = error(robust_normals(*args, "trimmed", folds.mask)[1])
-        robust = error(robust_normals(*args, "robust", folds.mask)[1])
-        without = error(robust_normals(*args, "robust", folds.mask, options=RobustOptions(shadow_iterations=0))[1])
-        assert robust < 0.85 * without
-        assert robust < 0.8 * trimmed
-        assert robust < 0.5 * plain
+            return float(mean_angular_error(n, crevices.normals, crevices.mask)[0])
+        args = (crevices.images, crevices.lights)
+        assert crevices.majority_fraction() > 0.2
+        plain = error(albedo_normals(*args, crevices.mask)[1])
+        trimmed = error(robust_normals(*args, "trimmed", crevices.mask)[1])
+        robust = error(robust_normals(*args, "robust", crevices.mask)[1])
+        without = error(robust_normals(*args, "robust", crevices.mask, options=RobustOptions(shadow_iterations=0))[1])
+        assert robust < 0.5 * without and robust < 0.5 * trimmed and robust < 0.5 * plain
         from psmini.nonlambertian import nonlambertian_normals
 
-        assert error(nonlambertian_normals(*args, folds.mask)[1]) <= robust
+        assert error(nonlambertian_normals(*args, crevices.mask)[1]) <= robust
 
-    def test_choice_keeps_the_more_consistent_estimate(self, device):
-        """_more_consistent picks, per pixel, the estimate whose clamped model has the lower median residual."""
-        from psmini.robust import _more_consistent
-
+    @pytest.mark.parametrize("method", IRLS)
+    def test_majority_of_cast_shadows_is_exact(self, device, method):
+        """Noise-free pixels lit by a third of 48 lights, the rest cast-shadowed and reading what inter-reflection
+        brings (a tenth of the brightest reading, give or take a fifth): the stage's start from the brightest quarter
+        and its lit readings give m exactly, where every reading (a median's breakdown point) cannot. (If the
+        shadows formed a Lambertian image of their own, a dimmer model through them would cost less than the lit
+        readings' explanation once these are fewer than a third: _SHADOW_COST / (_SHADOW_COST + _OUTLIER_COST).)"""
         lights = _ring_dome(torch.float64).to(device)
-        truth = torch.tensor([[0.2, -0.1, 0.9], [0.0, 0.5, 0.6]], dtype=torch.float64, device=device)  # m (N, 3)
-        rows = (truth @ lights.T).clamp_min(0)
-        rows[:, :10] = 0.05  # a fifth of the readings off the model (cast-shadow bounce)
-        wrong = truth + torch.tensor([0.0, 0.2, 0.0], dtype=torch.float64, device=device)
-        picked = _more_consistent(rows, lights.T.contiguous(), torch.stack([wrong[0], truth[1]], 1),
-                                  torch.stack([truth[0], wrong[1]], 1), None)
-        self.assert_close(picked.T, truth)
+        truth = torch.tensor([[0.3, 0.2, 0.9], [-0.3, 0.1, 0.8], [0.1, -0.4, 0.7]], dtype=torch.float64, device=device)
+        predicted = truth @ lights.T  # (3 pixels, 48)
+        lit = torch.zeros_like(predicted, dtype=torch.bool)
+        lit[:, 12:28] = True  # the 15 deg ring and a third of the 25 deg one see the sky; the others are blocked
+        bounce = 0.1 * predicted.amax(dim=1, keepdim=True) * (1 + 0.2 * torch.linspace(-1, 1, 48, dtype=torch.float64,
+                                                                                       device=device))
+        rows = torch.where(lit, predicted, bounce)
+        images = rows.T.reshape(1, 48, 3, 1)
+        albedo, normals = robust_normals(images, lights, method)
+        expected = truth / truth.norm(dim=1, keepdim=True)
+        self.assert_close(normals[0, :, :, 0].T, expected, rtol=1e-6, atol=1e-6)
+        self.assert_close(albedo[0, 0, :, 0], truth.norm(dim=1), rtol=1e-6, atol=1e-6)
+        without = robust_normals(images, lights, method, options=RobustOptions(shadow_iterations=0))[1]
+        assert float(angular_error_deg(without, expected.T.reshape(1, 3, 3, 1)).min()) > 1.0
+
+    def test_lit_is_half_the_prediction(self, device):
+        """_lit: |I - p| < I is p > 0 and I > p / 2."""
+        from psmini.robust import _lit
+
+        predicted = torch.tensor([[-1.0, 0.0, 1.0, 1.0, 1.0, 1.0]], device=device)
+        rows = torch.tensor([[0.2, 0.2, 0.4, 0.6, 1.0, 3.0]], device=device)
+        assert _lit(rows, rows - predicted).tolist() == [[0.0, 0.0, 0.0, 1.0, 1.0, 1.0]]
+
+    def test_likelihood_matches_the_mixture(self, device):
+        """_Likelihood against the mixture written out reading by reading (lit: Gaussian of sd tau (p+ + t); cast
+        shadow, I < p / 2: _SHADOW_COST; else at most _OUTLIER_COST)."""
+        from psmini.robust import _MODEL_ERROR, _OUTLIER_COST, _SHADOW_COST, _Likelihood
+
+        generator = torch.Generator().manual_seed(3)
+        lights = _ring_dome(torch.float64).to(device)
+        m = torch.tensor([[0.2, -0.1, 0.8], [0.0, 0.3, 0.6]], dtype=torch.float64, device=device).T  # (3, 2)
+        predicted = (m.T @ lights.T)
+        rows = (predicted.clamp_min(0) * (1 + 0.2 * torch.randn(predicted.shape, generator=generator,
+                                                                 dtype=torch.float64).to(device))).abs()
+        rows[:, :6] = 0.1 * predicted[:, :6].clamp_min(0.05)  # cast shadows
+        rows[:, 6:8] *= 3  # glints
+        usable = (rows > 0.05 * rows.amax(dim=1, keepdim=True)).double()
+        cost, lit = _Likelihood(rows, lights.T.contiguous(), usable, 0.05)(m)
+        level = 0.05 * (rows * usable).amax(dim=1, keepdim=True)
+        expected_cost, expected_lit = [], []
+        for i in range(2):
+            total, count = 0.0, 0
+            for k in range(48):
+                if not usable[i, k]:
+                    continue
+                p, reading = float(predicted[i, k]), float(rows[i, k])
+                sd = _MODEL_ERROR * (max(p, 0.0) + float(level[i]))
+                lit_cost = ((reading - max(p, 0.0)) / sd) ** 2
+                count += int(lit_cost < _SHADOW_COST)
+                total += _SHADOW_COST if reading < p / 2 else min(lit_cost, _OUTLIER_COST)
+            expected_cost.append(total)
+            expected_lit.append(count)
+        self.assert_close(cost, torch.tensor(expected_cost, dtype=torch.float64, device=device), rtol=1e-9, atol=1e-9)
+        assert lit.tolist() == expected_lit
 
 
 class TestStressSet(BaseTester):
-    def test_flat_matte_pixels_read_albedo_times_cosine(self):
-        """Without noise, a lit matte pixel of the plane around the bowl reads albedo × l_z (the renderer's law)."""
+    def test_direct_light_and_ambient(self):
+        """Without noise and inter-reflection, a lit matte pixel of the plane around the bowl reads albedo × (n·l +
+        ambient) (the renderer's law) and a cast-shadowed one the ambient term alone, ambient × albedo."""
         from data_synth.stress import make_stress_case
 
         lights = _ring_dome()
-        case = make_stress_case("bowl", lights, size=48, full_well=0.0)
+        case = make_stress_case("bowl", lights, size=48, full_well=0.0, interreflection=0.0, ambient=0.02)
         flat = (case.normals[0, 2] > 1 - 1e-6) & ~case.mask[0, 0]  # the plane outside the bowl's rim
-        # matte cells only: where no lobe adds light, the image equals albedo * l_z under every visible light
-        predicted = case.albedo[0, 0] * lights[:, 2, None, None]
-        lit = case.visible[0] > 0
-        matte = flat & (((case.images[0] - predicted).abs() < 1e-6) | ~lit).all(0)
+        matte = flat & (case.specular[0, 0] == 0)
+        predicted = case.albedo[0, 0] * (torch.einsum("kc,chw->khw", lights, case.normals[0]) + 0.02)
         assert int(matte.sum()) > 50
-        # and a cast-shadowed reading reads the bounce, 0.08 of albedo × irradiance
+        self.assert_close(case.images[0][:, matte], predicted[:, matte], rtol=1e-5, atol=1e-6)
         shadowed = (case.visible[0] == 0) & case.mask[0, 0]
         assert bool(shadowed.any())
-        self.assert_close(case.images[0][shadowed], (0.08 * case.albedo[0, 0]).expand_as(case.images[0])[shadowed],
+        self.assert_close(case.images[0][shadowed], (0.02 * case.albedo[0, 0]).expand_as(case.images[0])[shadowed],
                           rtol=1e-5, atol=1e-6)
+
+    def test_bounce_rays_see_a_spherical_cap(self):
+        """Inside a sphere every point sees a region of it with the form factor area / (4 pi R^2): the rays from the
+        cap of a spherical bowl hit the cap with probability depth / (2 R) (a 60-degree rim: 1/4), and rays from the
+        plane around it hit nothing."""
+        import math
+
+        from data_synth.stress import _bounce_hits
+        from psmini.render import normals_from_height
+
+        size, pitch = 96, 0.05
+        coords = (torch.arange(size, dtype=torch.float64) - (size - 1) / 2) * pitch
+        y, x = torch.meshgrid(-coords, coords, indexing="ij")
+        r = (x.square() + y.square()).sqrt()
+        rim = 0.4 * size * pitch
+        radius = rim / math.sin(math.radians(60.0))
+        height = torch.where(r < rim, math.sqrt(radius**2 - rim**2) - (radius**2 - r.square()).clamp_min(0).sqrt(),
+                             torch.zeros_like(r))
+        normals = normals_from_height(height[None, None], pitch)[0]
+        index, hit = _bounce_hits(height, normals, pitch, torch.Generator().manual_seed(0), reach=2 * size)
+        fraction = hit.double().mean(dim=0).view(size, size)
+        depth = radius - math.sqrt(radius**2 - rim**2)
+        # measured 0.2430 (0.2364 at 64 px: the pixelised rim lets rays out); Monte-Carlo error ~0.002
+        assert abs(float(fraction[r < 0.8 * rim].mean()) - depth / (2 * radius)) < 0.012
+        assert float(fraction[r > rim + 2 * pitch].max()) == 0.0
+        # what they hit is the cap (the nearest pixel of a hit at the rim may lie just outside)
+        assert float((r.flatten()[index[hit]] < rim + pitch).double().mean()) > 0.999
 
     def test_cast_shadows_match_the_renderer(self):
         from data_synth.stress import STRESS_SCENES, make_stress_case
@@ -431,7 +499,11 @@ class TestStressSet(BaseTester):
             assert case.images.shape == (1, 48, 40, 40) and case.images.min() >= 0 and case.images.max() <= 1
             assert 0.0 < case.cast_fraction() < 0.5, name
         again = make_stress_case("relief", lights, size=40, seed=1)
-        assert torch.equal(again.images, case.images)  # the seed fixes everything
+        first = make_stress_case("relief", lights, size=40, seed=1)
+        assert torch.equal(again.images, first.images) and again.parameters == first.parameters  # the seed fixes all
+        other = make_stress_case("relief", lights, size=40, seed=2)
+        assert other.parameters != first.parameters  # and another seed draws another case
+        assert make_stress_case("crevices", lights, size=40, seed=1).majority_fraction() > 0.05
 
     def test_diligent_directions(self):
         from data_synth.stress import diligent_directions
@@ -452,8 +524,10 @@ class TestStressSet(BaseTester):
             make_stress_case("bowl", lights[:2])
         with pytest.raises(InputError, match="size"):
             make_stress_case("bowl", lights, size=8)
-        with pytest.raises(InputError, match="bounce"):
-            make_stress_case("bowl", lights, bounce=1.5)
+        with pytest.raises(InputError, match="interreflection"):
+            make_stress_case("bowl", lights, interreflection=2.5)
+        with pytest.raises(InputError, match="ambient"):
+            make_stress_case("bowl", lights, ambient=-0.1)
         (tmp_path / "light_directions.txt").write_text("0 0 1\n0 1\n")
         with pytest.raises(DataFormatError, match="3 numbers"):
             diligent_directions(tmp_path)

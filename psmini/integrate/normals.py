@@ -58,7 +58,14 @@ def perspective_log_gradients(normals: Tensor, intrinsics: Tensor) -> tuple[Tens
         >>> float(gu.abs().max()), float(scale)
         (0.0, 500.0)
     """
-    k = _check_intrinsics(intrinsics, normals)
+    gu, gv, scale, _ = _perspective_terms(normals, _check_intrinsics(intrinsics, normals))
+    return gu, gv, scale
+
+
+def _perspective_terms(normals: Tensor, k: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    r""":func:`perspective_log_gradients`' results and the normal's component along the pixel's ray
+    :math:`-m\cdot r` (clamped away from grazing), the factor of the depth derivatives in the normal-form
+    equations (Cao et al.'s :math:`\tilde n_z` over the focal length)."""
     height, width = normals.shape[-2:]
     fx, fy = k[:, 0, 0].view(-1, 1, 1, 1), k[:, 1, 1].view(-1, 1, 1, 1)
     cx, cy = k[:, 0, 2].view(-1, 1, 1, 1), k[:, 1, 2].view(-1, 1, 1, 1)
@@ -70,7 +77,7 @@ def perspective_log_gradients(normals: Tensor, intrinsics: Tensor) -> tuple[Tens
     limit = _MIN_FACING * torch.sqrt(1 + rx**2 + ry**2)
     facing = torch.minimum(facing, -limit)
     scale = (fx + fy) / 2
-    return -scale * mx / (fx * facing), -scale * my / (fy * facing), scale
+    return -scale * mx / (fx * facing), -scale * my / (fy * facing), scale, -facing
 
 
 def integrate_normals(
@@ -87,6 +94,8 @@ def integrate_normals(
     1e-3) and are integrated at ``pixel_pitch_mm``. With ``intrinsics`` the log-depth gradients of
     :func:`perspective_log_gradients` are integrated (in units of the mean focal length, so the same methods and
     options apply) and exponentiated: the result is the depth along the optical axis up to one global scale.
+    ``"bilateral"`` gets the paper's perspective confidence :math:`(n\cdot r)^2` (normal against the pixel's ray
+    :math:`r = ((u - c_x)/f_x, (v - c_y)/f_y, 1)`) as its ``weights`` unless the caller passes its own.
 
     Args:
         normals: unit normals :math:`(B, 3, H, W)` (x right, y up, z toward the camera).
@@ -121,7 +130,9 @@ def integrate_normals(
         pitch = check_positive(pixel_pitch_mm, "pixel_pitch_mm")
         nz = normals[:, 2:3].clamp_min(_MIN_FACING)
         return integrate(-normals[:, 0:1] / nz, -normals[:, 1:2] / nz, method, pitch, mask, **options)
-    gu, gv, scale = perspective_log_gradients(normals, intrinsics)
+    gu, gv, scale, facing = _perspective_terms(normals, _check_intrinsics(intrinsics, normals))
+    if method == "bilateral" and "weights" not in options:
+        options["weights"] = facing.square()  # the paper's perspective normal form (normal against the ray)
     log_depth = integrate(gu, -gv, method, 1.0, mask, **options) / scale
     depth = torch.exp(log_depth)
     return depth if mask is None else torch.where(mask.bool(), depth, torch.zeros_like(depth))
