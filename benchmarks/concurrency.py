@@ -5,8 +5,9 @@ Two workloads, each run by three processes: bilateral integration of DiLiGenT_de
 run under three thread policies:
 
 - ``torch default``: torch imported first, OpenMP's default wait policy (idle threads spin), a thread per core;
-- ``psmini``: psmini imported first, which makes OpenMP's idle threads sleep (``OMP_WAIT_POLICY=PASSIVE``, see
-  :mod:`psmini.threads`), a thread per core;
+- ``psmini``: what every ``psmini`` command does: psmini imported first, which makes OpenMP's idle threads sleep
+  (``OMP_WAIT_POLICY=PASSIVE``), then one thread per idle core (``psmini.threads.choose_threads``, see
+  :mod:`psmini.threads`);
 - ``one thread``: ``OMP_NUM_THREADS=1``, torch's default wait policy.
 
 For each: the three processes one after another (each timing its own compute: loading and imports excluded), then
@@ -42,7 +43,9 @@ def child(workload: str, data: Path, first: str, start_at: float) -> dict[str, f
     if first == "torch":
         import torch  # noqa: F401  (before psmini: OpenMP keeps its default wait policy)
     else:
-        import psmini  # noqa: F401  (before torch: psmini asks OpenMP's idle threads to sleep)
+        import psmini  # (before torch: psmini asks OpenMP's idle threads to sleep)
+
+        psmini.threads.choose_threads()  # as the commands do: one thread per idle core
     import numpy as np
     import torch
 

@@ -20,6 +20,7 @@ from collections.abc import Sequence
 
 from psmini import __version__, commands, set_threads
 from psmini.errors import PsminiError
+from psmini.threads import choose_threads
 
 logger = logging.getLogger("psmini")
 
@@ -32,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"psmini {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details on stderr")
     parser.add_argument("--threads", type=int, metavar="N",
-                        help="intra-op threads of this process (default: one per usable core, or OMP_NUM_THREADS; "
+                        help="intra-op threads of this process (default: one per idle core, or OMP_NUM_THREADS; "
                              "psmini batch divides them among its workers)")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     modules = {info.name: f"{commands.__name__}.{info.name}" for info in pkgutil.iter_modules(commands.__path__)
@@ -69,6 +70,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.threads is not None:
             set_threads(args.threads)
+        else:
+            choose_threads()
         return int(args.run(args) or 0)
     except PsminiError as error:
         print(f"psmini {args.command}: error: {error}", file=sys.stderr)
