@@ -421,16 +421,19 @@ class TestDescribe:
         rec = Reconstruction(torch.ones_like(z), torch.zeros(1, 3, 200, 200), z, z, z, z > -1)
         row = structure_row(rec, PITCH)
         assert row["structure_found"] and row["threads_per_cm_1"] == pytest.approx(40.0, rel=1e-3)
-        assert row["Sq_um"] == pytest.approx(1000 * math.sqrt(0.05**2 / 2 + 0.03**2 / 2), rel=0.01)
+        alpha = math.sqrt(math.log(2) / math.pi)
+
+        def passed(wavelength, s_cutoff=0.5):  # ISO 16610-61 Gaussian S-filter, and the L-filter of 2.5 mm
+            return math.exp(-math.pi * (alpha * s_cutoff / wavelength) ** 2) * (
+                1 - math.exp(-math.pi * (alpha * 2.5 / wavelength) ** 2))
+
+        # describe's ISO parameters: the S-filter of 25 um pixels (80 um) and the L-filter of 2.5 mm
+        sq = 1000 * math.sqrt((0.05 * passed(0.25, 0.08)) ** 2 / 2 + (0.03 * passed(0.5, 0.08)) ** 2 / 2)
+        assert row["Sq_um"] == pytest.approx(sq, rel=0.01)
         assert structure_row(rec, None)["structure_found"] is False
         entry = describe(z, PITCH)[0]
         vector = descriptor_vector(entry)
         assert vector.shape == (21,) and np.isfinite(vector).all()
-        alpha = math.sqrt(math.log(2) / math.pi)  # waviness: S-filter 0.5 mm, L-filter 2.5 mm (ISO 16610-61)
-
-        def passed(wavelength):
-            return math.exp(-math.pi * (alpha * 0.5 / wavelength) ** 2) * (
-                1 - math.exp(-math.pi * (alpha * 2.5 / wavelength) ** 2))
 
         expected = 1000 * math.sqrt((0.05 * passed(0.25)) ** 2 / 2 + (0.03 * passed(0.5)) ** 2 / 2)
         assert entry["waviness_um"] == pytest.approx(expected, rel=0.02)

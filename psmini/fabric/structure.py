@@ -30,8 +30,10 @@ relief, the result says so (:attr:`FabricStructure.found` False with a ``reason`
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import asdict, dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -58,8 +60,10 @@ class StructureOptions:
         lattice_tolerance: how far (in units of the lattice step 1/R) a peak may sit from the lattice.
         lattice_share: the repeat is the smallest one whose regular weave lattice explains at least this share
             of the interlacing amplitude that the best lattice of any repeat up to ``max_repeat`` explains.
-        interlacing_share: below this share of the two systems' amplitude, the interlacing peaks (fractional in
-            both coordinates) on the best regular weave lattice are too weak to call a repeat, which is then 1.
+        interlacing_share: when the largest interlacing peak (fractional in both thread coordinates) is below this
+            share of the largest thread peak's amplitude, the interlacing is too weak to call a repeat, which is
+            then 1 (on the randomised family of :mod:`data_synth.weaves`, ground-truth heights: a knit's stray
+            peaks reach 0.041, the weaker interlacing of a plain weave 0.07).
         dynamic_db: peaks more than this far below the strongest bin of the band are ignored (the window's
             leakage far from a steep spectrum's energy).
         max_peaks: most peaks kept per sample (strongest first).
@@ -78,9 +82,9 @@ class StructureOptions:
     max_repeat: int = 8
     lattice_tolerance: float = 0.15
     lattice_share: float = 0.6
-    interlacing_share: float = 0.03
+    interlacing_share: float = 0.05
     dynamic_db: float = 50.0
-    max_peaks: int = 48
+    max_peaks: int = 96
     openness_level: float = 0.1
     spike_fence: float | None = 2.0
 
@@ -145,9 +149,11 @@ class FabricStructure:
             a single system, e.g. a rib).
         thread_angles_deg: the directions in which those yarns run, degrees in [0, 180), the same order.
         weave_repeat: threads per repeat of the interlacing (1: every crossing alike, as in a knit's stitch grid;
-            2 plain; 3 a 2/1 twill; 5 a 5-end satin); None with a single system.
+            2 plain; 3 a 2/1 twill; 4 a 3/1 twill or a 2/2 basket; 5 a 5-end satin), the larger of
+            ``repeat_threads``; None with a single system.
         float_length: the longest float, in threads, of a regular weave of that repeat (R - 1 for R >= 2: 1 plain,
-            2 for a 2/1 twill, 4 for a 5-end satin; a 2/2 twill, also R = 4, floats over 2); 0 for R = 1.
+            2 for a 2/1 twill, 4 for a 5-end satin; a 2/2 twill, also R = 4, floats over 2); 0 for R = 1; None when
+            the interlacing is no regular weave's (a basket, a rib).
         wales_per_cm, courses_per_cm: for a knit-like lattice (repeat 1), the two systems as wales (the stronger
             one: the columns of stitches dominate the face of a jersey) and courses; None otherwise.
         crimp_um: peak-to-peak height of the interlacing wave: twice the largest amplitude of the lattice peaks
@@ -155,6 +161,9 @@ class FabricStructure:
         openness: share of the field that is a hole: invalid (unsolved, masked) pixels plus those within
             ``openness_level`` of the height range above the lowest level.
         peaks: the refined peaks, strongest first.
+        repeat_threads: the repeat along each system, in threads, the same order as ``threads_per_cm`` (2 and 2
+            for a plain weave, 2 ends and 4 picks for a 2/2 warp rib, 1 and 1 for a stitch lattice); None with a
+            single system.
     """
 
     found: bool
@@ -168,6 +177,7 @@ class FabricStructure:
     crimp_um: float | None = None
     openness: float | None = None
     peaks: list[SpectralPeak] = field(default_factory=list)
+    repeat_threads: list[int] | None = None
 
     def to_dict(self) -> dict:
         """A JSON-ready dict (peaks as dicts)."""
@@ -362,7 +372,7 @@ def fabric_structure(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None 
         order = np.argsort(-snr_db)
         peaks = [SpectralPeak(float(fmm[k, 0]), float(fmm[k, 1]), float(snr_db[k]), float(amp_um[k]))
                  for k in order]
-        results.append(_lattice(peaks, openness, options, field_mm, bool(low[i].any())))
+        results.append(_lattice(peaks, openness, options, field_mm, bool(low[i].any()), pixel_pitch_mm))
     return results
 
 
@@ -400,34 +410,13 @@ def _fundamental(peak: SpectralPeak, peaks: list[SpectralPeak], options: Structu
     return peak
 
 
-def _regular_lattice_fit(coords: np.ndarray, amplitude: np.ndarray, repeat: int,
-                         tolerance: float) -> tuple[float, np.ndarray]:
-    """The summed amplitude of the interlacing peaks on the best regular weave lattice of ``repeat``, and which.
-
-    A regular weave of repeat R (plain, twill, sateen: every thread floats once per repeat) shifts its interlacing
-    by s = (1/R, k/R) from thread to thread, k coprime to R (the move number), so its interlacing peaks sit at
-    m s modulo the thread lattice, m = 1..R-1 (Schneider, Holtermann and Merhof's weave lattice; the 2-D analogue
-    of a crystal's reciprocal lattice). Peaks at other positions of the finer grid (i/R, j/R), such as a
-    modulation incommensurate with the threads (fibre twist, stripes) that happens to sit near one, do not count.
-    ``coords`` (K, 2) are the peaks in the yarn systems' basis; a peak counts when it lies within ``tolerance``
-    lattice steps (1/R) of a lattice point, with its sign either way (the spectrum is symmetric)."""
-    if coords.shape[0] == 0:
-        return 0.0, np.zeros(0, dtype=bool)
-    best, best_on = -1.0, np.zeros(coords.shape[0], dtype=bool)
-    m = np.arange(1, repeat)
-    for k in (k for k in range(1, repeat) if math.gcd(k, repeat) == 1):
-        points = np.stack([m / repeat, (m * k % repeat) / repeat], axis=1)  # (R-1, 2)
-        on = np.zeros(coords.shape[0], dtype=bool)
-        for sign in (1.0, -1.0):
-            wrapped = np.mod(sign * coords, 1.0)  # (K, 2)
-            diff = np.abs(wrapped[:, None, :] - points[None, :, :])
-            diff = np.minimum(diff, 1.0 - diff).max(axis=2) * repeat  # in lattice steps
-            on |= diff.min(axis=1) <= tolerance
-        total = float(amplitude[on].sum())
-        if total > best:
-            best, best_on = total, on
-    return best, best_on
-
+#: A regular weave (one shift generates its interlacing: plain, twill, satin) is preferred while its lattice holds at
+#: least this share of the amplitude that the best lattice of any kind holds: a fibre twist's or a stripe's
+#: modulation near a finer grid point must not turn a plain weave into a rib.
+_REGULAR_SHARE = 0.4
+#: The repeat lattice must hold at least this share of the amplitude of all the peaks fractional in both thread
+#: coordinates: a weave's do (all of it, on ground-truth heights), a knit's fibre twist and meander scatter them.
+_ON_REPEAT_SHARE = 0.5
 
 #: Courses per wale of a relaxed plain knit (Munden's loop-shape ratio K_c / K_w, about 1.3): which of the two
 #: readings of a centred-rectangular stitch lattice is the knit (see :func:`_centred_rectangular`).
@@ -469,13 +458,187 @@ def _centred_rectangular(systems: list[SpectralPeak], peaks: list[SpectralPeak])
     return [peak(wales), peak(courses)]
 
 
+#: A peak lies on a lattice when each of its coordinates in the lattice's basis is within this of an integer.
+_ON_LATTICE = 0.04
+#: The second yarn system of a woven cloth crosses the first at a right angle, within this many degrees (bow and
+#: skew of real cloth are a few degrees); the fitted lattice then keeps whatever angle the peaks say.
+_RIGHT_ANGLE_DEG = 2.0
+#: ... but never further than this many frequency bins of the field (1 / field): refined peaks lie within a
+#: fraction of a bin of their lattice point, and a fine yarn's lattice step is many bins.
+_REACH_BINS = 0.5
+#: How many of the strongest peaks are tried as the first system.
+_FIRST_CANDIDATES = 3
+#: Interlacing peaks are the low orders of the weave pattern's series: within this many thread frequencies of the
+#: origin in each system (a knit's fibre twist leaves its sidebands further out).
+_NEAR = 2.5
+#: The coarsest thread lattice whose integer peaks hold at least this share of the amplitude that any candidate
+#: holds is the thread lattice (a finer one also holds the harmonics of a rib's paired picks, or noise).
+_THREAD_SHARE = 0.8
+
+
+def _vector(p: SpectralPeak) -> np.ndarray:
+    return np.array([p.fx_per_mm, p.fy_per_mm])
+
+
+def _on_lattice(coords: np.ndarray, tolerance: float = _ON_LATTICE) -> np.ndarray:
+    return (np.abs(coords - np.round(coords)) <= tolerance).all(axis=-1)
+
+
+def _second_system(v1: np.ndarray, peaks: list[SpectralPeak], min_frequency: float, sampling_per_mm: float,
+                   field_mm: float) -> np.ndarray | None:
+    """The second thread system's frequency vector, from the lattice of all the peaks rather than one peak.
+
+    A peak on the thread lattice has an integer coordinate along the first system ``v1``; what is left of it
+    across ``v1`` is a whole multiple of the second system's frequency (a satin's or a twill's weft, hidden under
+    the warp floats, shows as the peaks (1, ±1) and (0, 2) of its lattice, not as its own (0, 1)). Candidates
+    are those perpendicular remainders divided by 1 to 4, within :data:`_RIGHT_ANGLE_DEG` of a right angle (an
+    interlacing peak, fractional along ``v1``, never reduces to one). Each is scored by the amplitude of the peaks
+    that lie on the lattice it spans with ``v1``, folded into the sampled band (a fine silk's harmonics alias
+    back below Nyquist, at 2 and 3 times a fifth of its thread frequency: the lattice explains them, a finer one
+    need not), leaving out ``v1``'s own line, which every candidate's lattice holds; a candidate needs a peak of
+    its own, at itself plus a whole number of ``v1`` (a satin's weft hides its (0, 1), not its (1, ±1)). The
+    coarsest whose score reaches :data:`_THREAD_SHARE` of the best is taken; None when no peak leaves such a
+    remainder above ``min_frequency``. ``sampling_per_mm`` is 1 / pixel pitch, ``field_mm`` the field's side."""
+    norm2 = float(v1 @ v1)
+    vectors = np.array([_vector(p) for p in peaks])
+    amplitude = np.array([p.amplitude_um for p in peaks])
+    along = vectors @ v1 / norm2
+    candidates: list[np.ndarray] = []
+    for k in np.flatnonzero(np.abs(along - np.round(along)) <= _ON_LATTICE):
+        rest = vectors[k] - np.round(along[k]) * v1
+        length = float(np.linalg.norm(rest))
+        if length < 1e-12 or _angle_between(rest, v1) < 90.0 - _RIGHT_ANGLE_DEG:
+            continue
+        rest = rest if rest @ np.array([-v1[1], v1[0]]) >= 0 else -rest  # one side of v1
+        for divisor in (1, 2, 3, 4):
+            c = rest / divisor
+            if np.linalg.norm(c) >= min_frequency and not any(np.linalg.norm(c - d) <= 0.01 * np.linalg.norm(d)
+                                                               for d in candidates):
+                candidates.append(c)
+    if not candidates:
+        return None
+    orders = np.array([(m, n) for m in range(-6, 7) for n in range(1, 7)], dtype=np.float64)  # n > 0: off v1's line
+    # v1's harmonics (and their aliases, on its line) lie on every candidate's lattice, or a fold of it: left out
+    across = np.abs(vectors @ np.array([-v1[1], v1[0]])) / math.sqrt(norm2)
+    off_line = across > _REACH_BINS / field_mm
+
+    def score(c: np.ndarray) -> tuple[float, bool]:
+        points = orders @ np.stack([v1, c], axis=1).T  # (P, 2) lattice points up to one sampling frequency out,
+        kept = np.abs(points).max(axis=1) < sampling_per_mm  # folded once into the sampled band
+        points = points[kept] - np.round(points[kept] / sampling_per_mm) * sampling_per_mm
+        first = orders[kept, 1] == 1
+        reach = min(_ON_LATTICE * min(float(np.linalg.norm(v1)), float(np.linalg.norm(c))), _REACH_BINS / field_mm)
+        on = np.zeros(len(peaks), dtype=bool)
+        own = False
+        for sign in (1.0, -1.0):
+            close = np.linalg.norm(sign * vectors[:, None, :] - points[None, :, :], axis=2) <= reach  # (K, P)
+            on |= close.any(axis=1)
+            own |= bool(close[:, first].any())
+        return float(amplitude[on & off_line].sum()), own
+
+    scored = [score(c) for c in candidates]
+    supported = [k for k in range(len(candidates)) if scored[k][1]]
+    if not supported:
+        return None
+    best = max(scored[k][0] for k in supported)
+    order = sorted(supported, key=lambda k: -np.linalg.norm(candidates[k]))
+    return candidates[next(k for k in order if scored[k][0] >= _THREAD_SHARE * best)]
+
+
+def _refine_basis(basis: np.ndarray, peaks: list[SpectralPeak]) -> np.ndarray:
+    """The two frequency vectors (columns) fitted to every peak on their lattice at once (weighted least squares,
+    weights the peaks' amplitudes): a peak at (3, 1) pins the lattice three times as tightly as the fundamental."""
+    vectors = np.array([_vector(p) for p in peaks])
+    coords = vectors @ np.linalg.inv(basis).T
+    on = _on_lattice(coords) & (np.abs(coords) <= 6.5).all(axis=1) & (np.abs(coords) > 0.5).any(axis=1)
+    n = np.round(coords[on])
+    if on.sum() < 2 or np.linalg.matrix_rank(n) < 2:
+        return basis
+    w = np.sqrt(np.array([p.amplitude_um for p in peaks])[on])[:, None]
+    solution, *_ = np.linalg.lstsq(n * w, vectors[on] * w, rcond=None)  # vectors ≈ n @ basis.T
+    return solution.T
+
+
+def _reduce(basis: np.ndarray) -> np.ndarray:
+    """Lagrange–Gauss reduction: the two shortest independent vectors of the lattice the columns span."""
+    a, b = basis[:, 0].copy(), basis[:, 1].copy()
+    for _ in range(32):
+        if a @ a > b @ b:
+            a, b = b, a
+        mu = round(float(a @ b) / float(a @ a))
+        if mu == 0:
+            break
+        b = b - mu * a
+    return np.stack([a, b], axis=1)
+
+
+class _RepeatLattice(NamedTuple):
+    """A lattice of interlacing (see :func:`_repeat_lattices`)."""
+
+    index: int  # threads per repeat cell
+    repeats: tuple[int, int]  # threads per repeat along each system
+    regular: bool  # generated by one shift (1/R, k/R), k coprime to R: plain, twill, satin
+    points: np.ndarray  # (index - 1, 2): the interlacing peaks' positions in the unit cell of the thread lattice
+
+
+@functools.lru_cache(maxsize=4)
+def _repeat_lattices(max_index: int) -> tuple[_RepeatLattice, ...]:
+    """Every lattice of interlacing a cloth's repeat can have, with up to ``max_index`` threads per repeat cell
+    (a 2/2 basket has 8, a 5-end satin 5).
+
+    A repeat is a sublattice Λ of the threads' integer grid (the shifts that map the interlacing onto itself), of
+    index N (threads per repeat cell); its spectral peaks sit on the dual lattice Λ*, whose N - 1 points in the unit
+    cell, modulo the thread lattice, are the interlacing peaks (Schneider, Holtermann and Merhof's weave lattice;
+    the reciprocal lattice of crystallography). Λ runs over the Hermite normal forms ``(a, 0), (b, d)``,
+    ``a d = N``, ``0 <= b < a``: the repeat along the first system is a, along the second ``d a / gcd(a, b)``, and
+    k ∈ Λ* when ``k1 a`` and ``k1 b + k2 d`` are integers. A regular weave (plain, twill, satin: every thread
+    floats once per repeat) is the cyclic case d = 1, gcd(a, b) = 1: Λ* generated by one shift (1/R, k/R)."""
+    out = []
+    for a in range(1, max_index + 1):
+        for d in range(1, max_index // a + 1):
+            if a * d < 2:
+                continue
+            for b in range(a):
+                points = np.array([[m / a, ((n - m * b / a) / d) % 1.0] for m in range(a) for n in range(d)
+                                   if (m, n) != (0, 0)])
+                out.append(_RepeatLattice(a * d, (a, d * a // math.gcd(a, b)), d == 1 and math.gcd(a, b) == 1,
+                                          points))
+    return tuple(out)
+
+
+def _on_repeat_lattice(coords: np.ndarray, lattice: _RepeatLattice, tolerance: float) -> np.ndarray:
+    """Which peaks (coords (K, 2) in the threads' basis, either sign) lie within ``tolerance`` lattice steps of an
+    interlacing point of ``lattice``."""
+    if coords.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    reach = tolerance / max(lattice.repeats)
+    diff = np.abs(np.mod(coords, 1.0)[:, None, :] - lattice.points[None, :, :])
+    close = np.minimum(diff, 1.0 - diff).max(axis=2) <= reach  # (K, P); the lattice holds -p with p
+    on = close.any(axis=1)
+    return on
+
+
+def _system_peak(v: np.ndarray, peaks: list[SpectralPeak]) -> SpectralPeak:
+    """A system as a peak: its fitted vector (on the upper half plane) with the signal and amplitude of the peak
+    nearest to it (0 when none lies within 3%)."""
+    v = v if v[1] > 0 or (v[1] == 0 and v[0] > 0) else -v
+    near = [p for p in peaks if min(np.linalg.norm(_vector(p) - v), np.linalg.norm(_vector(p) + v))
+            <= 0.03 * np.linalg.norm(v)]
+    match = max(near, key=lambda p: p.amplitude_um) if near else None
+    return SpectralPeak(float(v[0]), float(v[1]), match.snr_db if match else 0.0,
+                        match.amplitude_um if match else 0.0)
+
+
 def _lattice(peaks: list[SpectralPeak], openness: float, options: StructureOptions, field_mm: float,
-             low_peak: bool) -> FabricStructure:
-    """Yarn systems, repeat and crimp from the refined peaks (strongest first)."""
-    # The yarn systems are the peaks of the largest slope amplitude (frequency x amplitude: what shades the
-    # image) among those clearly above the background. Ranking by signal-to-background would favour the high
-    # harmonics of sharp yarn edges, where the background is faint; by height amplitude, what an L-filter leaves
-    # of a wrinkle.
+             low_peak: bool, pixel_pitch_mm: float) -> FabricStructure:
+    """Yarn systems, repeat and crimp from the refined peaks (strongest first).
+
+    The first system is the peak of the largest slope amplitude (frequency x amplitude: what shades the image)
+    among those clearly above the background, replaced by its fundamental (ranking by signal-to-background would
+    favour the high harmonics of sharp yarn edges, by height amplitude what an L-filter leaves of a wrinkle). The
+    second comes from the lattice of every peak (:func:`_second_system`), the two are fitted to all the peaks on
+    their lattice together (:func:`_refine_basis`) and reduced to the lattice's two shortest vectors
+    (:func:`_reduce`); the repeat is the lattice of the peaks between them (:func:`_repeat_lattices`)."""
     strong = sorted((p for p in peaks if p.snr_db >= options.strong_db), key=lambda p: -p.amplitude_um * p.frequency)
     if not strong:
         return FabricStructure(False, _no_peak_reason(low_peak, field_mm, options) if low_peak else
@@ -483,50 +646,65 @@ def _lattice(peaks: list[SpectralPeak], openness: float, options: StructureOptio
                                f"strongest: {peaks[0].snr_db:.1f} dB): no clear yarn system", openness=openness,
                                peaks=peaks)
     strong = [_fundamental(p, peaks, options) for p in strong]
-    vec = [np.array([p.fx_per_mm, p.fy_per_mm]) for p in strong]
-    first = 0
-    # The second system: the largest slope amplitude among the peaks perpendicular to the first within 2° (else
-    # 10°, else any 30° off; the fine detail of a satin aliases to peaks a few degrees off), not below 0.3 x the
-    # first system's frequency (what an L-filter leaves of a wrinkle).
-    second = None
+    vec = [_vector(p) for p in strong]
     # a stitch lattice with alternate courses shifted (purl): two equal diagonal peaks, oblique to each other
     twins = [k for k in range(1, len(strong)) if 20.0 <= _angle_between(vec[0], vec[k]) < 80.0
              and abs(strong[k].frequency / strong[0].frequency - 1) <= 0.03
              and strong[k].amplitude_um * strong[k].frequency >= 0.5 * strong[0].amplitude_um * strong[0].frequency]
     centred = _centred_rectangular([strong[0], strong[twins[0]]], peaks) if twins else None
-    for least in (88.0, 80.0, 30.0):
-        pool = [k for k in range(1, len(strong)) if _angle_between(vec[0], vec[k]) >= least
-                and strong[k].frequency >= 0.3 * strong[0].frequency]
-        if pool:
-            second = pool[0]  # strong is sorted by slope amplitude
-            break
-    systems = list(centred) if centred is not None else \
-        [strong[first]] + ([strong[second]] if second is not None else [])
+    if centred is not None:
+        systems = list(centred)
+    else:
+        # the second system: not below 0.2 x the first system's frequency (what an L-filter leaves of a wrinkle;
+        # densities of 10 and 40 per cm are a ratio of 0.25). When the strongest peak has none at a right angle
+        # it is an interlacing peak (a twill's, beside sparse threads), and the next strongest is tried.
+        systems = [strong[0]]
+        for first in range(min(_FIRST_CANDIDATES, len(strong))):
+            v2 = _second_system(vec[first], peaks, 0.2 * strong[first].frequency, 1.0 / pixel_pitch_mm, field_mm)
+            if v2 is not None:
+                basis = _reduce(_refine_basis(np.stack([vec[first], v2], axis=1), peaks))
+                systems = [_system_peak(basis[:, k], peaks) for k in range(2)]
+                break
     systems.sort(key=lambda p: -p.frequency)  # the denser first
     density = [10.0 * p.frequency for p in systems]
     angles = [p.yarn_angle_deg for p in systems]
     if len(systems) == 1:
         return FabricStructure(True, "", density, angles, None, None, None, None, 0.0, openness, peaks)
-    basis = np.stack([[p.fx_per_mm, p.fy_per_mm] for p in systems], axis=1)  # columns
-    inverse = np.linalg.inv(basis)
-    coords = np.array([inverse @ np.array([p.fx_per_mm, p.fy_per_mm]) for p in peaks])  # (K, 2)
+    basis = np.stack([_vector(p) for p in systems], axis=1)  # columns
+    coords = np.array([np.linalg.solve(basis, _vector(p)) for p in peaks])  # (K, 2)
     amplitude = np.array([p.amplitude_um for p in peaks])
-    near = np.abs(coords).max(axis=1) <= 4.2
+    near = np.abs(coords).max(axis=1) <= _NEAR
     # Interlacing peaks are fractional in both coordinates (the shift of a weave's repeat: (1/2, 1/2) plain,
-    # (1/3, 2/3) twill, (2/5, 1/5) satin); a modulation along one yarn (fibre twist, meander) leaves one integer.
+    # (1/3, 2/3) twill, (2/5, 1/5) satin, (1/2, 1/4) a rib); a modulation along one yarn (fibre twist, meander)
+    # leaves one integer.
     tol = options.lattice_tolerance
     fractional = near & (np.abs(coords - np.round(coords)) > tol / 2).all(axis=1)
-    system_amp = sum(p.amplitude_um for p in systems)
-    explained = {r: _regular_lattice_fit(coords[fractional], amplitude[fractional], r, tol)
-                 for r in range(2, options.max_repeat + 1)}  # r -> (amplitude on the best lattice, its peaks)
-    best = max((amp for amp, _ in explained.values()), default=0.0)
-    repeat, amp_on = 1, np.zeros(0)
+    thread_amp = max((p.amplitude_um for p, c in zip(peaks, coords, strict=True)
+                      if np.abs(c - np.round(c)).max() <= tol / 2 and np.abs(np.round(c)).sum() == 1), default=0.0)
+    thread_amp = max(thread_amp, *(p.amplitude_um for p in systems))
+    lattices = _repeat_lattices(options.max_repeat)
+    on = [_on_repeat_lattice(coords[fractional], lattice, tol) for lattice in lattices]
+    explained = [float(amplitude[fractional][hit].sum()) for hit in on]
+    best_general = max(explained, default=0.0)
+    best_regular = max((e for e, lattice in zip(explained, lattices, strict=True) if lattice.regular), default=0.0)
+    # a weave's fractional peaks lie on its repeat lattice; a knit's fibre twist or meander scatters them
+    scattered = best_general < _ON_REPEAT_SHARE * float(amplitude[fractional].sum())
+    repeats, amp_on, regular = (1, 1), np.zeros(0), True
     if centred is not None:  # a stitch lattice: no interlacing; the crimp is the alternate courses' relief wave
         amp_on = np.array([strong[0].amplitude_um, strong[twins[0]].amplitude_um])
-    elif best > 0 and best >= options.interlacing_share * system_amp:
-        repeat = min(r for r, (amp, _) in explained.items() if amp >= options.lattice_share * best)
-        amp_on = amplitude[fractional][explained[repeat][1]]
+    elif best_general > 0 and not scattered and float(amplitude[fractional].max()) >= \
+            options.interlacing_share * thread_amp:
+        # a regular weave while one explains enough (a fibre twist's modulation near a finer grid point must not
+        # turn a plain weave into a rib); otherwise a basket, a rib: the smallest cell that explains enough
+        pool = [k for k, lattice in enumerate(lattices) if lattice.regular] \
+            if best_regular >= _REGULAR_SHARE * best_general else list(range(len(lattices)))
+        best = max(explained[k] for k in pool)
+        chosen = min((k for k in pool if explained[k] >= options.lattice_share * best),
+                     key=lambda k: (lattices[k].index, -explained[k]))
+        repeats, regular = lattices[chosen].repeats, lattices[chosen].regular
+        amp_on = amplitude[fractional][on[chosen]]
     crimp = 2.0 * float(amp_on.max()) if amp_on.size else 0.0
+    repeat = max(repeats)
     wales = courses = None
     if centred is not None:
         wales_peak, courses_peak = centred
@@ -535,5 +713,5 @@ def _lattice(peaks: list[SpectralPeak], openness: float, options: StructureOptio
         wales_peak = max(systems, key=lambda p: p.snr_db)
         courses_peak = systems[1] if wales_peak is systems[0] else systems[0]
         wales, courses = 10.0 * wales_peak.frequency, 10.0 * courses_peak.frequency
-    return FabricStructure(True, "", density, angles, repeat, max(repeat - 1, 0), wales, courses, crimp, openness,
-                           peaks)
+    return FabricStructure(True, "", density, angles, repeat, max(repeat - 1, 0) if regular else None, wales,
+                           courses, crimp, openness, peaks, repeat_threads=list(repeats))
