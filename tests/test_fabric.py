@@ -433,7 +433,7 @@ class TestDescribe:
         assert structure_row(rec, None)["structure_found"] is False
         entry = describe(z, PITCH)[0]
         vector = descriptor_vector(entry)
-        assert vector.shape == (21,) and np.isfinite(vector).all()
+        assert vector.shape == (23,) and np.isfinite(vector).all()
 
         expected = 1000 * math.sqrt((0.05 * passed(0.25)) ** 2 / 2 + (0.03 * passed(0.5)) ** 2 / 2)
         assert entry["waviness_um"] == pytest.approx(expected, rel=0.02)

@@ -68,7 +68,7 @@ DESCRIPTOR_NAMES = (
     "Sq_um", "Ssk", "Sku", "Sz_um", "Sa_um", "Sdq", "Sdr_pct", "Sal_mm", "Str",
     "structure_found", "log_density_1", "log_density_2", "density_ratio", "crossing_angle_deg",
     "weave_repeat", "crimp_um", "openness", "log_sq_over_sal", "log_waviness_um", "albedo_relief_coupling",
-    "log_albedo_periodicity",
+    "log_albedo_periodicity", "repeat_min", "regular_weave",
 )
 
 #: The band of :func:`describe`'s ``waviness_um``: relief between the yarn scale and the L-filter (prints, felting,
@@ -285,7 +285,8 @@ def structure_row(reconstruction: Any, pixel_pitch_mm: float | None) -> dict[str
 
     Returns:
         ``{"threads_per_cm_1", "threads_per_cm_2", "thread_angle_1_deg", "thread_angle_2_deg", "weave_repeat",
-        "crimp_um", "openness", "structure_found", "structure_reason", "Sq_um", ..., "Std_deg"}``; numbers or
+        "repeat_threads_1", "repeat_threads_2", "crimp_um", "openness", "structure_found", "structure_reason",
+        "Sq_um", ..., "Std_deg"}`` (the repeats along the two systems in the densities' order); numbers or
         ``None`` (empty cells) where not defined.
 
     Example:
@@ -297,7 +298,7 @@ def structure_row(reconstruction: Any, pixel_pitch_mm: float | None) -> dict[str
         (False, 0.0)
     """
     columns = ["threads_per_cm_1", "threads_per_cm_2", "thread_angle_1_deg", "thread_angle_2_deg", "weave_repeat",
-               "crimp_um", "openness", "structure_found", "structure_reason"]
+               "repeat_threads_1", "repeat_threads_2", "crimp_um", "openness", "structure_found", "structure_reason"]
     iso_columns = [f"{k}_{_unit_suffix(k)}" if _unit_suffix(k) else k for k in ISO_PARAMETERS]
     if pixel_pitch_mm is None:
         row = dict.fromkeys(columns + iso_columns)
@@ -307,8 +308,10 @@ def structure_row(reconstruction: Any, pixel_pitch_mm: float | None) -> dict[str
     entry = describe(reconstruction.depth[:1], pixel_pitch_mm, reconstruction.mask[:1])[0]
     density = (entry["threads_per_cm"] or []) + [None, None]
     angles = (entry["thread_angles_deg"] or []) + [None, None]
+    repeats = (entry.get("repeat_threads") or []) + [None, None]
     row = {"threads_per_cm_1": density[0], "threads_per_cm_2": density[1], "thread_angle_1_deg": angles[0],
-           "thread_angle_2_deg": angles[1], "weave_repeat": entry["weave_repeat"], "crimp_um": entry["crimp_um"],
+           "thread_angle_2_deg": angles[1], "weave_repeat": entry["weave_repeat"], "repeat_threads_1": repeats[0],
+           "repeat_threads_2": repeats[1], "crimp_um": entry["crimp_um"],
            "openness": entry["openness"], "structure_found": entry["structure_found"],
            "structure_reason": entry["structure_reason"]}
     for key, column in zip(ISO_PARAMETERS, iso_columns):
@@ -326,13 +329,15 @@ def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
     """The orientation-free feature vector (:data:`DESCRIPTOR_NAMES`) of one :func:`describe` entry.
 
     Densities enter as logarithms (a scale change is a shift), the two systems' crossing angle instead of their
-    directions, and a missing structure as zeros with ``structure_found`` 0; without albedo, the coupling as 0 and
-    the albedo periodicity as log(0.001).
+    directions, the repeat as the larger (``weave_repeat``) and the smaller of the two systems' repeats (a 2/2 rib:
+    4 and 2), ``regular_weave`` 1 for a weave whose interlacing one shift generates (plain, twill, satin; not a
+    basket or a rib), and a missing structure as zeros with ``structure_found`` 0; without albedo, the coupling as
+    0 and the albedo periodicity as log(0.001).
 
     Example:
         >>> entry = {"iso25178": dict.fromkeys(ISO_PARAMETERS, 1.0), "structure_found": False}
         >>> descriptor_vector(entry).shape
-        (21,)
+        (23,)
     """
     iso = entry["iso25178"]
 
@@ -345,6 +350,7 @@ def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
     d1 = density[0] if found and density else 0.0
     d2 = density[1] if found and len(density) > 1 else 0.0
     crossing = abs((angles[0] - angles[1] + 90.0) % 180.0 - 90.0) if found and len(angles) > 1 else 0.0
+    repeats = list(entry.get("repeat_threads") or []) if found else []
     sal = num(iso.get("Sal"))
     values = [num(iso.get("Sq")), num(iso.get("Ssk")), num(iso.get("Sku")), num(iso.get("Sz")), num(iso.get("Sa")),
               num(iso.get("Sdq")), num(iso.get("Sdr")), sal, num(iso.get("Str")), float(found),
@@ -352,7 +358,9 @@ def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
               num(entry.get("weave_repeat")), num(entry.get("crimp_um")), num(entry.get("openness")),
               math.log(num(iso.get("Sq")) / 1000 / sal) if sal > 0 and num(iso.get("Sq")) > 0 else 0.0,
               math.log(num(entry.get("waviness_um"))) if num(entry.get("waviness_um")) > 0 else 0.0,
-              num(entry.get("albedo_relief_coupling")), math.log(num(entry.get("albedo_periodicity")) + 1e-3)]
+              num(entry.get("albedo_relief_coupling")), math.log(num(entry.get("albedo_periodicity")) + 1e-3),
+              float(min(repeats)) if repeats else 0.0,
+              1.0 if found and num(entry.get("weave_repeat")) >= 2 and entry.get("float_length") is not None else 0.0]
     return np.asarray(values, dtype=np.float64)
 
 

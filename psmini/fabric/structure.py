@@ -414,6 +414,11 @@ def _fundamental(peak: SpectralPeak, peaks: list[SpectralPeak], options: Structu
 #: least this share of the amplitude that the best lattice of any kind holds: a fibre twist's or a stripe's
 #: modulation near a finer grid point must not turn a plain weave into a rib.
 _REGULAR_SHARE = 0.4
+#: ... and while it holds at least this share when the best lattice holds nearly every fractional peak
+#: (:data:`_GENERAL_EXPLAINS` of their amplitude): a 2/2 basket's regular lattice of repeat 4 holds exactly half
+#: of its interlacing, a 3/1 twill's all of it.
+_REGULAR_EXPLAINS = 0.75
+_GENERAL_EXPLAINS = 0.9
 #: The repeat lattice must hold at least this share of the amplitude of all the peaks fractional in both thread
 #: coordinates: a weave's do (all of it, on ground-truth heights), a knit's fibre twist and meander scatter them.
 _ON_REPEAT_SHARE = 0.5
@@ -696,8 +701,10 @@ def _lattice(peaks: list[SpectralPeak], openness: float, options: StructureOptio
             options.interlacing_share * thread_amp:
         # a regular weave while one explains enough (a fibre twist's modulation near a finer grid point must not
         # turn a plain weave into a rib); otherwise a basket, a rib: the smallest cell that explains enough
-        pool = [k for k, lattice in enumerate(lattices) if lattice.regular] \
-            if best_regular >= _REGULAR_SHARE * best_general else list(range(len(lattices)))
+        general = best_regular < _REGULAR_SHARE * best_general or (
+            best_regular < _REGULAR_EXPLAINS * best_general
+            and best_general >= _GENERAL_EXPLAINS * float(amplitude[fractional].sum()))
+        pool = list(range(len(lattices))) if general else [k for k, lattice in enumerate(lattices) if lattice.regular]
         best = max(explained[k] for k in pool)
         chosen = min((k for k in pool if explained[k] >= options.lattice_share * best),
                      key=lambda k: (lattices[k].index, -explained[k]))
