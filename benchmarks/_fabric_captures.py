@@ -69,8 +69,9 @@ def reconstruct_capture(key: str, make, cache: Path | None, tag: str, config: An
     path = cache / f"{key}-{tag}.npz" if cache is not None else None
     if path is not None and path.is_file():
         data = np.load(path)
-        return Reconstructed(*(torch.from_numpy(data[k]) for k in ("depth", "mask", "albedo", "p", "q")),
-                             data["image"])
+        return Reconstructed(torch.from_numpy(data["depth"]), torch.from_numpy(data["mask"]),
+                             torch.from_numpy(data["albedo"]), torch.from_numpy(data["p"]).float(),
+                             torch.from_numpy(data["q"]).float(), data["image"])
     sample, capture = make()
     rec = reconstruct(sample, config)
     out = Reconstructed(rec.depth[:1].cpu(), rec.mask[:1].cpu(), rec.albedo[:1].cpu(), rec.p[:1].cpu(),

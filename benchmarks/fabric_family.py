@@ -103,7 +103,7 @@ def before_depth(depth: torch.Tensor) -> torch.Tensor:
     return idct2(dct2(z) * ratio).to(depth.dtype)
 
 
-def amplitude(height: torch.Tensor, mask: torch.Tensor, options) -> tuple[float, float]:
+def amplitude(height: torch.Tensor, mask: torch.Tensor | None, options) -> tuple[float, float]:
     """(Sa, Sq) in µm of ``height`` over ``mask`` on the scale-limited surface of ``options``."""
     from psmini.fabric import iso25178
 
@@ -186,10 +186,12 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
 
     # 1. the family: descriptors (truth, reconstruction) and relief
-    found_kinds = {"truth": collections.defaultdict(collections.Counter),
-                   "reconstruction": collections.defaultdict(collections.Counter)}
+    found_kinds: dict[str, collections.defaultdict[str, collections.Counter]] = {
+        "truth": collections.defaultdict(collections.Counter),
+        "reconstruction": collections.defaultdict(collections.Counter)}
     counts: collections.Counter = collections.Counter()
-    relief = collections.defaultdict(lambda: collections.defaultdict(list))
+    relief: collections.defaultdict[str, collections.defaultdict[str, list]] = collections.defaultdict(
+        lambda: collections.defaultdict(list))
     failures = []
     for seed in range(args.samples):
         fabric, truth = draw_weave(seed, size=args.size)
@@ -277,7 +279,7 @@ def main(argv: list[str] | None = None) -> int:
             height = fabric.height_mm
             rec = reconstruct_capture(f"{name}-0-{args.size}", capture_maker(fabric, rig, card, 0, 0.5), args.cache,
                                       tag, CONFIG)
-            r = measure_relief(rec.depth, rec.mask, height)
+            named = measure_relief(rec.depth, rec.mask, height)
             # the split, on a noise-free capture (unweighted integration of noisy slopes is no reference)
             clean = reconstruct_capture(f"{name}-0-{args.size}-clean",
                                         capture_maker(fabric, clean_rig, clean_card, 0, 0.5), args.cache,
@@ -289,8 +291,9 @@ def main(argv: list[str] | None = None) -> int:
             true_normals = _undo_edge_averaging(integrate(pt, qt, "masked", PITCH))
             filled = _undo_edge_averaging(integrate(torch.where(m, clean.p.double(), pt),
                                                     torch.where(m, clean.q.double(), qt), "masked", PITCH))
-            named_rows.append([name, f"{t[0]:.1f} / {t[1]:.1f}", cell(r["plane before"]), cell(r["plane after"]),
-                               cell(r["describe after"]), cell(bias(amplitude(true_normals, None, iso), t)),
+            named_rows.append([name, f"{t[0]:.1f} / {t[1]:.1f}", cell(named["plane before"]),
+                               cell(named["plane after"]), cell(named["describe after"]),
+                               cell(bias(amplitude(true_normals, None, iso), t)),
                                cell(bias(amplitude(clean.depth, m, iso), t)),
                                cell(bias(amplitude(filled, None, iso), t)),
                                f"{1 - float(m.float().mean()):.1%}"])

@@ -358,12 +358,12 @@ class TestMaskedLeastSquares(BaseTester):
         padded = F.pad(z, (1, 1, 1, 1))
         shifted = (padded[..., 1:-1, :-2], padded[..., 1:-1, 2:], padded[..., :-2, 1:-1], padded[..., 2:, 1:-1])
         applied = level.diag * z
-        for weight, neighbour in zip(level.neighbours, shifted):
+        for weight, neighbour in zip(level.neighbours, shifted, strict=True):
             applied.addcmul_(weight, neighbour, value=-1)
         assert torch.equal(level.apply(z), applied)
         scale, weights = level.jacobi
         swept = torch.add(r * scale, z, alpha=1 - _JACOBI_OMEGA)
-        for weight, neighbour in zip(weights, shifted):
+        for weight, neighbour in zip(weights, shifted, strict=True):
             swept.addcmul_(weight, neighbour)
         assert torch.equal(level.smooth(z, r, 1), swept)
         zeroed = torch.where(level.active, r, torch.zeros_like(r))
@@ -414,8 +414,10 @@ class TestIntegrateNormals(BaseTester):
         k, normals, depth = perspective_plane(20, 30, device, dtype)
         gu, gv, scale = perspective_log_gradients(normals, k)
         log_depth = depth.log()
-        self.assert_close((gu / scale)[..., 1:-1, 5], ((log_depth[..., 6] - log_depth[..., 4]) / 2)[..., 1:-1], rtol=1e-3, atol=1e-6)
-        self.assert_close((gv / scale)[..., 5, 1:-1], ((log_depth[..., 6, :] - log_depth[..., 4, :]) / 2)[..., 1:-1], rtol=1e-3, atol=1e-6)
+        central_u = ((log_depth[..., 6] - log_depth[..., 4]) / 2)[..., 1:-1]
+        central_v = ((log_depth[..., 6, :] - log_depth[..., 4, :]) / 2)[..., 1:-1]
+        self.assert_close((gu / scale)[..., 1:-1, 5], central_u, rtol=1e-3, atol=1e-6)
+        self.assert_close((gv / scale)[..., 5, 1:-1], central_v, rtol=1e-3, atol=1e-6)
 
     def test_gradcheck(self):
         k, normals, _ = perspective_plane(5, 6, "cpu", torch.float64)

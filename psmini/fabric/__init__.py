@@ -8,14 +8,43 @@ directions and densities, the weave repeat, crimp and openness from the height s
 
 from __future__ import annotations
 
-from psmini.fabric.describe import (COUPLING_OPTIONS, DESCRIBE_SURFACE_OPTIONS, DESCRIPTOR_NAMES, MODEL_FORMAT,
-                                    MODEL_VERSION, FabricClassifier, albedo_periodicity, albedo_relief_coupling,
-                                    describe, describe_surface_options, descriptor_vector, reconstruct_for_description,
-                                    structure_row)
-from psmini.fabric.structure import FabricStructure, SpectralPeak, StructureOptions, fabric_structure, structure_spectrum
-from psmini.fabric.surface import (ISO_PARAMETERS, ISO_UNITS, SurfaceOptions, autocorrelation, gaussian_filter,
-                                   height_parameters, hybrid_parameters, iso25178, iso_s_cutoff_mm, remove_form,
-                                   scale_limited_surface, spatial_parameters, valid_pixels)
+from psmini.fabric.describe import (
+    COUPLING_OPTIONS,
+    DESCRIBE_SURFACE_OPTIONS,
+    DESCRIPTOR_NAMES,
+    MODEL_FORMAT,
+    MODEL_VERSION,
+    FabricClassifier,
+    albedo_periodicity,
+    albedo_relief_coupling,
+    describe,
+    describe_surface_options,
+    descriptor_vector,
+    reconstruct_for_description,
+    structure_row,
+)
+from psmini.fabric.structure import (
+    FabricStructure,
+    SpectralPeak,
+    StructureOptions,
+    fabric_structure,
+    structure_spectrum,
+)
+from psmini.fabric.surface import (
+    ISO_PARAMETERS,
+    ISO_UNITS,
+    SurfaceOptions,
+    autocorrelation,
+    gaussian_filter,
+    height_parameters,
+    hybrid_parameters,
+    iso25178,
+    iso_s_cutoff_mm,
+    remove_form,
+    scale_limited_surface,
+    spatial_parameters,
+    valid_pixels,
+)
 
 __all__ = [
     "ISO_PARAMETERS", "ISO_UNITS", "SurfaceOptions", "autocorrelation", "gaussian_filter", "height_parameters",

@@ -20,12 +20,19 @@ from torch import Tensor
 
 from psmini.errors import DataFormatError, InputError, ShapeError
 from psmini.fabric.structure import StructureOptions, fabric_structure
-from psmini.fabric.surface import (ISO_PARAMETERS, SurfaceOptions, iso25178, iso_s_cutoff_mm, scale_limited_surface,
-                                   valid_pixels)
+from psmini.fabric.surface import (
+    ISO_PARAMETERS,
+    SurfaceOptions,
+    iso25178,
+    iso_s_cutoff_mm,
+    scale_limited_surface,
+    valid_pixels,
+)
 
 __all__ = ["WAVINESS_OPTIONS", "COUPLING_OPTIONS", "DESCRIBE_SURFACE_OPTIONS", "describe_surface_options",
            "DESCRIPTOR_NAMES", "MODEL_FORMAT",
-           "MODEL_VERSION", "FabricClassifier", "albedo_periodicity", "albedo_relief_coupling", "describe", "descriptor_vector",
+           "MODEL_VERSION", "FabricClassifier", "albedo_periodicity", "albedo_relief_coupling", "describe",
+           "descriptor_vector",
            "structure_row", "reconstruct_for_description"]
 
 #: The form removal and L-filter of the scale-limited surface on which :func:`describe` reports the ISO parameters:
@@ -79,6 +86,9 @@ WAVINESS_OPTIONS = SurfaceOptions(form_degree=1, s_cutoff_mm=0.5, l_cutoff_mm=2.
 #: wrinkles and drape (1.25 mm L-filter), where a print's blotch edges and an ink layer's relief live.
 COUPLING_OPTIONS = SurfaceOptions(form_degree=1, s_cutoff_mm=0.5, l_cutoff_mm=1.25)
 
+#: :func:`describe`'s default structure options.
+_STRUCTURE = StructureOptions()
+
 MODEL_FORMAT = "psmini-fabric-classifier"
 MODEL_VERSION = 1
 
@@ -97,7 +107,8 @@ def reconstruct_for_description(sample: Any, config: Any = None) -> Any:
     Example:
         >>> from psmini.io import Sample
         >>> from psmini.lights import DirectionalLights, ring_lights
-        >>> sample = Sample(name="s", images=torch.rand(8, 16, 16) + 0.1, lights=DirectionalLights(ring_lights(8, 55.0)))
+        >>> lights = DirectionalLights(ring_lights(8, 55.0))
+        >>> sample = Sample(name="s", images=torch.rand(8, 16, 16) + 0.1, lights=lights)
         >>> reconstruct_for_description(sample).depth.shape
         torch.Size([1, 1, 16, 16])
     """
@@ -208,7 +219,7 @@ def _relative(albedo: Tensor, valid: Tensor) -> Tensor:
 
 def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, albedo: Tensor | None = None,
              surface: SurfaceOptions | None = None,
-             structure: StructureOptions = StructureOptions()) -> list[dict[str, Any]]:
+             structure: StructureOptions = _STRUCTURE) -> list[dict[str, Any]]:
     """ISO 25178-2 parameters and the yarn structure of each sample, as JSON-ready dicts.
 
     Args:
@@ -314,7 +325,7 @@ def structure_row(reconstruction: Any, pixel_pitch_mm: float | None) -> dict[str
            "repeat_threads_2": repeats[1], "crimp_um": entry["crimp_um"],
            "openness": entry["openness"], "structure_found": entry["structure_found"],
            "structure_reason": entry["structure_reason"]}
-    for key, column in zip(ISO_PARAMETERS, iso_columns):
+    for key, column in zip(ISO_PARAMETERS, iso_columns, strict=True):
         row[column] = entry["iso25178"][key]
     return row
 

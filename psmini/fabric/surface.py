@@ -110,7 +110,8 @@ def iso_s_cutoff_mm(pixel_pitch_mm: float) -> float:
 
     The S-filter removes the scales an instrument does not resolve, so that a parameter measures the surface
     rather than the instrument: at 25 µm per pixel it is 80 µm, which passes a relief of an 8-pixel period at 90%
-    and one of 4 pixels at 64% (:func:`gaussian_filter`'s transmission :math:`\exp(-\pi \alpha^2 \lambda_s^2/\lambda^2)`).
+    and one of 4 pixels at 64% (:func:`gaussian_filter`'s transmission
+    :math:`\exp(-\pi \alpha^2 \lambda_s^2/\lambda^2)`).
 
     Args:
         pixel_pitch_mm: the sampling distance (pixel size on the surface), mm.
@@ -494,7 +495,8 @@ def spatial_parameters(surface: Tensor, valid: Tensor, pixel_pitch_mm: float, th
     - ``Std`` (degrees in [0, 180), counter-clockwise from x, y up): the texture direction, the direction of the
       lay. The angular power spectrum :math:`f_{APS}(\theta) = \int_0^{R} |F(r\cos\theta, r\sin\theta)|^2 r\,dr`
       peaks across the lay (at the direction of the dominant spatial frequency, refined by a parabola through
-      the three best directions; the spectrum of the Hann-windowed surface, zero-padded twice); ``Std`` is that angle plus 90°, the direction along which the texture runs.
+      the three best directions; the spectrum of the Hann-windowed surface, zero-padded twice); ``Std`` is that
+      angle plus 90°, the direction along which the texture runs.
 
     Args:
         surface: :math:`(B, 1, H, W)`, mm, zero-mean over ``valid``.

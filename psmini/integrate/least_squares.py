@@ -25,7 +25,6 @@ from psmini.integrate._common import check_gradients
 from psmini.integrate._dct import dct2, idct2
 from psmini.integrate.poisson import solve_weighted_poisson
 
-
 __all__ = ["masked_least_squares", "MaskedLeastSquares"]
 
 
@@ -155,7 +154,8 @@ def masked_least_squares(
     r"""Least-squares integration on the pixels of a mask of any shape (sparse operators, multigrid PCG).
 
     Minimises :math:`\sum w (z_{i,j+1} - z_{ij} - \bar g^u)^2 + \sum w (z_{i+1,j} - z_{ij} - \bar g^v)^2` over the
-    edges inside the mask, :math:`\bar g` the (weighted) mean gradient of the edge's two pixels. The domain is the mask itself, with natural boundaries along its outline, so a non-rectangular
+    edges inside the mask, :math:`\bar g` the (weighted) mean gradient of the edge's two pixels. The domain is the
+    mask itself, with natural boundaries along its outline, so a non-rectangular
     object is not forced toward the rectangle's edge (Durou, Aujol and Courteille, "Integrating the normal field
     of a surface in the presence of discontinuities", EMMCVPR 2009; Quéau, Durou and Aujol, "Normal
     integration: a survey", JMIV 2018). Solved by conjugate gradients preconditioned with aggregation
