@@ -3,7 +3,8 @@
 Shared by the fabric benchmarks (``fabric_family.py``, ``fabric_recognition.py --protocol shift``): each capture
 is rendered from a :class:`data_synth.fabrics.Fabric` and its capture conditions, reconstructed, and the depth,
 mask, albedo, slopes and one LED image are written to ``cache/<name>-<tag>.npz`` (through a temporary file), the
-tag a hash of the sources and configuration a reconstruction depends on, so that a stale entry is never read.
+tag a hash of the code (not the docstrings or layout) and configuration a reconstruction depends on, so that a
+stale entry is never read.
 """
 
 from __future__ import annotations
@@ -41,13 +42,37 @@ class Reconstructed:
     image: np.ndarray  # (H, W) in [0, 1]: the capture's image under ``image_led``
 
 
+def code_digest(path: Path) -> bytes:
+    """What a Python source computes, without its docstrings, comments and layout: the dump of its syntax tree with
+    the docstrings removed (a docstring or a line break changes no reconstruction); the bytes for another file."""
+    import ast
+
+    text = path.read_bytes()
+    if path.suffix != ".py":
+        return text
+    tree = ast.parse(text)
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if isinstance(body, list) and body and isinstance(body[0], ast.Expr) \
+                and isinstance(body[0].value, ast.Constant) and isinstance(body[0].value.value, str):
+            node.body = body[1:] or [ast.Pass()]  # type: ignore[attr-defined]
+    return ast.dump(tree).encode()
+
+
+def sources_digest(names: tuple[str, ...]) -> str:
+    """A hash of the code of the repository's files ``names`` (:func:`code_digest`; a missing file by its name)."""
+    digest = hashlib.sha1()
+    for name in names:
+        path = REPO / name
+        digest.update(code_digest(path) if path.is_file() else name.encode())
+    return digest.hexdigest()[:12]
+
+
 def source_tag(config: Any, extra: dict | None = None) -> str:
-    """A hash of :data:`CACHE_SOURCES`, the reconstruction configuration and ``extra`` (e.g. the rig)."""
+    """A hash of the code of :data:`CACHE_SOURCES`, the reconstruction configuration and ``extra`` (e.g. the rig)."""
     digest = hashlib.sha1(json.dumps(config.to_dict(), sort_keys=True, default=str).encode())
     digest.update(json.dumps(extra or {}, sort_keys=True, default=str).encode())
-    for name in CACHE_SOURCES:
-        path = REPO / name
-        digest.update(path.read_bytes() if path.is_file() else name.encode())
+    digest.update(sources_digest(CACHE_SOURCES).encode())
     return digest.hexdigest()[:12]
 
 

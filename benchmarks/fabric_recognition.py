@@ -96,25 +96,18 @@ def reconstruction(name: str, seed: int, options, card, cache: Path | None):
 
 
 def _fabric_sources() -> str:
-    """A hash of psmini.fabric's sources (the descriptors of a cached reconstruction are kept under it)."""
-    import hashlib
+    """A hash of psmini.fabric's code (the descriptors of a cached reconstruction are kept under it)."""
+    from benchmarks._fabric_captures import sources_digest
 
-    digest = hashlib.sha1()
-    for path in sorted((REPO / "psmini" / "fabric").glob("*.py")):
-        digest.update(path.read_bytes())
-    return digest.hexdigest()[:12]
+    return sources_digest(tuple(str(p.relative_to(REPO)) for p in sorted((REPO / "psmini" / "fabric").glob("*.py"))))
 
 
 def _dataset_sources() -> str:
-    """A hash of the dataset's generators (a change to them invalidates the cache)."""
-    import hashlib
+    """A hash of the dataset's generators' code (a change to them invalidates the cache)."""
+    from benchmarks._fabric_captures import sources_digest
 
-    digest = hashlib.sha1()
-    for name in ("data_synth/fabric_dataset.py", "data_synth/fabrics.py", "data_synth/shift.py",
-                 "data_synth/weaves.py"):
-        path = REPO / name
-        digest.update(path.read_bytes() if path.is_file() else name.encode())
-    return digest.hexdigest()[:12]
+    return sources_digest(("data_synth/fabric_dataset.py", "data_synth/fabrics.py", "data_synth/shift.py",
+                           "data_synth/weaves.py"))
 
 
 def build(seeds: list[int], options, card, cache: Path | None = None, log_every: int = 11):
