@@ -131,6 +131,35 @@ def measure_relief(depth, mask, height) -> dict[str, tuple[float, float]]:
             "describe after": bias(amplitude(depth, mask, iso), amplitude(height, None, iso))}
 
 
+def true_normals_bias(height: torch.Tensor) -> tuple[float, float]:
+    """Sa/Sq bias (%) on describe's surface of the true normals (psmini's renderer's central differences)
+    integrated by the near-light solver's integration (masked least squares with its restoration)."""
+    from psmini.fabric import describe_surface_options
+    from psmini.integrate import integrate
+    from psmini.integrate.least_squares import _undo_edge_averaging
+    from psmini.render import normals_from_height
+
+    iso = describe_surface_options(PITCH)
+    normals = normals_from_height(height.double(), PITCH)
+    p, q = -normals[:, :1] / normals[:, 2:], -normals[:, 1:2] / normals[:, 2:]
+    return bias(amplitude(_undo_edge_averaging(integrate(p, q, "masked", PITCH)), None, iso),
+                amplitude(height, None, iso))
+
+
+def without_fill(reconstruct):
+    """Run ``reconstruct()`` with near light's fill of unconfident slopes switched off (a diagnostic)."""
+    from psmini import nearlight
+
+    if not hasattr(nearlight, "_FILL_BELOW"):
+        raise SystemExit("--fill-diagnostic: this psmini's near-light solver has no _FILL_BELOW to switch off")
+    kept = nearlight._FILL_BELOW
+    nearlight._FILL_BELOW = 0.0
+    try:
+        return reconstruct()
+    finally:
+        nearlight._FILL_BELOW = kept
+
+
 def capture_maker(fabric, rig, card, seed: int, lift: float):
     """A function rendering ``fabric`` on the rig (``lift`` mm above the card) as a flat-fielded Sample."""
     def make():
@@ -168,6 +197,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", type=int, default=400, help="crop side, pixels (0.025 mm each)")
     parser.add_argument("--cache", type=Path, default=None, metavar="DIR")
     parser.add_argument("--no-named", action="store_true", help="skip psmini's own fabrics")
+    parser.add_argument("--fill-diagnostic", type=int, default=0, metavar="N",
+                        help="also reconstruct psmini's own fabrics and the first N family members with near "
+                        "light's filling of unconfident slopes switched off (psmini.nearlight._FILL_BELOW = 0): what "
+                        "that fill costs the relief; a diagnostic for the near-light solver, not a configuration")
     parser.add_argument("--no-ledger", action="store_true")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -207,6 +240,14 @@ def main(argv: list[str] | None = None) -> int:
                 failures.append((source, seed, fabric.name, kinds, fabric.params))
         for key, value in measure_relief(rec.depth, rec.mask, fabric.height_mm).items():
             relief[fabric.name][key].append(value)
+        relief[fabric.name]["true normals"].append(true_normals_bias(fabric.height_mm))
+        if seed < args.fill_diagnostic:
+            make = capture_maker(fabric, rig, card, seed, lift)
+            unfilled = without_fill(lambda key=f"weave{seed}-{args.size}-nofill", make=make: reconstruct_capture(
+                key, make, args.cache, tag, CONFIG))
+            relief[fabric.name]["without the fill"].append(measure_relief(unfilled.depth, unfilled.mask,
+                                                                          fabric.height_mm)["describe after"])
+            relief[fabric.name]["with the fill"].append(relief[fabric.name]["describe after"][-1])
         if (seed + 1) % 20 == 0:
             print(f"  {seed + 1} family members, {time.perf_counter() - start:.0f} s", flush=True)
 
@@ -226,14 +267,14 @@ def main(argv: list[str] | None = None) -> int:
                      f"{params['weft_per_cm']:.1f}/cm at {params['orientation_deg']:.1f} deg, crimp "
                      f"{params['crimp_ratio']:.2f} x the yarn height" for source, seed, name, kinds, params in failures]
     relief_rows = []
+    columns = ("plane before", "plane after", "describe after", "true normals")
     for w in weaves:
         r = relief[w]
         relief_rows.append([w, counts[w]] + [f"{summary([v[0] for v in r[k]])} / {summary([v[1] for v in r[k]])}"
-                                             for k in ("plane before", "plane after", "describe after")]
-                           + [within(r["describe after"])])
-    every = {k: [v for w in weaves for v in relief[w][k]] for k in ("plane before", "plane after", "describe after")}
+                                             for k in columns] + [within(r["describe after"])])
+    every = {k: [v for w in weaves for v in relief[w][k]] for k in columns + ("with the fill", "without the fill")}
     relief_rows.append(["all", args.samples] + [f"{summary([v[0] for v in every[k]])} / "
-                                                f"{summary([v[1] for v in every[k]])}" for k in every]
+                                                f"{summary([v[1] for v in every[k]])}" for k in columns]
                        + [within(every["describe after"])])
 
     body = [
@@ -259,8 +300,16 @@ def main(argv: list[str] | None = None) -> int:
         "(central-difference restoration); and on describe's ISO surface (80 um S-filter, 2.5 mm L-filter), after; "
         "samples with both within 5%:",
         "",
-        table(["weave", "n", "plane, before", "plane, after", "describe's surface, after", "within 5%"], relief_rows),
+        table(["weave", "n", "plane, before", "plane, after", "describe's surface, after",
+               "true normals, describe's surface", "within 5%"], relief_rows),
     ]
+    if args.fill_diagnostic:
+        n = len(every["without the fill"])
+        body += ["", f"Near light's fill of unconfident slopes (the first {n} members, describe's surface, Sa / Sq "
+                 f"bias in per cent): with it (the default) {summary([v[0] for v in every['with the fill']])} / "
+                 f"{summary([v[1] for v in every['with the fill']])}; switched off "
+                 f"{summary([v[0] for v in every['without the fill']])} / "
+                 f"{summary([v[1] for v in every['without the fill']])}."]
 
     if not args.no_named:
         from psmini.fabric import describe_surface_options
@@ -291,12 +340,17 @@ def main(argv: list[str] | None = None) -> int:
             true_normals = _undo_edge_averaging(integrate(pt, qt, "masked", PITCH))
             filled = _undo_edge_averaging(integrate(torch.where(m, clean.p.double(), pt),
                                                     torch.where(m, clean.q.double(), qt), "masked", PITCH))
+            extra = []
+            if args.fill_diagnostic:
+                unfilled = without_fill(lambda fabric=fabric, name=name: reconstruct_capture(
+                    f"{name}-0-{args.size}-nofill", capture_maker(fabric, rig, card, 0, 0.5), args.cache, tag, CONFIG))
+                extra = [cell(measure_relief(unfilled.depth, unfilled.mask, height)["describe after"])]
             named_rows.append([name, f"{t[0]:.1f} / {t[1]:.1f}", cell(named["plane before"]),
                                cell(named["plane after"]), cell(named["describe after"]),
                                cell(bias(amplitude(true_normals, None, iso), t)),
                                cell(bias(amplitude(clean.depth, m, iso), t)),
                                cell(bias(amplitude(filled, None, iso), t)),
-                               f"{1 - float(m.float().mean()):.1%}"])
+                               f"{1 - float(m.float().mean()):.1%}", *extra])
         body += [
             "",
             f"psmini's own fabrics (`data_synth.FABRICS`, seed 0, {args.size} px, 0.5 mm above the card), Sa / Sq bias "
@@ -306,7 +360,8 @@ def main(argv: list[str] | None = None) -> int:
             "share of unsolved pixels:",
             "",
             table(["fabric", "true Sa / Sq (um)", "plane, before", "plane, after", "describe's surface, after",
-                   "true normals", "noise-free capture", "noise-free, true slopes where unsolved", "unsolved"],
+                   "true normals", "noise-free capture", "noise-free, true slopes where unsolved", "unsolved"]
+                  + (["near light without its fill, describe's surface"] if args.fill_diagnostic else []),
                   named_rows),
         ]
     text = "\n".join(body)
