@@ -194,6 +194,7 @@ def within(values: list[tuple[float, float]], limit: float = 5.0) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--samples", type=int, default=200)
+    parser.add_argument("--first-seed", type=int, default=0, help="the family members are seeds FIRST..FIRST+N-1")
     parser.add_argument("--size", type=int, default=400, help="crop side, pixels (0.025 mm each)")
     parser.add_argument("--cache", type=Path, default=None, metavar="DIR")
     parser.add_argument("--no-named", action="store_true", help="skip psmini's own fabrics")
@@ -226,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
     relief: collections.defaultdict[str, collections.defaultdict[str, list]] = collections.defaultdict(
         lambda: collections.defaultdict(list))
     failures = []
-    for seed in range(args.samples):
+    seeds = range(args.first_seed, args.first_seed + args.samples)
+    for seed in seeds:
         fabric, truth = draw_weave(seed, size=args.size)
         lift = lift_of(seed)
         rec = reconstruct_capture(f"weave{seed}-{args.size}", capture_maker(fabric, rig, card, seed, lift), args.cache,
@@ -241,15 +243,15 @@ def main(argv: list[str] | None = None) -> int:
         for key, value in measure_relief(rec.depth, rec.mask, fabric.height_mm).items():
             relief[fabric.name][key].append(value)
         relief[fabric.name]["true normals"].append(true_normals_bias(fabric.height_mm))
-        if seed < args.fill_diagnostic:
+        if seed < args.first_seed + args.fill_diagnostic:
             make = capture_maker(fabric, rig, card, seed, lift)
             unfilled = without_fill(lambda key=f"weave{seed}-{args.size}-nofill", make=make: reconstruct_capture(
                 key, make, args.cache, tag, CONFIG))
             relief[fabric.name]["without the fill"].append(measure_relief(unfilled.depth, unfilled.mask,
                                                                           fabric.height_mm)["describe after"])
             relief[fabric.name]["with the fill"].append(relief[fabric.name]["describe after"][-1])
-        if (seed + 1) % 20 == 0:
-            print(f"  {seed + 1} family members, {time.perf_counter() - start:.0f} s", flush=True)
+        if (seed - args.first_seed + 1) % 20 == 0:
+            print(f"  {seed - args.first_seed + 1} family members, {time.perf_counter() - start:.0f} s", flush=True)
 
     weaves = [w for w in WEAVES if counts[w]]
     rows = []
@@ -278,7 +280,7 @@ def main(argv: list[str] | None = None) -> int:
                        + [within(every["describe after"])])
 
     body = [
-        f"{args.samples} members of `data_synth.weaves` (seeds 0..{args.samples - 1}), {args.size}x{args.size} px at "
+        f"{args.samples} members of `data_synth.weaves` (seeds {seeds[0]}..{seeds[-1]}), {args.size}x{args.size} px at "
         f"{PITCH} mm, 8-bit simulated rig captures lifted 0-1 mm above the card, reconstructed by psmini's default "
         f"pipeline (`ReconstructionConfig()`: near light). Built in {time.perf_counter() - start:.0f} s"
         + (" (reconstructions from the cache where present)." if args.cache else "."),
