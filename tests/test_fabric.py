@@ -712,3 +712,16 @@ class TestSFilter:
                 iso_s_cutoff_mm(bad)
         with pytest.raises(InputError, match="pixel_pitch_mm"):
             describe_surface_options(0.0)
+
+
+def test_skewed_systems_are_found_within_ten_degrees():
+    """Bow and skew turn the weft a few degrees off the warp's right angle: a lattice whose systems cross at 84°."""
+    x, y = grid(400)
+    a1, a2 = math.radians(20.0), math.radians(20.0 + 84.0)  # the two peaks' directions, 84° apart
+    z = 0.03 * torch.cos(2 * math.pi * 3.0 * (x * math.cos(a1) + y * math.sin(a1))) \
+        + 0.02 * torch.cos(2 * math.pi * 2.2 * (x * math.cos(a2) + y * math.sin(a2)))
+    found = fabric_structure(z[None, None], PITCH)[0]
+    assert found.threads_per_cm == pytest.approx([30.0, 22.0], rel=2e-3)
+    expected = [(20.0 + 90.0) % 180.0, (104.0 + 90.0) % 180.0]
+    for got, want in zip(found.thread_angles_deg, expected, strict=True):
+        assert abs((got - want + 90) % 180 - 90) < 0.05

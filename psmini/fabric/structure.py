@@ -477,9 +477,10 @@ def _centred_rectangular(systems: list[SpectralPeak], peaks: list[SpectralPeak])
 
 #: A peak lies on a lattice when each of its coordinates in the lattice's basis is within this of an integer.
 _ON_LATTICE = 0.04
-#: The second yarn system of a woven cloth crosses the first at a right angle, within this many degrees (bow and
-#: skew of real cloth are a few degrees); the fitted lattice then keeps whatever angle the peaks say.
-_RIGHT_ANGLE_DEG = 2.0
+#: The second yarn system of a woven cloth crosses the first at a right angle, within the first of these many
+#: degrees, else within the second (bow and skew of real cloth reach a few degrees); the fitted lattice then keeps
+#: whatever angle the peaks say.
+_RIGHT_ANGLE_DEG = (2.0, 10.0)
 #: ... but never further than this many frequency bins of the field (1 / field): refined peaks lie within a
 #: fraction of a bin of their lattice point, and a fine yarn's lattice step is many bins.
 _REACH_BINS = 0.5
@@ -504,15 +505,17 @@ def _on_lattice(coords: np.ndarray, tolerance: float = _ON_LATTICE) -> np.ndarra
 
 
 def _second_system(v1: np.ndarray, peaks: list[SpectralPeak], min_frequency: float, sampling_per_mm: float,
-                   field_mm: float, v1_amplitude: float) -> np.ndarray | None:
+                   field_mm: float, v1_amplitude: float, skew_deg: float) -> np.ndarray | None:
     """The second thread system's frequency vector, from the lattice of all the peaks rather than one peak.
 
     A peak on the thread lattice has an integer coordinate along the first system ``v1``; what is left of it
     across ``v1`` is a whole multiple of the second system's frequency (a satin's or a twill's weft, hidden under
     the warp floats, shows as the peaks (1, ±1) and (0, 2) of its lattice, not as its own (0, 1)). Candidates
-    are those perpendicular remainders divided by 1 to 4, within :data:`_RIGHT_ANGLE_DEG` of a right angle (an
-    interlacing peak, fractional along ``v1``, never reduces to one). A candidate's own peak is the strongest peak
-    at it plus a whole number of ``v1`` (a satin's weft hides its (0, 1), not its (1, ±1)), matched with the
+    are those perpendicular remainders divided by 1 to 4, within ``skew_deg`` of a right angle (an interlacing
+    peak, fractional along ``v1``, never reduces to one; beyond the first of :data:`_RIGHT_ANGLE_DEG`, a skewed
+    lattice's peaks, fractional along ``v1`` by the skew, are candidates as they are). A candidate's own peak is
+    the strongest peak at it plus a whole number of ``v1`` (a satin's weft hides its (0, 1), not its (1, ±1)),
+    matched with the
     lattice's points folded into the sampled band (a fine silk's harmonics alias back below Nyquist, at 2 and 3
     times a fifth of its thread frequency) and off ``v1``'s own line; the second system is the lowest candidate
     whose own peak holds :data:`_THREAD_SHARE` of the strongest candidate's (the rule of :func:`_fundamental`).
@@ -525,10 +528,15 @@ def _second_system(v1: np.ndarray, peaks: list[SpectralPeak], min_frequency: flo
     amplitude = np.array([p.amplitude_um for p in peaks])
     along = vectors @ v1 / norm2
     candidates: list[np.ndarray] = []
-    for k in np.flatnonzero(np.abs(along - np.round(along)) <= _ON_LATTICE):
-        rest = vectors[k] - np.round(along[k]) * v1
+    for k in range(len(peaks)):
+        if abs(along[k] - round(along[k])) <= _ON_LATTICE:
+            rest = vectors[k] - np.round(along[k]) * v1
+        elif skew_deg > _RIGHT_ANGLE_DEG[0]:  # a skewed lattice's peaks are fractional along v1: taken as they are
+            rest = vectors[k]
+        else:
+            continue
         length = float(np.linalg.norm(rest))
-        if length < 1e-12 or _angle_between(rest, v1) < 90.0 - _RIGHT_ANGLE_DEG:
+        if length < 1e-12 or _angle_between(rest, v1) < 90.0 - skew_deg:
             continue
         rest = rest if rest @ np.array([-v1[1], v1[0]]) >= 0 else -rest  # one side of v1
         for divisor in (1, 2, 3, 4):
@@ -682,11 +690,15 @@ def _lattice(peaks: list[SpectralPeak], openness: float, options: StructureOptio
         # the second system: not below 0.2 x the first system's frequency (what an L-filter leaves of a wrinkle;
         # densities of 10 and 40 per cm are a ratio of 0.25). When the strongest peak has none at a right angle
         # it is an interlacing peak (a twill's, beside sparse threads), and the next strongest is tried.
+        # Bow and skew can turn the systems a few degrees from a right angle: then within 10°.
         systems = [strong[0]]
-        for first in range(min(_FIRST_CANDIDATES, len(strong))):
-            v2 = _second_system(vec[first], peaks, 0.2 * strong[first].frequency, 1.0 / pixel_pitch_mm, field_mm,
-                                strong[first].amplitude_um)
-            if v2 is not None:
+        for skew in _RIGHT_ANGLE_DEG:
+            found = next(((first, v2) for first in range(min(_FIRST_CANDIDATES, len(strong)))
+                          if (v2 := _second_system(vec[first], peaks, 0.2 * strong[first].frequency,
+                                                   1.0 / pixel_pitch_mm, field_mm, strong[first].amplitude_um,
+                                                   skew)) is not None), None)
+            if found is not None:
+                first, v2 = found
                 basis = _reduce(_refine_basis(np.stack([vec[first], v2], axis=1), peaks))
                 systems = [_system_peak(basis[:, k], peaks) for k in range(2)]
                 break
