@@ -196,12 +196,14 @@ def _woven(
     albedo: float,
     randomness: float,
     weft_albedo: float | None = None,
+    flatness: float = 0.5,
 ) -> tuple[Tensor, Tensor, Tensor, _YarnSet, _YarnSet, Tensor]:
-    """Height, albedo, cover mask of a woven fabric, plus both yarn sets and the weft-on-top map."""
+    """Height, albedo, cover mask of a woven fabric, plus both yarn sets and the weft-on-top map (``flatness``: the
+    cross-section's exponent, see :func:`_yarn_set`)."""
     warp = _yarn_set(canvas, canvas.u, canvas.v, warp_spacing_mm, warp_width_mm, thickness_mm, weft_spacing_mm,
-                     crimp_mm, _pattern_lookup(pattern, warp=True), randomness)
+                     crimp_mm, _pattern_lookup(pattern, warp=True), randomness, flatness)
     weft = _yarn_set(canvas, canvas.v, canvas.u, weft_spacing_mm, weft_width_mm, thickness_mm, warp_spacing_mm,
-                     crimp_mm, _pattern_lookup(pattern, warp=False), randomness)
+                     crimp_mm, _pattern_lookup(pattern, warp=False), randomness, flatness)
     weft_on_top = weft.top > warp.top
     top = torch.maximum(warp.top, weft.top)
     covered = torch.isfinite(top)

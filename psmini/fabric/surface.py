@@ -43,6 +43,7 @@ __all__ = [
     "autocorrelation",
     "spatial_parameters",
     "iso25178",
+    "iso_s_cutoff_mm",
 ]
 
 #: The ISO 25178-2 parameters :func:`iso25178` returns, in this order.
@@ -94,6 +95,46 @@ class SurfaceOptions:
     def to_dict(self) -> dict:
         """The options as a JSON-ready dict."""
         return asdict(self)
+
+
+#: The preferred values of the S-filter nesting index within a decade (ISO 25178-3: 1, 2, 2.5, 5, 8 x 10^k µm).
+_NESTING_SERIES = (1.0, 2.0, 2.5, 5.0, 8.0)
+#: ISO 25178-3 pairs each S-filter nesting index with a largest sampling distance about 3.2 times smaller (80 µm
+#: with 25 µm, 25 µm with 8 µm, 8 µm with 2.5 µm): scales shorter than about three samples are not measured.
+_SAMPLES_PER_S_CUTOFF = 3.0
+
+
+def iso_s_cutoff_mm(pixel_pitch_mm: float) -> float:
+    r"""The S-filter nesting index that ISO 25178-3 pairs with a sampling distance: the smallest preferred value
+    (1, 2, 2.5, 5, 8 times a power of ten, in µm) at least three sampling distances long.
+
+    The S-filter removes the scales an instrument does not resolve, so that a parameter measures the surface
+    rather than the instrument: at 25 µm per pixel it is 80 µm, which passes a relief of an 8-pixel period at 90%
+    and one of 4 pixels at 64% (:func:`gaussian_filter`'s transmission
+    :math:`\exp(-\pi \alpha^2 \lambda_s^2/\lambda^2)`).
+
+    Args:
+        pixel_pitch_mm: the sampling distance (pixel size on the surface), mm.
+
+    Returns:
+        the nesting index :math:`\lambda_s`, mm.
+
+    Raises:
+        InputError: a pitch that is not a positive number.
+
+    Example:
+        >>> iso_s_cutoff_mm(0.025), iso_s_cutoff_mm(0.008), iso_s_cutoff_mm(0.0025)
+        (0.08, 0.025, 0.008)
+    """
+    if not (isinstance(pixel_pitch_mm, (int, float)) and 0 < pixel_pitch_mm < math.inf):
+        raise InputError(f"pixel_pitch_mm must be a positive number (mm per pixel), got {pixel_pitch_mm!r}")
+    least_um = _SAMPLES_PER_S_CUTOFF * pixel_pitch_mm * 1000.0
+    decade = 10.0 ** math.floor(math.log10(least_um))
+    for scale in (decade, 10 * decade):
+        for value in _NESTING_SERIES:
+            if value * scale >= least_um * (1 - 1e-9):
+                return round(value * scale, 12) / 1000.0
+    raise AssertionError("unreachable: the next decade's 1 is always long enough")
 
 
 def _check_height(height: Tensor, mask: Tensor | None, pixel_pitch_mm: float) -> Tensor:
