@@ -26,8 +26,9 @@ from benchmarks._ledger import REPO  # noqa: E402
 # What a cached reconstruction depends on besides the fabric and its conditions: the renderer's and the
 # pipeline's code.
 CACHE_SOURCES = ("data_synth/rig.py", "psmini/render.py", "psmini/pipeline.py", "psmini/nearlight.py",
-                 "psmini/normals.py", "psmini/flatfield.py", "psmini/lights.py", "psmini/integrate/least_squares.py",
-                 "psmini/integrate/poisson.py", "psmini/integrate/fourier.py", "psmini/integrate/_dct.py")
+                 "psmini/normals.py", "psmini/flatfield.py", "psmini/lights.py", "psmini/geometry.py",
+                 "psmini/integrate/least_squares.py", "psmini/integrate/poisson.py", "psmini/integrate/fourier.py",
+                 "psmini/integrate/_dct.py")
 
 
 @dataclass

@@ -147,17 +147,28 @@ def true_normals_bias(height: torch.Tensor) -> tuple[float, float]:
 
 
 def without_fill(reconstruct):
-    """Run ``reconstruct()`` with near light's fill of unconfident slopes switched off (a diagnostic)."""
+    """Run ``reconstruct()`` with near light's fill of unconfident slopes switched off (a diagnostic).
+
+    The energy solver (``psmini.nearlight._integrate``) blends a slope into its neighbourhood's weighted mean by
+    ``1 - decided``, ``decided = 1 / (1 + (normal_std / _FILL_ABOVE_DEG)^4 + slope_variance^2 / _FILL_SLOPE_STD^8)``;
+    with both thresholds infinite ``decided`` is 1 everywhere (``normal_std`` is at most 180 deg and the slope
+    variance finite), so every slope enters the integration as fitted, still weighted by its inverse variance.
+    (Before the energy solver this switched off ``_FILL_BELOW``, which no longer exists.)"""
+    import math
+
     from psmini import nearlight
 
-    if not hasattr(nearlight, "_FILL_BELOW"):
-        raise SystemExit("--fill-diagnostic: this psmini's near-light solver has no _FILL_BELOW to switch off")
-    kept = nearlight._FILL_BELOW
-    nearlight._FILL_BELOW = 0.0
+    names = ("_FILL_ABOVE_DEG", "_FILL_SLOPE_STD")
+    if not all(hasattr(nearlight, name) for name in names):
+        raise SystemExit(f"--fill-diagnostic: this psmini's near-light solver has no {' / '.join(names)} to switch off")
+    kept = {name: getattr(nearlight, name) for name in names}
+    for name in names:
+        setattr(nearlight, name, math.inf)
     try:
         return reconstruct()
     finally:
-        nearlight._FILL_BELOW = kept
+        for name, value in kept.items():
+            setattr(nearlight, name, value)
 
 
 def capture_maker(fabric, rig, card, seed: int, lift: float):
@@ -200,7 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-named", action="store_true", help="skip psmini's own fabrics")
     parser.add_argument("--fill-diagnostic", type=int, default=0, metavar="N",
                         help="also reconstruct psmini's own fabrics and the first N family members with near "
-                        "light's filling of unconfident slopes switched off (psmini.nearlight._FILL_BELOW = 0): what "
+                        "light's filling of unconfident slopes switched off (psmini.nearlight._FILL_ABOVE_DEG and "
+                        "_FILL_SLOPE_STD set to infinity): what "
                         "that fill costs the relief; a diagnostic for the near-light solver, not a configuration")
     parser.add_argument("--no-ledger", action="store_true")
     args = parser.parse_args(argv)
