@@ -70,7 +70,8 @@ class StructureOptions:
         interlacing_share: when the largest interlacing peak (fractional in both thread coordinates) is below this
             share of the largest thread peak's amplitude, the interlacing is too weak to call a repeat, which is
             then 1 (on the randomised family of :mod:`data_synth.weaves`, ground-truth heights: a knit's stray
-            peaks reach 0.041, the weaker interlacing of a plain weave 0.07).
+            peaks reach 0.041, the weaker interlacing of a plain weave 0.07); down to 0.6 of it when its peaks sit
+            on the repeat lattice to within a tenth of ``lattice_tolerance`` (psmini's cotton).
         dynamic_db: peaks more than this far below the strongest bin of the band are ignored (the window's
             leakage far from a steep spectrum's energy).
         max_peaks: most peaks kept per sample (strongest first; a coarse yarn's many harmonics must not crowd out
@@ -436,6 +437,12 @@ _ON_REPEAT_SHARE = 0.5
 #: weave's lie on it (reconstructions of the family: at most 0.033 lattice steps, the tolerance being 0.15), peaks
 #: that lie near a fine lattice's points by chance are spread over the tolerance (a knit's: 0.057-0.134).
 _ON_REPEAT_DEVIATION = 0.3
+#: A weaker interlacing, down to this share of ``interlacing_share``, still makes a repeat when its peaks sit on
+#: the lattice to within :data:`_WEAK_ON_REPEAT_DEVIATION` of the tolerance (0.015 lattice steps): psmini's cotton,
+#: whose 13 µm yarns carry a 1 µm interlacing (0.041-0.059 of the thread peak, on the lattice to 0.008 steps on its
+#: true height), against the family's jerseys whose stray peaks reach 0.041 (0.024-0.040 steps off the lattice).
+_WEAK_SHARE = 0.6
+_WEAK_ON_REPEAT_DEVIATION = 0.1
 
 #: Courses per wale of a relaxed plain knit (Munden's loop-shape ratio K_c / K_w, about 1.3): which of the two
 #: readings of a centred-rectangular stitch lattice is the knit (see :func:`_centred_rectangular`).
@@ -576,8 +583,23 @@ def _second_system(v1: np.ndarray, peaks: list[SpectralPeak], min_frequency: flo
     # thin yarns: a fundamental about as strong as its harmonic; a basket's or a rib's paired threads: the pair's
     # peak half the thread's, so the thread it is)
     strongest = max(scored[k][1] for k in supported)
-    return candidates[min((k for k in supported if scored[k][1] >= _THREAD_SHARE * strongest),
+    qualified = [k for k in supported if scored[k][1] >= _THREAD_SHARE * strongest]
+    # ... but not the alias of another's harmonic: threads of 2.4 pixels along an axis fold their 2nd harmonic back
+    # to 2/5 of their frequency on the same line, where a reconstruction (which flattens the fundamental near
+    # Nyquist more than the harmonic's alias) can make it the stronger and the lower of the two
+    aliases = {k for k in qualified for j in qualified if j != k and any(
+        _is_alias(n * candidates[j], candidates[k], sampling_per_mm) for n in (2, 3))}
+    return candidates[min((k for k in qualified if k not in aliases or len(aliases) == len(qualified)),
                           key=lambda k: float(np.linalg.norm(candidates[k])))]
+
+
+def _is_alias(v: np.ndarray, c: np.ndarray, sampling_per_mm: float) -> bool:
+    """Whether the frequency vector ``v``, beyond the sampled band, folds back onto ``c`` (either sign)."""
+    if np.abs(v).max() < sampling_per_mm / 2:
+        return False
+    folded = v - np.round(v / sampling_per_mm) * sampling_per_mm
+    tolerance = 0.01 * float(np.linalg.norm(c))
+    return min(float(np.linalg.norm(folded - c)), float(np.linalg.norm(folded + c))) <= tolerance
 
 
 def _refine_basis(basis: np.ndarray, peaks: list[SpectralPeak]) -> np.ndarray:
@@ -733,7 +755,8 @@ def _lattice(peaks: list[SpectralPeak], openness: float, options: StructureOptio
     if centred is not None:  # a stitch lattice: no interlacing; the crimp is the alternate courses' relief wave
         amp_on = np.array([strong[0].amplitude_um, strong[twins[0]].amplitude_um])
     elif best_general > 0 and not scattered and float(amplitude[fractional].max()) >= \
-            options.interlacing_share * thread_amp:
+            _WEAK_SHARE * options.interlacing_share * thread_amp:
+        weak = float(amplitude[fractional].max()) < options.interlacing_share * thread_amp
         # a regular weave while one explains enough (a fibre twist's modulation near a finer grid point must not
         # turn a plain weave into a rib); otherwise a basket, a rib: the smallest cell that explains enough
         general = best_regular < _REGULAR_SHARE * best_general or (
@@ -747,7 +770,8 @@ def _lattice(peaks: list[SpectralPeak], openness: float, options: StructureOptio
         # holds by chance (a knit's fibre twist, near light's leftovers) lie anywhere within the tolerance
         hit, distance = matched[chosen]
         weights = amplitude[fractional][hit]
-        if float((distance[hit] * weights).sum() / weights.sum()) <= _ON_REPEAT_DEVIATION * tol:
+        limit = _WEAK_ON_REPEAT_DEVIATION if weak else _ON_REPEAT_DEVIATION
+        if float((distance[hit] * weights).sum() / weights.sum()) <= limit * tol:
             repeats, regular = lattices[chosen].repeats, lattices[chosen].regular
             amp_on = weights
     crimp = 2.0 * float(amp_on.max()) if amp_on.size else 0.0
