@@ -18,8 +18,9 @@ imports psmini first. A session that imported torch first keeps torch's spinning
 
 Sleeping threads do not make many threads cheap: on a machine already busy, every short parallel region waits for
 a team-mate to be woken and scheduled. Three concurrent bilateral integrations on two cores with other work running
-took 8.6 times as long as the same work run one after another with two threads each (passive), 1.15 times with
-one. So psmini's commands start with one thread per *idle* core (:func:`choose_threads`: the usable cores less the
+took 7.2 times as long as the same work run one after another with two threads each (passive; three near-light
+solves 7.0 times), 0.56 times with the one thread each that :func:`choose_threads` gave them (0.79) at ``a1d725c``.
+So psmini's commands start with one thread per *idle* core (:func:`choose_threads`: the usable cores less the
 other threads the kernel has runnable at that instant, at least one), unless ``psmini --threads N`` or
 ``OMP_NUM_THREADS`` says otherwise; in Python, :func:`set_threads` sets the count and :func:`idle_cores` says what
 the commands would choose. A library import leaves torch's count alone. ``psmini batch`` divides the threads among
