@@ -62,6 +62,31 @@ def _flat(images, card):
     return flatfield(images, card, card_albedo=0.8)
 
 
+def _cliffs(across: str):
+    """Courses 0.8 mm apart along ``across`` ("y": rows; "|x|": outward from the middle column) that rise 0.2 mm
+    gently and drop by a cliff whose foot lies in its own shadow (readings there 0), with a faint wave the other
+    way, 0.5 mm above the card, float64: (leds, height (1, 1, 48, 48), flat-fielded capture)."""
+    dtype = torch.float64
+    leds = _rig(dtype=dtype)
+    coords = (torch.arange(48, dtype=dtype) - 23.5) * PITCH
+    y, x = torch.meshgrid(-coords, coords, indexing="ij")
+    along, other = (y, x) if across == "y" else (x.abs(), y)
+    phase = torch.remainder(along, 0.8)
+    height = (0.2 * phase / 0.8 + 0.5 + 0.03 * torch.sin(2 * math.pi * other / 1.3))[None, None]
+    images = render(depth_to_points(height, PITCH), normals_from_height(height, PITCH),
+                    torch.full_like(height, 0.6), leds)
+    images = torch.where(((phase < 0.15) | (phase > 0.75))[None, None], torch.zeros_like(images), images)
+    card = render(depth_to_points(torch.zeros_like(height), PITCH),
+                  normals_from_height(torch.zeros_like(height), PITCH), torch.full_like(height, 0.8), leds)
+    return leds, height, _flat(images, card)
+
+
+def _relief_rmse(result, height) -> float:
+    """RMS depth error after the mean, mm."""
+    difference = (result.depth - height)[0, 0]
+    return float((difference - difference.mean()).square().mean().sqrt())
+
+
 def _noisy(images, seed, level=0.01):
     noise = torch.randn(images.shape, generator=torch.Generator().manual_seed(seed), dtype=images.dtype)
     return (images + level * images.amax() * noise).clamp_min(0)
@@ -276,55 +301,23 @@ class TestSolveNearLight(BaseTester):
         """Courses that rise gently and drop by a cliff (a purl's rows of loops) whose foot lies in its own shadow:
         integration cannot see the drops, and they add up to a tilt across the field (0.25 mm/mm), which the
         images' near-light cue finds (estimate_tilt)."""
-        dtype = torch.float64
-        leds = _rig(dtype=dtype)
-        coords = (torch.arange(48, dtype=dtype) - 23.5) * PITCH
-        y, x = torch.meshgrid(-coords, coords, indexing="ij")
-        phase = torch.remainder(y, 0.8)
-        height = (0.2 * phase / 0.8 + 0.5 + 0.03 * torch.sin(2 * math.pi * x / 1.3))[None, None]
-        images = render(depth_to_points(height, PITCH), normals_from_height(height, PITCH),
-                        torch.full_like(height, 0.6), leds)
-        images = torch.where(((phase < 0.15) | (phase > 0.75))[None, None], torch.zeros_like(images), images)
-        card = render(depth_to_points(torch.zeros_like(height), PITCH),
-                      normals_from_height(torch.zeros_like(height), PITCH), torch.full_like(height, 0.8), leds)
-        flat = _flat(images, card)
+        leds, height, flat = _cliffs("y")
         plain = solve_near_light(flat.images, leds, PITCH, 0.0, flat.valid,
                                  options=NearLightOptions(estimate_tilt=False))
         found = solve_near_light(flat.images, leds, PITCH, 0.0, flat.valid)
-
-        def rmse(result) -> float:
-            difference = (result.depth - height)[0, 0]
-            return float((difference - difference.mean()).square().mean().sqrt())
-
         assert float(plain.tilt.abs().max()) == 0.0 and float(found.tilt[0, 1]) < -0.1
-        assert rmse(found) < 0.25 * rmse(plain)
+        assert _relief_rmse(found, height) < 0.25 * _relief_rmse(plain, height)
 
     def test_lost_steps_are_found_as_a_bend(self):
         """Courses that rise gently away from the middle and drop outward by a cliff whose foot lies in its own
         shadow: integration loses the drops on both sides, which add up to a V (0.25 mm/mm either way) that the
         images' near-light cue finds as a bend (estimate_bend), a negative d²z/dx²."""
-        dtype = torch.float64
-        leds = _rig(dtype=dtype)
-        coords = (torch.arange(48, dtype=dtype) - 23.5) * PITCH
-        y, x = torch.meshgrid(-coords, coords, indexing="ij")
-        phase = torch.remainder(x.abs(), 0.8)
-        height = (0.2 * phase / 0.8 + 0.5 + 0.03 * torch.sin(2 * math.pi * y / 1.3))[None, None]
-        images = render(depth_to_points(height, PITCH), normals_from_height(height, PITCH),
-                        torch.full_like(height, 0.6), leds)
-        images = torch.where(((phase < 0.15) | (phase > 0.75))[None, None], torch.zeros_like(images), images)
-        card = render(depth_to_points(torch.zeros_like(height), PITCH),
-                      normals_from_height(torch.zeros_like(height), PITCH), torch.full_like(height, 0.8), leds)
-        flat = _flat(images, card)
+        leds, height, flat = _cliffs("|x|")
         plain = solve_near_light(flat.images, leds, PITCH, 0.0, flat.valid,
                                  options=NearLightOptions(estimate_bend=False))
         found = solve_near_light(flat.images, leds, PITCH, 0.0, flat.valid)
-
-        def rmse(result) -> float:
-            difference = (result.depth - height)[0, 0]
-            return float((difference - difference.mean()).square().mean().sqrt())
-
         assert float(plain.bend.abs().max()) == 0.0 and float(found.bend[0, 0]) < -0.05
-        assert rmse(found) < 0.5 * rmse(plain)
+        assert _relief_rmse(found, height) < 0.5 * _relief_rmse(plain, height)
 
     def test_no_tilt_or_bend_from_noise(self):
         """A smooth surface loses no step: on noisy captures the tilt and bend found stay within their noise (a few
