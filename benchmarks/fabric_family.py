@@ -12,12 +12,10 @@ reconstructed by psmini's default pipeline (near light for the rig's LED capture
 2. **Relief amplitude.** Sa and Sq of the reconstructed depth against the true height's,
    the reconstruction's over its solved pixels (what ``describe`` reports), the true height's over the whole
    field, two ways: levelled by a plane alone (as issue 46 measured), and on ``describe``'s scale-limited surface (the
-   ISO S-filter of the pixel, 80 µm; an L-filter of 2.5 mm). "Before" is the reconstruction with the point-slope
-   restoration of the integration and no S-filter (psmini before this benchmark's commit): it differs from
-   "after" by the restoration's gain, which is diagonal in the DCT and applied by the same integration, so both
-   come from one reconstruction. For psmini's own fabrics (``data_synth.FABRICS``, seed 0, 0.5 mm above the
-   card) the loss is split: the true normals integrated by the same integration, and the reconstruction's slopes
-   with the true slopes put in at the pixels it left unsolved (what near light's unsolved crevices cost).
+   ISO S-filter of the pixel, 80 µm; an L-filter of 2.5 mm). For psmini's own fabrics (``data_synth.FABRICS``,
+   seed 0, 0.5 mm above the card) the loss is split: the true normals integrated by the same integration, and the
+   reconstruction's slopes with the true slopes put in at the pixels it left unsolved (what near light's unsolved
+   crevices cost).
 
 ``--cache DIR`` keeps every reconstruction (keyed by a hash of the renderer's and pipeline's code). Prints
 tables and appends them to ``benchmarks/results.md``. Usage::
@@ -90,19 +88,6 @@ def structure_failures(found, truth) -> list[str]:
     return kinds
 
 
-def before_depth(depth: torch.Tensor) -> torch.Tensor:
-    """The depth as the point-slope restoration would have left it: the restoration's gains are diagonal in the
-    DCT, so the central-difference one is undone and the point one applied (exactly, on the full rectangle)."""
-    from psmini.integrate._dct import dct2, idct2
-    from psmini.integrate.least_squares import _edge_averaging_gain
-
-    h, w = depth.shape[-2:]
-    z = depth.double()
-    ratio = _edge_averaging_gain(h, w, z.device, z.dtype, "point") / _edge_averaging_gain(h, w, z.device, z.dtype,
-                                                                                         "central")
-    return idct2(dct2(z) * ratio).to(depth.dtype)
-
-
 def amplitude(height: torch.Tensor, mask: torch.Tensor | None, options) -> tuple[float, float]:
     """(Sa, Sq) in µm of ``height`` over ``mask`` on the scale-limited surface of ``options``."""
     from psmini.fabric import iso25178
@@ -117,23 +102,20 @@ def bias(measured: tuple[float, float], true: tuple[float, float]) -> tuple[floa
 
 
 def measure_relief(depth, mask, height) -> dict[str, tuple[float, float]]:
-    """Sa/Sq bias (%) before and after, plane-levelled and on describe's ISO surface: the reconstruction over its
-    solved pixels (what ``describe`` measures), the true height over the whole field (the cloth's)."""
-    from psmini.fabric import DESCRIBE_SURFACE_OPTIONS, SurfaceOptions, describe_surface_options
+    """Sa/Sq bias (%), plane-levelled and on describe's ISO surface: the reconstruction over its solved pixels (what
+    ``describe`` measures), the true height over the whole field (the cloth's)."""
+    from psmini.fabric import SurfaceOptions, describe_surface_options
 
     plane = SurfaceOptions(form_degree=1)
     iso = describe_surface_options(PITCH)
-    old = before_depth(depth)
-    return {"plane before": bias(amplitude(old, mask, plane), amplitude(height, None, plane)),
-            "plane after": bias(amplitude(depth, mask, plane), amplitude(height, None, plane)),
-            "describe before": bias(amplitude(old, mask, DESCRIBE_SURFACE_OPTIONS),
-                                    amplitude(height, None, DESCRIBE_SURFACE_OPTIONS)),
-            "describe after": bias(amplitude(depth, mask, iso), amplitude(height, None, iso))}
+    return {"plane": bias(amplitude(depth, mask, plane), amplitude(height, None, plane)),
+            "describe": bias(amplitude(depth, mask, iso), amplitude(height, None, iso))}
 
 
 def true_normals_bias(height: torch.Tensor) -> tuple[float, float]:
     """Sa/Sq bias (%) on describe's surface of the true normals (psmini's renderer's central differences)
-    integrated by the near-light solver's integration (masked least squares with its restoration)."""
+    integrated by the near-light solver's final integration (masked least squares on the rectangle, with its
+    restoration of the trapezoidal rule's flattening)."""
     from psmini.fabric import describe_surface_options
     from psmini.integrate import integrate
     from psmini.integrate.least_squares import _undo_edge_averaging
@@ -260,8 +242,8 @@ def main(argv: list[str] | None = None) -> int:
             unfilled = without_fill(lambda key=f"weave{seed}-{args.size}-nofill", make=make: reconstruct_capture(
                 key, make, args.cache, tag, CONFIG))
             relief[fabric.name]["without the fill"].append(measure_relief(unfilled.depth, unfilled.mask,
-                                                                          fabric.height_mm)["describe after"])
-            relief[fabric.name]["with the fill"].append(relief[fabric.name]["describe after"][-1])
+                                                                          fabric.height_mm)["describe"])
+            relief[fabric.name]["with the fill"].append(relief[fabric.name]["describe"][-1])
         if (seed - args.first_seed + 1) % 20 == 0:
             print(f"  {seed - args.first_seed + 1} family members, {time.perf_counter() - start:.0f} s", flush=True)
 
@@ -281,15 +263,15 @@ def main(argv: list[str] | None = None) -> int:
                      f"{params['weft_per_cm']:.1f}/cm at {params['orientation_deg']:.1f} deg, crimp "
                      f"{params['crimp_ratio']:.2f} x the yarn height" for source, seed, name, kinds, params in failures]
     relief_rows = []
-    columns = ("plane before", "plane after", "describe after", "true normals")
+    columns = ("plane", "describe", "true normals")
     for w in weaves:
         r = relief[w]
         relief_rows.append([w, counts[w]] + [f"{summary([v[0] for v in r[k]])} / {summary([v[1] for v in r[k]])}"
-                                             for k in columns] + [within(r["describe after"])])
+                                             for k in columns] + [within(r["describe"])])
     every = {k: [v for w in weaves for v in relief[w][k]] for k in columns + ("with the fill", "without the fill")}
     relief_rows.append(["all", args.samples] + [f"{summary([v[0] for v in every[k]])} / "
                                                 f"{summary([v[1] for v in every[k]])}" for k in columns]
-                       + [within(every["describe after"])])
+                       + [within(every["describe"])])
 
     body = [
         f"{args.samples} members of `data_synth.weaves` (seeds {seeds[0]}..{seeds[-1]}), {args.size}x{args.size} px at "
@@ -310,12 +292,12 @@ def main(argv: list[str] | None = None) -> int:
         "",
         "Relief amplitude of the reconstruction (over its solved pixels) against the true height (the whole field), "
         "Sa / Sq bias in per "
-        "cent (mean ± sd, extremes): levelled by a plane, before (point-slope restoration) and after "
-        "(central-difference restoration); and on describe's ISO surface (80 um S-filter, 2.5 mm L-filter), after; "
-        "samples with both within 5%:",
+        "cent (mean ± sd, extremes): levelled by a plane; on describe's ISO surface (80 um S-filter, 2.5 mm "
+        "L-filter); the true normals integrated by the same integration, on describe's surface; samples whose "
+        "reconstruction has both within 5% on describe's surface:",
         "",
-        table(["weave", "n", "plane, before", "plane, after", "describe's surface, after",
-               "true normals, describe's surface", "within 5%"], relief_rows),
+        table(["weave", "n", "plane", "describe's surface", "true normals, describe's surface", "within 5%"],
+              relief_rows),
     ]
     if args.fill_diagnostic:
         n = len(every["without the fill"])
@@ -358,9 +340,8 @@ def main(argv: list[str] | None = None) -> int:
             if args.fill_diagnostic:
                 unfilled = without_fill(lambda fabric=fabric, name=name: reconstruct_capture(
                     f"{name}-0-{args.size}-nofill", capture_maker(fabric, rig, card, 0, 0.5), args.cache, tag, CONFIG))
-                extra = [cell(measure_relief(unfilled.depth, unfilled.mask, height)["describe after"])]
-            named_rows.append([name, f"{t[0]:.1f} / {t[1]:.1f}", cell(named["plane before"]),
-                               cell(named["plane after"]), cell(named["describe after"]),
+                extra = [cell(measure_relief(unfilled.depth, unfilled.mask, height)["describe"])]
+            named_rows.append([name, f"{t[0]:.1f} / {t[1]:.1f}", cell(named["plane"]), cell(named["describe"]),
                                cell(bias(amplitude(true_normals, None, iso), t)),
                                cell(bias(amplitude(clean.depth, m, iso), t)),
                                cell(bias(amplitude(filled, None, iso), t)),
@@ -373,7 +354,7 @@ def main(argv: list[str] | None = None) -> int:
             "unweighted with the true slopes put in where it left pixels unsolved (what remains is the fit's); and the "
             "share of unsolved pixels:",
             "",
-            table(["fabric", "true Sa / Sq (um)", "plane, before", "plane, after", "describe's surface, after",
+            table(["fabric", "true Sa / Sq (um)", "plane", "describe's surface",
                    "true normals", "noise-free capture", "noise-free, true slopes where unsolved", "unsolved"]
                   + (["near light without its fill, describe's surface"] if args.fill_diagnostic else []),
                   named_rows),

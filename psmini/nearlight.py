@@ -156,9 +156,9 @@ class NearLightOptions:
         initial_height_mm: starting height of the cloth above the card plane's origin, mm.
         search_mm: interval of heights scanned around ``initial_height_mm`` before the first alternation, mm.
         integrator: the final integration of the normals: ``"masked"`` (weighted least squares on the mask, slopes
-            weighted by their inverse variance; on the whole rectangle the finest relief, which the slopes' sampling
-            and the edge equations' trapezoidal rule flatten, is restored) or another method of
-            :func:`psmini.integrate.integrate` (unweighted).
+            weighted by their inverse variance; on the whole rectangle the finest relief, which the edge equations'
+            trapezoidal rule flattens, is restored) or another method of :func:`psmini.integrate.integrate`
+            (unweighted).
 
     Raises:
         InputError: for values out of range.
@@ -1057,8 +1057,8 @@ def _finish(data: _Data, sub_field: _LightField, stride: int, state: _State, dom
     albedo, normals = _split(state.m)
     relative = _integrate(normals, state.normal_std, domain, pitch, options.integrator, state.relative)
     if options.integrator == "masked" and full:
-        # the slopes' central-difference sampling and the edge equations' trapezoidal rule flatten the finest relief
-        # (a period of 4 pixels to half): restored on the rectangle, where the integration ran
+        # the edge equations' trapezoidal rule flattens the finest relief (a silk's threads to a third): restored on
+        # the rectangle, where the integration ran
         relative = _undo_edge_averaging(relative)
     placement = _place(data.every(stride), sub_field, _stride(relative, stride), _stride(state.m, stride),
                        _stride(domain, stride), state.placement, options.penalty_function(), 1)

@@ -398,15 +398,9 @@ class TestStructure:
         above the card and five orientations (every pair for the classical pipeline; for near light, at about a
         second per capture on a CPU, each orientation at one of the lifts in turn). Near light finds the net's mesh
         but reads its densities 1.9-2.9% off (the step from its yarns down to the card in its holes is flattened:
-        docs/guides/fabric.md), and misreads one or two of the five knit and purl captures since the
-        central-difference restoration: known failures kept visible here."""
+        docs/guides/fabric.md), a known failure kept visible here."""
         if name == "net" and solver == "near":  # strict: a fix shows up as a failure to update this
             request.applymarker(pytest.mark.xfail(strict=True, reason="near light reads the net's densities 2-3% off"))
-        if name in ("knit", "purl") and solver == "near":  # strict, as above
-            request.applymarker(pytest.mark.xfail(strict=True, reason=(
-                "since the central-difference restoration (issue 46) near light's depth lifts the stitches' "
-                "harmonics near Nyquist: a purl at 0 and 90 deg reads as a rectangular lattice (courses x2), a knit at "
-                "163 deg off by 3x; both pass with _undo_edge_averaging(..., 'point')")))
         from data_synth import make_fabric
         from data_synth.rig import RigConfig, render_capture, render_card
         from psmini.config import ReconstructionConfig

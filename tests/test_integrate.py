@@ -414,10 +414,15 @@ class TestIntegrateNormals(BaseTester):
         k, normals, depth = perspective_plane(20, 30, device, dtype)
         gu, gv, scale = perspective_log_gradients(normals, k)
         log_depth = depth.log()
-        central_u = ((log_depth[..., 6] - log_depth[..., 4]) / 2)[..., 1:-1]
-        central_v = ((log_depth[..., 6, :] - log_depth[..., 4, :]) / 2)[..., 1:-1]
-        self.assert_close((gu / scale)[..., 1:-1, 5], central_u, rtol=1e-3, atol=1e-6)
-        self.assert_close((gv / scale)[..., 5, 1:-1], central_v, rtol=1e-3, atol=1e-6)
+        self.assert_close(
+            (gu / scale)[..., 1:-1, 5], ((log_depth[..., 6] - log_depth[..., 4]) / 2)[..., 1:-1], rtol=1e-3, atol=1e-6
+        )
+        self.assert_close(
+            (gv / scale)[..., 5, 1:-1],
+            ((log_depth[..., 6, :] - log_depth[..., 4, :]) / 2)[..., 1:-1],
+            rtol=1e-3,
+            atol=1e-6,
+        )
 
     def test_gradcheck(self):
         k, normals, _ = perspective_plane(5, 6, "cpu", torch.float64)
@@ -446,13 +451,11 @@ def test_package_is_callable():
 
 
 class TestUndoEdgeAveraging(BaseTester):
-    """The slopes' sampling and the trapezoidal rule of the masked least-squares integrator scale a relief of
-    angular frequency w per pixel by a = s(w) sin(w) / (4 sin^2(w/2)), s the sampling's symbol (point: w, area:
-    2 sin(w/2), central: sin w); the correction on the rectangle restores it (uniform weights: exactly)."""
+    """The trapezoidal rule of the masked least-squares integrator scales a relief of angular frequency w per
+    pixel by a = (w/2) / tan(w/2); the correction on the rectangle restores it (uniform weights: exactly)."""
 
-    @pytest.mark.parametrize("sampling", ["point", "area", "central"])
-    @pytest.mark.parametrize("period_px", [3.0, 5.0, 12.0])
-    def test_restores_a_fine_relief(self, period_px, sampling):
+    @pytest.mark.parametrize("period_px", [2.4, 3.0, 5.0, 12.0])
+    def test_restores_a_fine_relief(self, period_px):
         from psmini.integrate.least_squares import _undo_edge_averaging
 
         height, width, pitch = 8, 96, 0.025
@@ -460,45 +463,21 @@ class TestUndoEdgeAveraging(BaseTester):
         w = math.pi * k / width
         u = torch.arange(width, dtype=torch.float64) + 0.5
         z = (0.01 * torch.cos(w * u)).expand(1, 1, height, width)
-        # each model's slope of the same relief, computed from its definition (not from the symbol): the derivative
-        # at the centre, the height difference across the pixel, the difference of the two neighbours over 2 pixels
-        if sampling == "point":
-            slope = -0.01 * w * torch.sin(w * u)
-        elif sampling == "area":
-            slope = 0.01 * (torch.cos(w * (u + 0.5)) - torch.cos(w * (u - 0.5)))
-        else:
-            slope = 0.01 * (torch.cos(w * (u + 1)) - torch.cos(w * (u - 1))) / 2
-        p = (slope / pitch).expand(1, 1, height, width)  # mm per mm
+        p = (-0.01 * w * torch.sin(w * u) / pitch).expand(1, 1, height, width)  # exact slopes, mm per mm
         q = torch.zeros_like(p)
         solved = integrate(p, q, "masked", pixel_pitch_mm=pitch, mask=torch.ones_like(p, dtype=torch.bool),
                            tol=1e-13, maxiter=5000)
         flattened = float((solved - solved.mean()).abs().max() / z.abs().max())
-        response = {"point": (w / 2) / math.tan(w / 2), "area": math.cos(w / 2), "central": math.cos(w / 2) ** 2}
-        assert flattened == pytest.approx(response[sampling], rel=1e-6)  # the rule's response
-        self.assert_close(_undo_edge_averaging(solved - solved.mean(), sampling), z, rtol=1e-6, atol=1e-9)
-
-    def test_central_is_the_default(self):
-        """psmini's renderer (normals_from_height) makes central-difference slopes: what the default restores."""
-        from psmini.integrate.least_squares import DEFAULT_SLOPE_SAMPLING, _undo_edge_averaging
-
-        z = torch.rand(1, 1, 6, 9, dtype=torch.float64)
-        assert DEFAULT_SLOPE_SAMPLING == "central"
-        self.assert_close(_undo_edge_averaging(z), _undo_edge_averaging(z, "central"))
-
-    def test_unknown_sampling_raises(self):
-        from psmini.integrate.least_squares import _undo_edge_averaging
-
-        with pytest.raises(InputError, match="sampling must be one of point, area, central"):
-            _undo_edge_averaging(torch.zeros(1, 1, 4, 4), "bilinear")
+        assert flattened == pytest.approx((w / 2) / math.tan(w / 2), rel=1e-6)  # the rule's response
+        self.assert_close(_undo_edge_averaging(solved - solved.mean()), z, rtol=1e-6, atol=1e-9)
 
     def test_cap_and_mean(self):
         from psmini.integrate.least_squares import _MAX_SHARPENING, _undo_edge_averaging
 
         u = torch.arange(10, dtype=torch.float64) + 0.5
         finest = torch.cos(math.pi * 9 * u / 10).expand(1, 1, 6, 10)  # response 0.03: the gain stops at the cap
-        for sampling in ("point", "area", "central"):
-            out = _undo_edge_averaging(0.5 + finest, sampling)
-            self.assert_close(out, 0.5 + _MAX_SHARPENING * finest)  # and the mean is kept
+        out = _undo_edge_averaging(0.5 + finest)
+        self.assert_close(out, 0.5 + _MAX_SHARPENING * finest)  # and the mean is kept
 
     def test_gradcheck(self):
         from psmini.integrate.least_squares import _undo_edge_averaging
