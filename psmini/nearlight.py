@@ -88,6 +88,10 @@ _EFFICIENT_SCALES = {"welsch": 2.9846, "cauchy": 2.3849}
 _MODEL_ERROR = 1e-3
 # A reading counts by I² / (I² + (this × σ)²): within three noise levels of zero it is not known to be lit.
 _LIT_SIGMAS = 3.0
+# The max's Jacobian, a step at zero prediction, is taken as a logistic over this fraction of the reading's noise
+# level (98% lit one noise level above zero): a step would let a rounding change of a prediction at zero switch a
+# reading's weight (a knit pixel lit by one LED turned by 7.6° between float32 and float64).
+_HINGE_WIDTH = 0.25
 # Welsch's exp(-z) is taken at z <= this: e^-64 (1.6e-28) is nothing beside any weight that counts, and exp's
 # underflow toward float32's subnormals runs ten times slower on CPUs (shadows put most readings there).
 _WELSCH_CUTOFF = 64.0
@@ -244,7 +248,7 @@ class NearLightResult(Reconstruction):
             fit's covariance under the fitted noise model (what noise alone would make; a model error such as an
             unmodelled reflection adds to it).
         weights: each observation's weight in the last fit, :math:`(B, K, H, W)` in [0, 1]: the robust penalty's
-            (near 0 for a cast shadow or a highlight), 0 in attached shadow and where not valid.
+            (near 0 for a cast shadow, a highlight or an attached shadow), 0 where not valid.
         offset_mm: mean height of the cloth above the card plane, :math:`(B,)`, mm.
         tilt: the plane found from the images, :math:`(B, 2)`: its slopes dz/dx and dz/dy (x right, y up).
         bend: the quadric found from the images, :math:`(B, 3)`: its second derivatives d²z/dx², d²z/dxdy and
@@ -503,10 +507,12 @@ def _start(data: _Data, lights: Tensor, prior: Tensor, penalty: _Penalty) -> Ten
 
 def _robust_step(data: _Data, lights: Tensor, m: Tensor, prior: Tensor, penalty: _Penalty) -> _Fit:
     """One re-weighted Gauss–Newton step of the energy at fixed lights from ``m``: the penalty's weights of its
-    residuals times :math:`\\lambda_k`, the :math:`\\max`'s Jacobian (readings predicted in attached shadow leave)."""
+    residuals times :math:`\\lambda_k`, the :math:`\\max`'s Jacobian (readings predicted in attached shadow leave,
+    smoothly: :data:`_HINGE_WIDTH`)."""
     predicted = _predict(m, lights)
     variance = data.variance(predicted)
-    share = data.reliability * (predicted > 0) * penalty.weight((data.images - predicted.clamp_min(0)).square()
+    attached = torch.sigmoid(predicted / (_HINGE_WIDTH * variance.sqrt()))
+    share = data.reliability * attached * penalty.weight((data.images - predicted.clamp_min(0)).square()
                                                                  / variance)
     return _Fit(lights, data.images, share / variance, prior, share)
 
