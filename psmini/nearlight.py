@@ -640,21 +640,11 @@ def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float
 
 
 def _box_sum(x: Tensor) -> Tensor:
-    """Sums of ``x`` (B, 1, H, W) over each pixel's :data:`_FILL_SIZE`² window (clipped at the borders), from
-    cumulative sums: four passes whatever the window (a 9 × 9 average pool is 81 additions a pixel)."""
-    radius = _FILL_SIZE // 2
-    height, width = x.shape[-2:]
-    # in float64: the differences of sums over the whole image must keep a window's digits
-    table = F.pad(x.double(), (1, 0, 1, 0)).cumsum(-1).cumsum(-2)  # table[i, j]: the sum of x[:i, :j]
-    rows = torch.arange(height, device=x.device)
-    cols = torch.arange(width, device=x.device)
-    top, bottom = (rows - radius).clamp(0, height), (rows + radius + 1).clamp(0, height)
-    left, right = (cols - radius).clamp(0, width), (cols + radius + 1).clamp(0, width)
-
-    def at(r: Tensor, c: Tensor) -> Tensor:
-        return table[..., r, :][..., c]
-
-    return (at(bottom, right) - at(top, right) - at(bottom, left) + at(top, left)).to(x.dtype)
+    """Sums of ``x`` (B, 1, H, W) over each pixel's :data:`_FILL_SIZE`² window (clipped at the borders): two 1-D
+    average pools with the zeros beyond the border counted, times the window's area."""
+    k = _FILL_SIZE
+    rows = F.avg_pool2d(x, (k, 1), stride=1, padding=(k // 2, 0), count_include_pad=True)
+    return F.avg_pool2d(rows, (1, k), stride=1, padding=(0, k // 2), count_include_pad=True) * k**2
 
 
 def _masked_median(x: Tensor, region: Tensor) -> Tensor:
