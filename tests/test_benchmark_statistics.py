@@ -45,3 +45,31 @@ def test_against_baseline_counts_the_discordant_samples():
     cell = against_baseline(right, baseline, "the descriptors")
     assert cell.startswith("-20.0 (exact McNemar p = ")
     assert f"p = {mcnemar_exact(1, 3):.2g}: 1 test samples only the descriptors get right, 3 only the baseline" in cell
+
+
+def test_fit_chooses_c_by_cross_validation_grouped_by_seed():
+    """fit's C is the one a plain loop over the grid scores best on 5 folds that keep each seed's samples together
+    (an independent computation of the same choice), and the returned pipeline is refitted on all samples."""
+    from sklearn.linear_model import LogisticRegression
+    from sklearn.model_selection import GroupKFold
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    from benchmarks.fabric_recognition import C_GRID, fit
+
+    rng = np.random.default_rng(0)
+    seeds = np.repeat(np.arange(20), 3)
+    y = np.tile(["a", "b", "c"], 20)
+    x = rng.normal(size=(60, 12)) + 0.8 * (y[:, None] == np.array(["a", "b", "c"] + [""] * 9)[None, :])
+    scores = []
+    for c in C_GRID:
+        right = []
+        for train, test in GroupKFold(5).split(x, y, seeds):
+            model = make_pipeline(StandardScaler(), LogisticRegression(C=c, max_iter=20000)).fit(x[train], y[train])
+            right.append((model.predict(x[test]) == y[test]).mean())
+        scores.append(np.mean(right))
+    chosen = fit(x, y, seeds)
+    best = C_GRID[int(np.argmax(scores))]
+    strength = chosen.steps[1][1].C
+    assert strength == best
+    assert chosen.steps[0][1].n_samples_seen_ == 60

@@ -444,7 +444,7 @@ class TestDescribe:
         assert structure_row(rec, None)["structure_found"] is False
         entry = describe(z, PITCH)[0]
         vector = descriptor_vector(entry)
-        assert vector.shape == (23,) and np.isfinite(vector).all()
+        assert vector.shape == (39,) and np.isfinite(vector).all()
 
         expected = 1000 * math.sqrt((0.05 * passed(0.25)) ** 2 / 2 + (0.03 * passed(0.5)) ** 2 / 2)
         assert entry["waviness_um"] == pytest.approx(expected, rel=0.02)
@@ -461,8 +461,8 @@ class TestDescribe:
         expected = np.exp(logits) / np.exp(logits).sum(1, keepdims=True)
         np.testing.assert_allclose(model.predict_proba(x), expected)
         assert model.predict(x) == ["b", "c"]
-        data = model.to_dict() | {"version": 2}
-        with pytest.raises(DataFormatError, match="version 2"):
+        data = model.to_dict() | {"version": 1}
+        with pytest.raises(DataFormatError, match="version 1"):
             FabricClassifier.from_dict(data)
         with pytest.raises(DataFormatError, match="not a fabric model"):
             FabricClassifier.from_dict({"format": "pickle"})
@@ -682,6 +682,9 @@ class TestLattice:
         names = list(__import__("psmini.fabric", fromlist=["DESCRIPTOR_NAMES"]).DESCRIPTOR_NAMES)
         assert vector[names.index("repeat_min")] == min(repeats)
         assert vector[names.index("regular_weave")] == float(regular)
+        indicators = [vector[names.index(f"weave_repeat_is_{k}")] for k in range(1, 9)]
+        assert indicators == [float(k == max(repeats)) for k in range(1, 9)]
+        assert vector[names.index(f"repeat_min_is_{min(repeats)}")] == 1.0
 
     @pytest.mark.parametrize("weave", ["plain", "basket", "twill_2_1", "twill_3_1", "satin_5", "rib", "jersey"])
     def test_family_ground_truth(self, weave):

@@ -68,12 +68,19 @@ def describe_surface_options(pixel_pitch_mm: float) -> SurfaceOptions:
         return DESCRIBE_SURFACE_OPTIONS
     return replace(DESCRIBE_SURFACE_OPTIONS, s_cutoff_mm=s_cutoff)
 
+#: The repeats :func:`descriptor_vector` gives an indicator each (the last one: this many threads or more): a
+#: repeat is a category (a 5-end satin is no "more" a weave than a 4-end twill), which a linear classifier can
+#: only use as one; :class:`~psmini.fabric.structure.StructureOptions`' default ``max_repeat``.
+_REPEAT_CATEGORIES = 8
+
 #: The entries of :func:`descriptor_vector`, in order (none depends on the cloth's orientation).
 DESCRIPTOR_NAMES = (
     "Sq_um", "Ssk", "Sku", "Sz_um", "Sa_um", "Sdq", "Sdr_pct", "Sal_mm", "Str",
     "structure_found", "log_density_1", "log_density_2", "density_ratio", "crossing_angle_deg",
     "weave_repeat", "crimp_um", "openness", "log_sq_over_sal", "log_waviness_um", "albedo_relief_coupling",
     "log_albedo_periodicity", "repeat_min", "regular_weave",
+    *(f"weave_repeat_is_{k}" for k in range(1, _REPEAT_CATEGORIES + 1)),
+    *(f"repeat_min_is_{k}" for k in range(1, _REPEAT_CATEGORIES + 1)),
 )
 
 #: The band of :func:`describe`'s ``waviness_um``: relief between the yarn scale and the L-filter (prints, felting,
@@ -88,7 +95,7 @@ COUPLING_OPTIONS = SurfaceOptions(form_degree=1, s_cutoff_mm=0.5, l_cutoff_mm=1.
 _STRUCTURE = StructureOptions()
 
 MODEL_FORMAT = "psmini-fabric-classifier"
-MODEL_VERSION = 1
+MODEL_VERSION = 2
 
 
 def reconstruct_for_description(sample: Any, config: Any = None) -> Any:
@@ -341,12 +348,15 @@ def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
     directions, the repeat as the larger (``weave_repeat``) and the smaller of the two systems' repeats (a 2/2 rib:
     4 and 2), ``regular_weave`` 1 for a weave whose interlacing one shift generates (plain, twill, satin; not a
     basket or a rib), and a missing structure as zeros with ``structure_found`` 0; without albedo, the coupling as
-    0 and the albedo periodicity as log(0.001).
+    0 and the albedo periodicity as log(0.001). Both repeats also enter as indicators (``weave_repeat_is_k``,
+    ``repeat_min_is_k`` for k = 1..8, the last for 8 or more): a repeat is a category, and a linear classifier on
+    the number alone cannot tell a 2/2 basket (4) from a 3/1 twill (4) and a 5-end satin (5) apart from the
+    amplitudes, which change with the capture (``benchmarks/fabric_recognition.py --protocol shift`` measures it).
 
     Example:
         >>> entry = {"iso25178": dict.fromkeys(ISO_PARAMETERS, 1.0), "structure_found": False}
         >>> descriptor_vector(entry).shape
-        (23,)
+        (39,)
     """
     iso = entry["iso25178"]
 
@@ -370,6 +380,10 @@ def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
               num(entry.get("albedo_relief_coupling")), math.log(num(entry.get("albedo_periodicity")) + 1e-3),
               float(min(repeats)) if repeats else 0.0,
               1.0 if found and num(entry.get("weave_repeat")) >= 2 and entry.get("float_length") is not None else 0.0]
+    largest = int(num(entry.get("weave_repeat"))) if found else 0
+    smallest = min(repeats) if repeats else 0
+    values += [float(min(largest, _REPEAT_CATEGORIES) == k) for k in range(1, _REPEAT_CATEGORIES + 1)]
+    values += [float(min(smallest, _REPEAT_CATEGORIES) == k) for k in range(1, _REPEAT_CATEGORIES + 1)]
     return np.asarray(values, dtype=np.float64)
 
 
@@ -440,7 +454,7 @@ class FabricClassifier:
             >>> FabricClassifier.from_dict({"format": MODEL_FORMAT, "version": 99})
             Traceback (most recent call last):
             ...
-            psmini.errors.DataFormatError: fabric model version 99 is not supported; this psmini reads version 1
+            psmini.errors.DataFormatError: fabric model version 99 is not supported; this psmini reads version 2
         """
         if not isinstance(data, dict) or data.get("format") != MODEL_FORMAT:
             raise DataFormatError(f"not a fabric model: expected format {MODEL_FORMAT!r}, got "
