@@ -68,8 +68,9 @@ def test_fit_chooses_c_by_cross_validation_grouped_by_seed():
             model = make_pipeline(StandardScaler(), LogisticRegression(C=c, max_iter=20000)).fit(x[train], y[train])
             right.append((model.predict(x[test]) == y[test]).mean())
         scores.append(np.mean(right))
-    chosen = fit(x, y, seeds)
+    search = fit(x, y, seeds)
     best = C_GRID[int(np.argmax(scores))]
-    strength = chosen.steps[1][1].C
+    strength = search.best_estimator_.steps[1][1].C
     assert strength == best
-    assert chosen.steps[0][1].n_samples_seen_ == 60
+    assert search.best_score_ == pytest.approx(max(scores))
+    assert search.best_estimator_.steps[0][1].n_samples_seen_ == 60
