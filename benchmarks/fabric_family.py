@@ -15,7 +15,8 @@ reconstructed by psmini's default pipeline (near light for the rig's LED capture
    ISO S-filter of the pixel, 80 µm; an L-filter of 2.5 mm). For psmini's own fabrics (``data_synth.FABRICS``,
    seed 0, 0.5 mm above the card) the loss is split: the true normals integrated by the same integration, and the
    reconstruction's slopes with the true slopes put in at the pixels it left unsolved (what near light's unsolved
-   crevices cost).
+   crevices cost); for the family, what the true normals give with every slope clipped at a rise of 2 (63 deg:
+   what walls steeper than that hold of the relief) and the true height over the reconstruction's solved pixels.
 
 ``--cache DIR`` keeps every reconstruction (keyed by a hash of the renderer's and pipeline's code). Prints
 tables and appends them to ``benchmarks/results.md``. Usage::
@@ -112,10 +113,15 @@ def measure_relief(depth, mask, height) -> dict[str, tuple[float, float]]:
             "describe": bias(amplitude(depth, mask, iso), amplitude(height, None, iso))}
 
 
-def true_normals_bias(height: torch.Tensor) -> tuple[float, float]:
+#: The steepest facet of the "walls limited" column: a rise of 2 per run, 63.4 deg from the card's plane.
+STEEPEST_RISE = 2.0
+
+
+def true_normals_bias(height: torch.Tensor, limit: float | None = None) -> tuple[float, float]:
     """Sa/Sq bias (%) on describe's surface of the true normals (psmini's renderer's central differences)
     integrated by the near-light solver's final integration (masked least squares on the rectangle, with its
-    restoration of the trapezoidal rule's flattening)."""
+    restoration of the trapezoidal rule's flattening); with ``limit``, each slope clipped to +-limit first: what a
+    reconstruction would read that measured every facet exactly up to that steepness and none beyond it."""
     from psmini.fabric import describe_surface_options
     from psmini.integrate import integrate
     from psmini.integrate.least_squares import _undo_edge_averaging
@@ -124,8 +130,28 @@ def true_normals_bias(height: torch.Tensor) -> tuple[float, float]:
     iso = describe_surface_options(PITCH)
     normals = normals_from_height(height.double(), PITCH)
     p, q = -normals[:, :1] / normals[:, 2:], -normals[:, 1:2] / normals[:, 2:]
+    if limit is not None:
+        p, q = p.clamp(-limit, limit), q.clamp(-limit, limit)
     return bias(amplitude(_undo_edge_averaging(integrate(p, q, "masked", PITCH)), None, iso),
                 amplitude(height, None, iso))
+
+
+def steep_share(height: torch.Tensor, limit: float = STEEPEST_RISE) -> float:
+    """The share of pixels (%) whose true slope (gradient magnitude) exceeds ``limit``."""
+    from psmini.render import normals_from_height
+
+    normals = normals_from_height(height.double(), PITCH)
+    rise = normals[:, :2].square().sum(1).sqrt() / normals[:, 2]
+    return 100 * float((rise > limit).double().mean())
+
+
+def masked_truth_bias(height: torch.Tensor, mask: torch.Tensor) -> tuple[float, float]:
+    """Sa/Sq bias (%) on describe's surface of the true height over ``mask`` (the reconstruction's solved pixels)
+    against the whole field's: what leaving the unsolved pixels out costs by itself."""
+    from psmini.fabric import describe_surface_options
+
+    iso = describe_surface_options(PITCH)
+    return bias(amplitude(height, mask, iso), amplitude(height, None, iso))
 
 
 def without_fill(reconstruct):
@@ -237,6 +263,9 @@ def main(argv: list[str] | None = None) -> int:
         for key, value in measure_relief(rec.depth, rec.mask, fabric.height_mm).items():
             relief[fabric.name][key].append(value)
         relief[fabric.name]["true normals"].append(true_normals_bias(fabric.height_mm))
+        relief[fabric.name]["walls limited"].append(true_normals_bias(fabric.height_mm, STEEPEST_RISE))
+        relief[fabric.name]["solved pixels"].append(masked_truth_bias(fabric.height_mm, rec.mask))
+        relief[fabric.name]["steep"].append((steep_share(fabric.height_mm), 0.0))
         if seed < args.first_seed + args.fill_diagnostic:
             make = capture_maker(fabric, rig, card, seed, lift)
             unfilled = without_fill(lambda key=f"weave{seed}-{args.size}-nofill", make=make: reconstruct_capture(
@@ -263,15 +292,20 @@ def main(argv: list[str] | None = None) -> int:
                      f"{params['weft_per_cm']:.1f}/cm at {params['orientation_deg']:.1f} deg, crimp "
                      f"{params['crimp_ratio']:.2f} x the yarn height" for source, seed, name, kinds, params in failures]
     relief_rows = []
-    columns = ("plane", "describe", "true normals")
+    columns = ("plane", "describe", "true normals", "walls limited", "solved pixels")
+
+    def mean_share(values: list) -> str:
+        return f"{np.mean([v[0] for v in values]):.1f}%"
+
     for w in weaves:
         r = relief[w]
         relief_rows.append([w, counts[w]] + [f"{summary([v[0] for v in r[k]])} / {summary([v[1] for v in r[k]])}"
-                                             for k in columns] + [within(r["describe"])])
-    every = {k: [v for w in weaves for v in relief[w][k]] for k in columns + ("with the fill", "without the fill")}
+                                             for k in columns] + [mean_share(r["steep"]), within(r["describe"])])
+    every = {k: [v for w in weaves for v in relief[w][k]]
+             for k in columns + ("steep", "with the fill", "without the fill")}
     relief_rows.append(["all", args.samples] + [f"{summary([v[0] for v in every[k]])} / "
                                                 f"{summary([v[1] for v in every[k]])}" for k in columns]
-                       + [within(every["describe"])])
+                       + [mean_share(every["steep"]), within(every["describe"])])
 
     body = [
         f"{args.samples} members of `data_synth.weaves` (seeds {seeds[0]}..{seeds[-1]}), {args.size}x{args.size} px at "
@@ -293,11 +327,16 @@ def main(argv: list[str] | None = None) -> int:
         "Relief amplitude of the reconstruction (over its solved pixels) against the true height (the whole field), "
         "Sa / Sq bias in per "
         "cent (mean ± sd, extremes): levelled by a plane; on describe's ISO surface (80 um S-filter, 2.5 mm "
-        "L-filter); the true normals integrated by the same integration, on describe's surface; samples whose "
-        "reconstruction has both within 5% on describe's surface:",
+        "L-filter); the true normals integrated by the same integration, on describe's surface; the same with every "
+        f"slope clipped to a rise of {STEEPEST_RISE:g} ({np.degrees(np.arctan(STEEPEST_RISE)):.1f} deg: what a "
+        "reconstruction would read that measured every facet exactly up to that steepness and none beyond); the true "
+        "height over the reconstruction's solved pixels alone (what leaving the unsolved ones out costs by itself); "
+        "the share of pixels steeper than that; samples whose reconstruction has both within 5% on describe's "
+        "surface:",
         "",
-        table(["weave", "n", "plane", "describe's surface", "true normals, describe's surface", "within 5%"],
-              relief_rows),
+        table(["weave", "n", "plane", "describe's surface", "true normals, describe's surface",
+               f"true normals, walls limited to {np.degrees(np.arctan(STEEPEST_RISE)):.0f} deg",
+               "true height, solved pixels", "steeper pixels", "within 5%"], relief_rows),
     ]
     if args.fill_diagnostic:
         n = len(every["without the fill"])
