@@ -213,8 +213,8 @@ class NearLightResult(Reconstruction):
 
     Attributes:
         normal_std: predicted root-mean-square angular error of each normal, :math:`(B, 1, H, W)`, degrees: from the
-            fit's covariance under the fitted noise model (what noise alone would make; a model error such as an
-            unmodelled reflection adds to it).
+            fit's covariance under the fitted noise model, scaled up where the readings fit worse than their noise
+            (a model error such as an unmodelled reflection, :func:`_misfit`); ``mask`` uses the noise's part.
         weights: each observation's weight in the last fit, :math:`(B, K, H, W)` in [0, 1]: the robust penalty's
             (near 0 for a cast shadow, a highlight or an attached shadow), 0 where not valid.
         offset_mm: mean height of the cloth above the card plane, :math:`(B,)`, mm.
@@ -482,8 +482,7 @@ def _fit_noise(data: _Data, lights: Tensor, fit: _Fit, penalty: _Penalty, rounds
     highlights do not count) and its consistency factor, started at their median (read noise alone). Readings in
     attached shadow measure :math:`\alpha`, but not one of exactly 0, clamped there by the dark subtraction (a
     shadow's others are the positive half of its noise, whose mean square is its variance). The model's accuracy at
-    the readings' RMS level bounds :math:`\alpha` below.
-    """
+    the readings' RMS level bounds :math:`\alpha` below."""
     predicted = _predict(fit.m, lights).clamp_min(0)
     counted = data.valid * (data.images > 0)
     gain = torch.where(counted > 0, data.gain, torch.ones_like(data.gain))
@@ -529,8 +528,7 @@ def _normal_std_deg(data: _Data, lights: Tensor, fit: _Fit, prior: Tensor, facto
     C (I - nn^\top))} / \rho`, at most 180°. A reading predicted within a few noise levels of zero is not known to be
     lit (the :math:`\max` makes its constraint one-sided): its information counts by :math:`z^2 / (z^2 + 3^2)`,
     :math:`z` its prediction in noise levels, so that a pixel lit by two LEDs whose fit leans on a dark reading at the
-    shadow's edge is not taken for a well-measured one.
-    """
+    shadow's edge is not taken for a well-measured one."""
     predicted = _predict(fit.m, lights)
     snr_sq = predicted.clamp_min(0).square() / data.variance(predicted)
     information = _Fit(lights, data.images, fit.weights * snr_sq / (snr_sq + _LIT_SIGMAS**2), prior)
@@ -583,6 +581,18 @@ def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float
     # solution, so the one computed must be it
     tolerance = None if torch.is_grad_enabled() and wu.requires_grad else _CG_TOLERANCE
     return solve_weighted_poisson(wu, wv, tu, tv, domain.to(p.dtype), x0=start, tol=tolerance)
+
+
+def _misfit(data: _Data, lights: Tensor, fit: _Fit, penalty: _Penalty) -> Tensor:
+    """The a posteriori variance factor (least-squares adjustment's) around each pixel, at least 1, (B, 1, h, w): its
+    :data:`_FILL_SIZE`² window's weighted squared residuals over what noise alone would leave, the penalty's consistency
+    times the weights less their leverage. Where the model misfits (a metallic glint) the covariance is that short."""
+    predicted = _predict(fit.m, lights)
+    residual_sq = (data.images - predicted.clamp_min(0)).square() / data.variance(predicted)
+    assert fit.share is not None
+    leverage = (fit.weights * fit.quadratic(lights)).clamp(0, 1)
+    freedom = _box_sum((fit.share * (1 - leverage)).sum(1, keepdim=True)) * penalty.consistency
+    return (_box_sum((fit.share * residual_sq).sum(1, keepdim=True)) / freedom.clamp_min(1)).clamp_min(1)
 
 
 def _box_sum(x: Tensor) -> Tensor:
@@ -734,15 +744,13 @@ def near_light_energy(intensities: Tensor, light_model: nn.Module, result: Recon
         (torch.Size([1]), True)
     """
     sizes = check_shape(intensities, ["B", "K", "H", "W"], "intensities")
-    depth, albedo, normals = result.depth, result.albedo, result.normals
-    for name, value, channels in (("depth", depth, "1"), ("albedo", albedo, "1"), ("normals", normals, "3")):
-        check_shape(value, [str(sizes["B"]), channels, str(sizes["H"]), str(sizes["W"])], name)
-    lights = near_light_vectors(light_model, depth, pixel_pitch_mm, card_height_mm)
-    residual_sq = ((intensities - albedo * _predict(normals, lights).clamp_min(0)) / noise_std).square()
+    for name, channels in (("depth", "1"), ("albedo", "1"), ("normals", "3")):
+        check_shape(getattr(result, name), [str(sizes["B"]), channels, str(sizes["H"]), str(sizes["W"])], name)
+    lights = near_light_vectors(light_model, result.depth, pixel_pitch_mm, card_height_mm)
+    residual_sq = ((intensities - result.albedo * _predict(result.normals, lights).clamp_min(0)) / noise_std).square()
     reading = intensities.clamp_min(0).square()
     weight = reading / (reading + (_LIT_SIGMAS * noise_std).square() + torch.finfo(reading.dtype).tiny)
-    if valid is not None:
-        weight = weight * valid.to(weight)
+    weight = weight if valid is None else weight * valid.to(weight)
     return (_check_options(options).penalty_function().value(residual_sq) * weight).sum(dim=(1, 2, 3))
 
 
@@ -797,8 +805,8 @@ def solve_near_light(
 
     Returns:
         :class:`NearLightResult`; ``depth`` is the absolute height above the card plane's origin, mm, ``mask`` the
-        pixels whose normal the readings decide (predicted error under 30°), ``normal_std`` each normal's predicted
-        RMS error, degrees.
+        pixels whose normal the readings decide (error predicted from the noise under 30°), ``normal_std`` each
+        normal's predicted RMS error, degrees (from the noise and the fit's misfit).
 
     Raises:
         ShapeError: when the shapes do not match (K of the images vs the light model, mask, valid, gain).
@@ -849,13 +857,10 @@ class _State:
     m: Tensor | None = None
     normal_std: Tensor | None = None
     weights: Tensor | None = None  # each reading's weight in [0, 1] in the last fit
+    misfit: Tensor | None = None  # its variance factor at full resolution (_misfit)
     iterations: int = 0
     changes: list[float] = dataclasses.field(default_factory=list)
     converged: bool = False
-
-    @property
-    def depth(self) -> Tensor:
-        return _placed(self.relative, self.basis, self.theta)
 
 
 def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, model: nn.Module, pitch: float,
@@ -910,13 +915,14 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
     before: Tensor | None = None
     for iteration in range(iterations):
         state.iterations += 1
-        lights = field(state.depth)
+        depth = _placed(state.relative, state.basis, state.theta)
+        lights = field(depth)
         # every alternation starts afresh from the lit readings (a fit remembers no rejection made at other lights),
         # with the current surface's normal as the prior (at first the coarse level's, or the flat surface's)
         if state.m is None:
             prior = (data.images * data.valid).amax(dim=1, keepdim=True) * _up(state.relative)
         else:
-            prior = vector_length(state.m, dim=1) * normals_from_height(state.depth, pitch)
+            prior = vector_length(state.m, dim=1) * normals_from_height(depth, pitch)
         if state.weights is None:  # the level's first fit: a noise model from the lit readings' least squares
             first = _initial_fit(data, lights, prior).every(_NOISE_STRIDE)
             data.set_noise(_fit_noise(data.every(_NOISE_STRIDE), _stride(lights, _NOISE_STRIDE), first, penalty, 6))
@@ -938,6 +944,7 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
         before = normals
         state.m, state.normal_std = _keep(done, state.m, m), _keep(done, state.normal_std, normal_std)
         state.weights = _keep(done, state.weights, fit.share if fit.share is not None else fit.weights)
+        state.misfit = _keep(done, state.misfit, _misfit(data, lights, fit, penalty)) if final else None
         if bool(done.all()):
             state.converged = True
             break
@@ -972,6 +979,7 @@ def _finish(data: _Data, field: _LightField, state: _State, domain: Tensor, full
     Gauss–Newton step on every pixel (on a sixteenth of them a knit's or a net's bend does not stand clear of its
     noise), without a line search (in the step's basin a half step is a bias): the guide's step 3."""
     assert state.m is not None and state.normal_std is not None and state.weights is not None
+    assert state.misfit is not None
     albedo, normals = _split(state.m)
     relative = _integrate(normals, state.normal_std, domain, pitch, options.integrator, state.relative)
     if options.integrator == "masked" and full:
@@ -985,6 +993,7 @@ def _finish(data: _Data, field: _LightField, state: _State, domain: Tensor, full
     normals = torch.where(domain, normals, _up(albedo))
     p, q = _slopes_of(normals)
     return NearLightResult(albedo * inside, normals, p, q, depth, domain & (state.normal_std < _SOLVED_BELOW_DEG),
-                           normal_std=state.normal_std, weights=state.weights * inside, noise=data.noise.view(-1, 3),
+                           normal_std=(state.normal_std * state.misfit.sqrt()).clamp(max=180.0),
+                           weights=state.weights * inside, noise=data.noise.view(-1, 3),
                            offset_mm=_masked_mean(depth, domain).view(-1), tilt=theta[:, 1:3], bend=theta[:, 3:],
                            iterations=state.iterations, changes_deg=tuple(state.changes), converged=state.converged)
