@@ -214,7 +214,7 @@ class NearLightResult(Reconstruction):
     Attributes:
         normal_std: predicted root-mean-square angular error of each normal, :math:`(B, 1, H, W)`, degrees: from the
             fit's covariance under the fitted noise model, scaled up where the readings fit worse than their noise
-            (a model error such as an unmodelled reflection, :func:`_misfit`); ``mask`` uses the noise's part.
+            (a model error such as an unmodelled reflection); ``mask`` uses the noise's part.
         weights: each observation's weight in the last fit, :math:`(B, K, H, W)` in [0, 1]: the robust penalty's
             (near 0 for a cast shadow, a highlight or an attached shadow), 0 where not valid.
         offset_mm: mean height of the cloth above the card plane, :math:`(B,)`, mm.
@@ -522,21 +522,34 @@ def _non_negative_solve(normal: Tensor, rhs: Tensor) -> Tensor:
     return solution.clamp_min(0)
 
 
-def _normal_std_deg(data: _Data, lights: Tensor, fit: _Fit, prior: Tensor, factor: float) -> Tensor:
-    r"""Predicted RMS angular error (degrees) of each normal, :math:`(B, 1, h, w)`: the fit's covariance
-    :math:`C = \text{factor}\,(A + \lambda I)^{-1}` across the normal, :math:`\sqrt{\operatorname{tr}((I - nn^\top)
-    C (I - nn^\top))} / \rho`, at most 180°. A reading predicted within a few noise levels of zero is not known to be
-    lit (the :math:`\max` makes its constraint one-sided): its information counts by :math:`z^2 / (z^2 + 3^2)`,
-    :math:`z` its prediction in noise levels, so that a pixel lit by two LEDs whose fit leans on a dark reading at the
-    shadow's edge is not taken for a well-measured one."""
+def _normal_std(data: _Data, lights: Tensor, fit: _Fit, prior: Tensor, penalty: _Penalty) -> tuple[Tensor, Tensor]:
+    r"""Predicted RMS angular error (degrees) of each normal from the noise, :math:`(B, 1, h, w)`, and the factor of its
+    variance that the readings' misfit calls for. The first: the fit's covariance :math:`C = c\,(A + \lambda I)^{-1}`
+    (:math:`c` the penalty's covariance factor) across the normal, :math:`\sqrt{\operatorname{tr}((I - nn^\top) C (I -
+    nn^\top))} / \rho`, at most 180°, where a reading predicted within a few noise levels of zero, not known to be lit
+    (the :math:`\max` makes its constraint one-sided), counts by :math:`z^2 / (z^2 + 3^2)`, :math:`z` its prediction in
+    noise levels (a pixel lit by two LEDs that leans on a dark reading at a shadow's edge is not well measured). The
+    second: least-squares adjustment's a posteriori variance factor, at least 1, over each pixel's
+    :data:`_FILL_SIZE`² window: the weighted squared standardised residuals over what noise alone leaves, the
+    penalty's consistency times the weights less their leverages, :math:`\sum_k s_k h_k = \operatorname{tr}(A^{-1}
+    \sum_k s_k w_k L_k L_k^\top)`. Where the model misfits (a metallic glint) the covariance understates the error."""
+    assert fit.share is not None
     predicted = _predict(fit.m, lights)
-    snr_sq = predicted.clamp_min(0).square() / data.variance(predicted)
+    variance = data.variance(predicted)
+    snr_sq = predicted.clamp_min(0).square() / variance
     information = _Fit(lights, data.images, fit.weights * snr_sq / (snr_sq + _LIT_SIGMAS**2), prior)
     albedo, normals = _split(fit.m)
     i00, _, _, i11, _, i22 = information.inverse
     across = (i00 + i11 + i22).to(normals.dtype) - information.quadratic(normals.unsqueeze(1))[:, 0]
-    radians = (across.clamp_min(0) * factor).sqrt() / albedo.squeeze(1).clamp_min(torch.finfo(albedo.dtype).eps)
-    return (radians.unsqueeze(1) * (180 / math.pi)).clamp(max=180.0)
+    albedo = albedo.squeeze(1).clamp_min(torch.finfo(albedo.dtype).eps)
+    radians = (across.clamp_min(0) * penalty.covariance_factor).sqrt() / albedo
+    weighted, pairs = (fit.share * fit.weights).unsqueeze(2) * lights, ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    leverage = torch.stack([(2 - (i == j)) * c * (weighted[:, :, i] * lights[:, :, j]).sum(1).double()
+                            for c, (i, j) in zip(fit.inverse, pairs, strict=True)]).sum(0)  # _Fit.inverse's order
+    freedom = _box_sum((fit.share.sum(1) - leverage.to(variance.dtype)).clamp_min(0).unsqueeze(1))
+    residual_sq = (fit.share * (data.images - predicted.clamp_min(0)).square() / variance).sum(1, keepdim=True)
+    misfit = _box_sum(residual_sq) / (freedom * penalty.consistency).clamp_min(1)
+    return (radians.unsqueeze(1) * (180 / math.pi)).clamp(max=180.0), misfit.clamp_min(1)
 
 
 def _split(m: Tensor) -> tuple[Tensor, Tensor]:
@@ -581,18 +594,6 @@ def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float
     # solution, so the one computed must be it
     tolerance = None if torch.is_grad_enabled() and wu.requires_grad else _CG_TOLERANCE
     return solve_weighted_poisson(wu, wv, tu, tv, domain.to(p.dtype), x0=start, tol=tolerance)
-
-
-def _misfit(data: _Data, lights: Tensor, fit: _Fit, penalty: _Penalty) -> Tensor:
-    """The a posteriori variance factor (least-squares adjustment's) around each pixel, at least 1, (B, 1, h, w): its
-    :data:`_FILL_SIZE`² window's weighted squared residuals over what noise alone would leave, the penalty's consistency
-    times the weights less their leverage. Where the model misfits (a metallic glint) the covariance is that short."""
-    predicted = _predict(fit.m, lights)
-    residual_sq = (data.images - predicted.clamp_min(0)).square() / data.variance(predicted)
-    assert fit.share is not None
-    leverage = (fit.weights * fit.quadratic(lights)).clamp(0, 1)
-    freedom = _box_sum((fit.share * (1 - leverage)).sum(1, keepdim=True)) * penalty.consistency
-    return (_box_sum((fit.share * residual_sq).sum(1, keepdim=True)) / freedom.clamp_min(1)).clamp_min(1)
 
 
 def _box_sum(x: Tensor) -> Tensor:
@@ -857,7 +858,7 @@ class _State:
     m: Tensor | None = None
     normal_std: Tensor | None = None
     weights: Tensor | None = None  # each reading's weight in [0, 1] in the last fit
-    misfit: Tensor | None = None  # its variance factor at full resolution (_misfit)
+    misfit: Tensor | None = None  # the factor of its variance the misfit calls for (_normal_std)
     iterations: int = 0
     changes: list[float] = dataclasses.field(default_factory=list)
     converged: bool = False
@@ -932,7 +933,7 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
             m = fit.m
         data.set_noise(_fit_noise(data.every(_NOISE_STRIDE), _stride(lights, _NOISE_STRIDE),
                                   fit.every(_NOISE_STRIDE), penalty, rounds=2))
-        normal_std = _normal_std_deg(data, lights, fit, prior, penalty.covariance_factor)
+        normal_std, misfit = _normal_std(data, lights, fit, prior, penalty)
         normals = _split(m)[1]
         if before is not None:  # the mean angle between the normals and the last alternation's, degrees
             chord = vector_length(normals - before, dim=1).clamp(max=2)
@@ -944,7 +945,7 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
         before = normals
         state.m, state.normal_std = _keep(done, state.m, m), _keep(done, state.normal_std, normal_std)
         state.weights = _keep(done, state.weights, fit.share if fit.share is not None else fit.weights)
-        state.misfit = _keep(done, state.misfit, _misfit(data, lights, fit, penalty)) if final else None
+        state.misfit = _keep(done, state.misfit, misfit)
         if bool(done.all()):
             state.converged = True
             break
