@@ -1,51 +1,22 @@
 r"""Near-light photometric stereo as one robust, smooth energy.
 
-At the rig's geometry (LEDs about 10 mm above a 10 mm field) the light of each LED changes across the field and with
-the height of the cloth. With a light model :math:`L_k(x)` (:mod:`psmini.lights`: unit direction times irradiance at
-the surface point :math:`x`), a Lambertian pixel reads :math:`I_k = \rho \max(n \cdot L_k(x), 0)`. Near light
-minimises, over the albedo :math:`\rho`, the normals :math:`n`, the depth :math:`z` (and with it the surface points
-:math:`x`), the cloth's absolute height, its tilt and its bend, one energy:
+With a light model :math:`L_k(x)` (:mod:`psmini.lights`: unit direction times irradiance at the surface point
+:math:`x`), a Lambertian pixel reads :math:`I_k = \rho \max(n \cdot L_k(x), 0)`. Near light minimises, over the
+albedo :math:`\rho`, the normals :math:`n`, the depth :math:`z`, the cloth's absolute height, its tilt and its bend:
 
 .. math::
     E = \sum_{\text{pixels}} \sum_k \lambda_k\, \psi(r_k), \qquad
     r_k = \frac{I_k - \rho \max(n \cdot L_k(x(z)), 0)}{\sigma_k}, \qquad
     \lambda_k = \frac{I_k^2}{I_k^2 + 9\sigma_k^2}
 
-with :math:`\psi` a robust, smooth penalty of each reading's residual over its noise level: Welsch's
-:math:`\tfrac{c^2}{2}(1 - e^{-r^2/c^2})` by default (Dennis and Welsch 1978), or Cauchy's (Quéau, Durix, Wu, Cremers,
-Lauze and Durou, "LED-based photometric stereo: modeling, calibration and numerical solution", JMIV 60, 2018,
-Section 4, compare robust estimators of this kind). Shadows need no selection: an attached shadow is the
-:math:`\max(\cdot, 0)`, a cast shadow or a metallic highlight a residual of many noise levels that the bounded penalty
-stops counting. A reading within its noise of zero counts little (:math:`\lambda_k`): it is as likely a cast shadow as
-an attached one, and it says almost nothing about the normal. Every decision is therefore a smooth function of the
-input (no threshold for a rounding change to cross), and the solve is differentiable with respect to the images and
-to the light model's parameters, which the solver reaches only through the :class:`~psmini.lights.LightModel`
-interface: ``model(points)`` → unit directions and irradiance.
-
-The noise level follows the camera: :math:`\sigma_k^2 = s_k^2 \alpha + s_k \beta\,\hat I_k + \gamma \hat I_k^2`, read
-noise and shot noise of the raw reading :math:`\hat I_k / s_k` (:math:`s_k` the flat-field's gain, the factor each
-raw reading was multiplied by) and a relative accuracy of the model. :math:`\alpha` and :math:`\beta` are fitted to
-each capture's own residuals (a robust regression of the squared residuals, corrected for the fit's leverage), so the
-penalty's scale is right for any camera, bit depth or exposure.
-
-The minimisation alternates (Quéau et al. 2018; Logothetis et al. 2017 use the same fixed point):
-
-1. lights at the current depth, then per pixel re-weighted Gauss–Newton steps on :math:`m = \rho n` (the weights are
-   the penalty's, the Jacobian the :math:`\max`'s), with a faint prior toward the current surface's normal so that a
-   crevice lit by fewer than three LEDs keeps a defined normal;
-2. the normals integrated to depth by least squares, each slope weighted by its inverse variance;
-3. the absolute height, the tilt and the bend (a quadric) by Gauss–Newton on the same energy with the normals
-   projected out (variable projection, Golub and Pereyra 1973): the light field is not uniform, so the residuals
-   vanish only at the true height. Integration cannot see a step; where a surface steps down the same way again and
-   again (a purl's courses) the lost steps add up to a tilt, where the steps lost depend on how the LEDs light them
-   (a knit's or a net's walls, grazing-lit toward the field's edges) to a bowl, which this step restores. It runs on
-   a sixteenth of the pixels in the alternations, and once more on all of them on the final depth.
-
-The first alternations run on 2 × 2-averaged images, after a scan of the height over ``options.search_mm``. Each
-alternation is a fixed sequence of differentiable operations, so ``torch.autograd`` differentiates the whole solve;
-the scans' choice of a starting height and the alternations' count are discrete but locally constant. Each pixel
-also gets the predicted root-mean-square angular error of its normal (``normal_std``, degrees) from the fit's
-covariance under the fitted noise.
+with :math:`\psi` Welsch's robust penalty by default (Dennis and Welsch 1978) or Cauchy's (Quéau, Durix, Wu, Cremers,
+Lauze and Durou, "LED-based photometric stereo: modeling, calibration and numerical solution", JMIV 60, 2018, Section
+4, compare robust estimators of this kind), and :math:`\sigma_k` each reading's noise level, fitted to the capture.
+It alternates (Quéau et al. 2018; Logothetis et al. 2017 use the same fixed point), coarse to fine: per pixel
+re-weighted Gauss–Newton steps on :math:`m = \rho n` at the current depth's lights; the normals integrated to depth;
+the height, tilt and bend by Gauss–Newton with the normals projected out (variable projection, Golub and Pereyra
+1973). ``torch.autograd`` differentiates the whole solve in the images and the light model's parameters. The
+near-light guide, ``docs/guides/near-light.md``, says why this form, how each step works and what it measures up to.
 """
 
 from __future__ import annotations
@@ -89,9 +60,8 @@ _EFFICIENT_SCALES = {"welsch": 2.9846, "cauchy": 2.3849}
 _MODEL_ERROR = 1e-3
 # A reading counts by I² / (I² + (this × σ)²): within three noise levels of zero it is not known to be lit.
 _LIT_SIGMAS = 3.0
-# The max's Jacobian, a step at zero prediction, is taken as a logistic over this fraction of the reading's noise
-# level (98% lit one noise level above zero): a step would let a rounding change of a prediction at zero switch a
-# reading's weight (a knit pixel lit by one LED turned by 7.6° between float32 and float64).
+# The max's Jacobian is a logistic over this fraction of the reading's noise level (98% lit one noise level above
+# zero), not a step, which would let a rounding change of a prediction at zero switch a reading's weight.
 _HINGE_WIDTH = 0.25
 # Welsch's exp(-z) is taken at z <= this: e^-64 (1.6e-28) is nothing beside any weight that counts, and exp's
 # underflow toward float32's subnormals runs ten times slower on CPUs (shadows put most readings there).
@@ -122,7 +92,7 @@ _MAX_STEP_MM = 0.5
 # Step (mm) of the forward difference of the light field in the height (it changes over millimetres).
 _HEIGHT_STEP_MM = 0.01
 # The noise model is fitted on every _NOISE_STRIDE-th pixel in each direction (two parameters), the placement on
-# the stride that leaves about _PLACE_PIXELS of them (three parameters, on a sixteenth of the rig's 400² frame).
+# the stride that leaves about _PLACE_PIXELS of them (six parameters, on a sixteenth of the rig's 400² frame).
 _NOISE_STRIDE = 4
 _PLACE_PIXELS = 10_000
 # Heights tried by a scan: at most this many, an eighth of a millimetre apart at least.
@@ -223,9 +193,7 @@ class NearLightOptions:
 
     def to_dict(self) -> dict:
         """The options as a JSON-serialisable dict (``NearLightOptions(**d)`` rebuilds them)."""
-        values = dataclasses.asdict(self)
-        values["search_mm"] = list(self.search_mm)
-        return values
+        return dataclasses.asdict(self) | {"search_mm": list(self.search_mm)}
 
     def replace(self, **changes) -> NearLightOptions:
         """A copy with some fields changed (validated again).
@@ -234,8 +202,7 @@ class NearLightOptions:
             InputError: for a name that is no option, or a value out of range.
         """
         names = [f.name for f in dataclasses.fields(self)]
-        unknown = set(changes) - set(names)
-        if unknown:
+        if unknown := set(changes) - set(names):
             raise InputError(f"unknown near-light options {sorted(unknown)}; expected some of {names}")
         return dataclasses.replace(self, **changes)
 
@@ -246,8 +213,8 @@ class NearLightResult(Reconstruction):
 
     Attributes:
         normal_std: predicted root-mean-square angular error of each normal, :math:`(B, 1, H, W)`, degrees: from the
-            fit's covariance under the fitted noise model (what noise alone would make; a model error such as an
-            unmodelled reflection adds to it).
+            fit's covariance under the fitted noise model, scaled up where the readings fit worse than their noise
+            (a model error such as an unmodelled reflection); ``mask`` uses the noise's part.
         weights: each observation's weight in the last fit, :math:`(B, K, H, W)` in [0, 1]: the robust penalty's
             (near 0 for a cast shadow, a highlight or an attached shadow), 0 where not valid.
         offset_mm: mean height of the cloth above the card plane, :math:`(B,)`, mm.
@@ -275,11 +242,9 @@ class NearLightResult(Reconstruction):
 
     @classmethod
     def concatenate(cls, parts: list[NearLightResult]) -> NearLightResult:
-        """One result from those of consecutive chunks of a batch: tensors concatenated, the alternations' counts
-        and changes the largest over the chunks, converged when every chunk converged."""
-        names = ("albedo", "normals", "p", "q", "depth", "mask", "normal_std", "weights", "offset_mm", "tilt",
-                 "bend", "noise")
-        tensors = {name: torch.cat([getattr(part, name) for part in parts]) for name in names}
+        """A batch's chunks' results as one: tensors concatenated, counts and changes the largest, converged if all."""
+        tensors = {f.name: torch.cat([getattr(part, f.name) for part in parts]) for f in dataclasses.fields(cls)
+                   if isinstance(getattr(parts[0], f.name), Tensor)}
         longest = max(len(part.changes_deg) for part in parts)
         changes = tuple(max(part.changes_deg[i] for part in parts if i < len(part.changes_deg))
                         for i in range(longest))
@@ -292,12 +257,9 @@ class NearLightResult(Reconstruction):
 
 class _LightField:
     """Light vectors :math:`L_k` of a model on a pixel grid (every ``stride``-th pixel), relative to the card's
-    reading when the images were flat-fielded by a card at ``card_height``.
-
-    The card at height :math:`h_c` reads :math:`\\rho_c E_k(x_c)\\,l_{k,z}(x_c)`, so a flat-fielded pixel reads
-    :math:`\\rho\\, n \\cdot L_k(x) / (E_k(x_c)\\,l_{k,z}(x_c))`: the camera's gain, vignetting and the LEDs'
-    intensities cancel. The model is asked nothing but ``model(points)``.
-    """
+    reading when the images were flat-fielded by a card at ``card_height``: the card reads
+    :math:`\\rho_c E_k(x_c)\\,l_{k,z}(x_c)`, so a flat-fielded pixel reads :math:`\\rho\\, n \\cdot L_k(x) /
+    (E_k(x_c)\\,l_{k,z}(x_c))`, the camera's gain, vignetting and the LEDs' intensities cancelled."""
 
     def __init__(self, model: nn.Module, size: tuple[int, int], pitch: float, card_height: float | None,
                  like: Tensor, stride: int = 1) -> None:
@@ -359,9 +321,8 @@ def near_light_vectors(light_model: nn.Module, depth: Tensor, pixel_pitch_mm: fl
 
 
 class _Data:
-    """One level's images :math:`(B, K, h, w)` and what the energy needs of them: validity (float 0/1), the
-    flat-field's gain (broadcastable; 1 for raw images), the noise model :math:`(\\alpha, \\beta, \\gamma)` (B, 3, 1, 1)
-    and each reading's weight :math:`\\lambda_k` in the energy."""
+    """One level's images :math:`(B, K, h, w)`, their validity (float 0/1), the flat-field's gain (broadcastable; 1 for
+    raw images), the noise model :math:`(\\alpha, \\beta, \\gamma)` (B, 3, 1, 1) and each :math:`\\lambda_k`."""
 
     def __init__(self, images: Tensor, valid: Tensor, gain: Tensor, noise: Tensor) -> None:
         self.images, self.valid, self.gain, self.noise = images, valid, gain, noise
@@ -370,9 +331,8 @@ class _Data:
         self.read = torch.where(valid > 0, gain.square() * noise[:, 0:1], torch.ones_like(valid))
         self.shot = gain * noise[:, 1:2] * valid
         reading = images.clamp_min(0)
-        # a reading within its noise of zero is as likely a cast shadow as an attached one or a grazing light: it
-        # says little about the normal, and a bounded penalty would otherwise rather turn a normal away from the LEDs
-        # of several cast shadows than pay for them
+        # a reading within its noise of zero is as likely a cast shadow as an attached one: it says little about the
+        # normal, and a bounded penalty would otherwise rather turn a normal away from the LEDs of cast shadows
         self.reliability = valid * reading.square() / (reading.square() + _LIT_SIGMAS**2 * self.variance(reading)
                                                        + torch.finfo(reading.dtype).tiny)
 
@@ -387,20 +347,14 @@ class _Data:
 
     def every(self, stride: int) -> _Data:
         """The same data on every ``stride``-th pixel in each direction."""
-        def sub(x: Tensor) -> Tensor:
-            return x[..., ::stride, ::stride] if x.shape[-1] > 1 else x
-
-        return _Data(sub(self.images), sub(self.valid), sub(self.gain), self.noise)
+        return _Data(_stride(self.images, stride), _stride(self.valid, stride), _stride(self.gain, stride), self.noise)
 
 
 class _Fit:
     """A per-pixel weighted least-squares fit of :math:`m = \\rho n` with a Gaussian prior: the inverse of its normal
     matrix, the weights that made it (with the noise: ``weights``; without: ``share``, in [0, 1]) and the solution.
-
-    The 3 × 3 algebra (adjugate over determinant, element-wise: batched LAPACK on millions of 3 × 3 systems costs far
-    more) runs in float64 whatever the images' dtype: where two LEDs light a pixel its third direction is held by the
-    faint prior alone, a condition number beyond float32's seven digits.
-    """
+    The 3 × 3 algebra (adjugates: batched LAPACK on millions of 3 × 3 systems costs far more) runs in float64: where
+    two LEDs light a pixel its third direction is held by the faint prior alone, beyond float32's seven digits."""
 
     def __init__(self, lights: Tensor, images: Tensor, weights: Tensor, prior: Tensor,
                  share: Tensor | None = None) -> None:
@@ -521,16 +475,14 @@ def _robust_step(data: _Data, lights: Tensor, m: Tensor, prior: Tensor, penalty:
 def _fit_noise(data: _Data, lights: Tensor, fit: _Fit, penalty: _Penalty, rounds: int = 3) -> Tensor:
     r"""The noise model :math:`(\alpha, \beta, \gamma)` (B, 3, 1, 1) from the residuals of ``fit``.
 
-    In the raw readings' units (a flat-fielded residual divided by the gain :math:`s`), each reading's squared
-    residual over :math:`1 - h_k` (its leverage in the fit) estimates :math:`\alpha + \beta\hat R + \gamma\hat R^2`,
-    :math:`\hat R = \hat I / s`: read noise, shot noise and the model's relative error (:math:`\gamma` =
-    :data:`_MODEL_ERROR`², fixed). :math:`\alpha, \beta \ge 0` come from a regression of those squared residuals with
-    inverse-variance weights, the penalty's weights of the standardised residuals (so that cast shadows and
+    In the raw readings' units (divided by the gain :math:`s`), each reading's squared residual over :math:`1 - h_k`
+    (its leverage) estimates :math:`\alpha + \beta\hat R + \gamma\hat R^2`, :math:`\hat R = \hat I / s`: read noise,
+    shot noise and the model's relative error (:math:`\gamma` = :data:`_MODEL_ERROR`², fixed). :math:`\alpha, \beta
+    \ge 0` come from their regression with inverse-variance weights, the penalty's weights (cast shadows and
     highlights do not count) and its consistency factor, started at their median (read noise alone). Readings in
-    attached shadow measure :math:`\alpha`; a reading of exactly 0 was clamped there by the dark subtraction (its noise
-    cut off) and does not count: the others of a shadow are the positive half of its noise, whose mean square is its
-    variance. The model's accuracy at the readings' RMS level bounds the read noise from below.
-    """
+    attached shadow measure :math:`\alpha`, but not one of exactly 0, clamped there by the dark subtraction (a
+    shadow's others are the positive half of its noise, whose mean square is its variance). The model's accuracy at
+    the readings' RMS level bounds :math:`\alpha` below."""
     predicted = _predict(fit.m, lights).clamp_min(0)
     counted = data.valid * (data.images > 0)
     gain = torch.where(counted > 0, data.gain, torch.ones_like(data.gain))
@@ -539,10 +491,9 @@ def _fit_noise(data: _Data, lights: Tensor, fit: _Fit, penalty: _Penalty, rounds
                          torch.zeros_like(predicted))
     level = predicted / gain
     model = _MODEL_ERROR**2 * level.square()
-    median = torch.stack([values[keep > 0].median() if bool((keep > 0).any()) else values.new_ones(())
-                          for values, keep in zip(target, counted.expand_as(target), strict=True)])
     floor = _MODEL_ERROR**2 * _masked_mean(level.square(), counted) + torch.finfo(level.dtype).tiny
-    alpha, beta = torch.maximum((median / 0.4549).view(-1, 1, 1, 1), floor), torch.zeros_like(floor)  # χ²₁ median
+    alpha = torch.maximum(_masked_median(target, counted > 0) / 0.4549, floor)  # 0.4549: χ²₁'s median
+    beta = torch.zeros_like(floor)
     features = torch.stack([torch.ones_like(level), level], dim=1)
     for _ in range(rounds):
         variance = (alpha + beta * level + model).clamp_min(torch.finfo(level.dtype).tiny)
@@ -571,24 +522,34 @@ def _non_negative_solve(normal: Tensor, rhs: Tensor) -> Tensor:
     return solution.clamp_min(0)
 
 
-def _normal_std_deg(data: _Data, lights: Tensor, fit: _Fit, prior: Tensor, factor: float) -> Tensor:
-    r"""Predicted RMS angular error (degrees) of each normal, :math:`(B, 1, h, w)`: the fit's covariance
-    :math:`C = \text{factor}\,(A + \lambda I)^{-1}` across the normal, :math:`\sqrt{\operatorname{tr}((I - nn^\top)
-    C (I - nn^\top))} / \rho`, at most 180°.
-
-    A reading predicted within a few noise levels of zero is not known to be lit: whether it is a grazing light or
-    an attached shadow is for its noise to decide, and the :math:`\max` makes its constraint one-sided. Its
-    information counts by :math:`z^2 / (z^2 + 3^2)`, :math:`z` its prediction in noise levels, so that a pixel lit by
-    two LEDs whose fit leans on a dark reading at the shadow's edge is not taken for a well-measured one.
-    """
+def _normal_std(data: _Data, lights: Tensor, fit: _Fit, prior: Tensor, penalty: _Penalty) -> tuple[Tensor, Tensor]:
+    r"""Predicted RMS angular error (degrees) of each normal from the noise, :math:`(B, 1, h, w)`, and the factor of its
+    variance that the readings' misfit calls for. The first: the fit's covariance :math:`C = c\,(A + \lambda I)^{-1}`
+    (:math:`c` the penalty's covariance factor) across the normal, :math:`\sqrt{\operatorname{tr}((I - nn^\top) C (I -
+    nn^\top))} / \rho`, at most 180°, where a reading predicted within a few noise levels of zero, not known to be lit
+    (the :math:`\max` makes its constraint one-sided), counts by :math:`z^2 / (z^2 + 3^2)`, :math:`z` its prediction in
+    noise levels (a pixel lit by two LEDs that leans on a dark reading at a shadow's edge is not well measured). The
+    second: least-squares adjustment's a posteriori variance factor, at least 1, over each pixel's
+    :data:`_FILL_SIZE`² window: the weighted squared standardised residuals over what noise alone leaves, the
+    penalty's consistency times the weights less their leverages, :math:`\sum_k s_k h_k = \operatorname{tr}(A^{-1}
+    \sum_k s_k w_k L_k L_k^\top)`. Where the model misfits (a metallic glint) the covariance understates the error."""
+    assert fit.share is not None
     predicted = _predict(fit.m, lights)
-    snr_sq = predicted.clamp_min(0).square() / data.variance(predicted)
+    variance = data.variance(predicted)
+    snr_sq = predicted.clamp_min(0).square() / variance
     information = _Fit(lights, data.images, fit.weights * snr_sq / (snr_sq + _LIT_SIGMAS**2), prior)
     albedo, normals = _split(fit.m)
     i00, _, _, i11, _, i22 = information.inverse
     across = (i00 + i11 + i22).to(normals.dtype) - information.quadratic(normals.unsqueeze(1))[:, 0]
-    radians = (across.clamp_min(0) * factor).sqrt() / albedo.squeeze(1).clamp_min(torch.finfo(albedo.dtype).eps)
-    return (radians.unsqueeze(1) * (180 / math.pi)).clamp(max=180.0)
+    albedo = albedo.squeeze(1).clamp_min(torch.finfo(albedo.dtype).eps)
+    radians = (across.clamp_min(0) * penalty.covariance_factor).sqrt() / albedo
+    weighted, pairs = (fit.share * fit.weights).unsqueeze(2) * lights, ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    leverage = torch.stack([(2 - (i == j)) * c * (weighted[:, :, i] * lights[:, :, j]).sum(1).double()
+                            for c, (i, j) in zip(fit.inverse, pairs, strict=True)]).sum(0)  # _Fit.inverse's order
+    freedom = _box_sum((fit.share.sum(1) - leverage.to(variance.dtype)).clamp_min(0).unsqueeze(1))
+    residual_sq = (fit.share * (data.images - predicted.clamp_min(0)).square() / variance).sum(1, keepdim=True)
+    misfit = _box_sum(residual_sq) / (freedom * penalty.consistency).clamp_min(1)
+    return (radians.unsqueeze(1) * (180 / math.pi)).clamp(max=180.0), misfit.clamp_min(1)
 
 
 def _split(m: Tensor) -> tuple[Tensor, Tensor]:
@@ -607,18 +568,13 @@ def _up(like: Tensor) -> Tensor:
 
 def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float, method: str,
                warm: Tensor | None = None) -> Tensor:
-    """Relative depth (mm, zero mean over ``domain``) of the normals.
-
-    Each slope is weighted by its inverse variance (from its normal's predicted error, relative to the typical
-    pixel's and at most 1: a flat facet is not worth a hundred walls). A normal the readings hardly decide (a crevice,
-    a hole lit by fewer than three LEDs: predicted error beyond :data:`_FILL_ABOVE_DEG`), or a slope they do not (a
-    wall's normal near the horizontal: standard error beyond :data:`_FILL_SLOPE_STD`), has its slopes blended
-    smoothly into the weighted mean of its :data:`_FILL_SIZE`² neighbourhood, so that it can never make a spike, and
-    its neighbours weigh as little (a rim's normal sees the crevice's wall, which the next pixel's depth does not:
-    the many crevices of a knit add up to a dome otherwise). ``"masked"``: weighted least squares on the domain by
-    multigrid conjugate gradients from ``warm`` or the unweighted Neumann solve; ``"fill"``: that Neumann (DCT) solve
-    on the rectangle alone; another method of :func:`psmini.integrate.integrate`: unweighted on the domain.
-    """
+    """Relative depth (mm, zero mean over ``domain``) of the normals: ``"masked"``, weighted least squares from
+    ``warm`` (or the Neumann (DCT) solve); ``"fill"``, that Neumann solve alone; another method of
+    :func:`psmini.integrate.integrate`, unweighted. Each slope weighs its inverse variance, relative to the typical
+    pixel's and at most 1 (a flat facet is not worth a hundred walls). A normal the readings hardly decide (a crevice)
+    or a slope they do not (a wall's normal near the horizontal) is blended into its neighbourhood's, so that it can
+    never make a spike, and its neighbours weigh as little (a rim's normal sees the crevice's wall, which the next
+    pixel's depth does not: the many crevices of a knit add up to a dome otherwise)."""
     p, q = _slopes_of(normals)
     slope_variance = (normal_std * (math.pi / 180)).square() / normals[:, 2:3].clamp_min(0.05).pow(4)
     confidence = 1 / (slope_variance + _SLOPE_FLOOR**2)
@@ -641,15 +597,14 @@ def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float
 
 
 def _box_sum(x: Tensor) -> Tensor:
-    """Sums of ``x`` (B, 1, H, W) over each pixel's :data:`_FILL_SIZE`² window (clipped at the borders): two 1-D
-    average pools with the zeros beyond the border counted, times the window's area."""
+    """Sums of ``x`` (B, 1, H, W) over each pixel's :data:`_FILL_SIZE`² window (clipped at the borders)."""
     k = _FILL_SIZE
     rows = F.avg_pool2d(x, (k, 1), stride=1, padding=(k // 2, 0), count_include_pad=True)
     return F.avg_pool2d(rows, (1, k), stride=1, padding=(0, k // 2), count_include_pad=True) * k**2
 
 
 def _masked_median(x: Tensor, region: Tensor) -> Tensor:
-    """The median of ``x`` (B, 1, H, W) over ``region`` per sample, (B, 1, 1, 1) (1 where the region is empty)."""
+    """The median of ``x`` (B, C, H, W) over ``region`` per sample, (B, 1, 1, 1) (1 where the region is empty)."""
     return torch.stack([values[keep].median() if bool(keep.any()) else values.new_ones(())
                         for values, keep in zip(x, region.expand_as(x), strict=True)]).view(-1, 1, 1, 1)
 
@@ -659,27 +614,19 @@ def _masked_mean(x: Tensor, region: Tensor) -> Tensor:
     return (x * weight).sum(dim=(1, 2, 3), keepdim=True) / weight.sum(dim=(1, 2, 3), keepdim=True).clamp_min(1)
 
 
-@dataclass
-class _Placement:
-    """Where a relative depth lies in space: each sample's offset (mm), tilt (dz/dx, dz/dy) and bend (second
-    derivatives, 1/mm), ``theta`` (B, 6), and which of them the images decide (``free``, (6,) bool)."""
-
-    theta: Tensor
-    free: Tensor
-
-    def depth(self, relative: Tensor, basis: Tensor) -> Tensor:
-        """The relative depth placed: plus the offset and the plane over ``basis`` (:func:`_plane_basis`)."""
-        return relative + (basis * self.theta[:, :, None, None]).sum(1, keepdim=True)
+def _placed(relative: Tensor, basis: Tensor, theta: Tensor) -> Tensor:
+    """``relative`` placed by ``theta`` (B, 6): plus its offset, tilt and bend over ``basis`` (:func:`_plane_basis`)."""
+    return relative + (basis * theta[:, :, None, None]).sum(1, keepdim=True)
 
 
 def _plane_basis(xy: Tensor, domain: Tensor) -> Tensor:
     """The placement's shapes, (B, 6, h, w): 1, the coordinates x, y (mm) centred on the domain, and the quadric's
     x²/2, xy, y²/2 of those, less their mean: the offset is the domain's mean height whatever the tilt and bend."""
-    x, y = (xy.expand(domain.shape[0], -1, -1, -1) - _masked_mean(xy.expand(domain.shape[0], -1, -1, -1), domain)
-            ).unbind(1)
+    xy = xy.expand(domain.shape[0], -1, -1, -1)
+    xy = xy - _masked_mean(xy, domain)
+    x, y = xy.unbind(1)
     quadric = torch.stack([x.square() / 2, x * y, y.square() / 2], dim=1)
-    return torch.cat([torch.ones_like(x[:, None]), x[:, None], y[:, None], quadric - _masked_mean(quadric, domain)],
-                     dim=1)
+    return torch.cat([torch.ones_like(x[:, None]), xy, quadric - _masked_mean(quadric, domain)], dim=1)
 
 
 def _energy(data: _Data, predicted: Tensor, penalty: _Penalty, domain: Tensor) -> Tensor:
@@ -688,26 +635,24 @@ def _energy(data: _Data, predicted: Tensor, penalty: _Penalty, domain: Tensor) -
     return (penalty.value(residual_sq) * data.reliability * domain).sum(dim=(1, 2, 3))
 
 
-def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain: Tensor, placement: _Placement,
-           penalty: _Penalty, steps: int, line_search: bool = True) -> _Placement:
-    r"""Gauss–Newton steps of the energy in the offset, tilt and bend, on the grid of ``field`` (a stride of the image).
-
-    The normals are projected out (variable projection, Golub and Pereyra 1973): the derivative of each prediction in
-    the height, :math:`g_k = m \cdot \partial L_k / \partial z`, loses its part that a change of :math:`m` would absorb,
-    :math:`g - L A^{-1} \sum_k w_k L_k g_k`, so the step follows the energy with the normals re-fitted at each height.
-    The penalty is not convex: a step is the better of the Gauss–Newton step and its half, or none (a line search on
-    the energy itself; without ``line_search``, the step itself, for a start already in its basin), in a trust region
-    of :data:`_MAX_STEP_MM` at any pixel. Afterwards the tilt and the bend are
-    each kept in the share :math:`q / (q + 3^2)` that stands clear of its noise, :math:`q` its squared length in
-    standard errors (the inverse Hessian's block).
-    """
-    if not bool(placement.free.any()):
-        return placement
-    free, theta, basis = placement.free.to(relative.dtype), placement.theta, _plane_basis(field.xy, domain)
-    features = basis * free[None, :, None, None]
+def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain: Tensor, theta: Tensor, free: Tensor,
+           penalty: _Penalty, steps: int, line_search: bool = True) -> Tensor:
+    r"""Gauss–Newton steps of the energy in the placement ``theta`` (its entries that ``free`` names) on the grid of
+    ``field`` (a stride of the image); returns the new ``theta``. The normals are projected out (variable projection,
+    Golub and Pereyra 1973): the derivative of each prediction in the height, :math:`g_k = m \cdot \partial L_k /
+    \partial z`, loses its part that a change of :math:`m` would absorb, :math:`g - L A^{-1} \sum_k w_k L_k g_k`, so
+    the step follows the energy with the normals re-fitted at each height. The penalty is not convex: a step is the
+    better of the Gauss–Newton step and its half, or none (without ``line_search``, the step itself, for a start
+    already in its basin), in a trust region of :data:`_MAX_STEP_MM` at any pixel. The tilt and the bend are then each
+    kept in the share :math:`q / (q + 3^2)` that stands clear of its noise, :math:`q` its squared length in standard
+    errors (the inverse Hessian's block)."""
+    if not bool(free.any()):
+        return theta
+    chosen, basis = free.to(relative.dtype), _plane_basis(field.xy, domain)
+    features = basis * chosen[None, :, None, None]
     hessian = torch.eye(6, dtype=theta.dtype, device=theta.device).expand(theta.shape[0], 6, 6)
     for _ in range(steps):
-        depth = _Placement(theta, placement.free).depth(relative, basis)
+        depth = _placed(relative, basis, theta)
         lights = field(depth)
         fit = _robust_step(data, lights, m, m, penalty)  # the normals at this height, one step from the last
         m = fit.m
@@ -718,7 +663,7 @@ def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain:
         residual = data.images - predicted.clamp_min(0)
         curvature = (fit.weights * across.square()).sum(1) * domain[:, 0]
         gradient = (fit.weights * across * residual).sum(1, keepdim=True) * domain
-        hessian = torch.einsum("bihw,bjhw,bhw->bij", features, features, curvature) + torch.diag(1 - free)
+        hessian = torch.einsum("bihw,bjhw,bhw->bij", features, features, curvature) + torch.diag(1 - chosen)
         # a ridge of a rounding's size: far from the height every reading is an outlier and the curvature vanishes
         ridge = torch.finfo(theta.dtype).eps * hessian.diagonal(dim1=1, dim2=2).amax(1) + torch.finfo(theta.dtype).tiny
         step = torch.linalg.solve(hessian + ridge.view(-1, 1, 1) * torch.eye(6).to(theta),
@@ -731,7 +676,7 @@ def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain:
             continue
         energies = [_energy(data, predicted, penalty, domain)]
         for fraction in (0.5, 1.0):
-            trial_lights = field(_Placement(theta + fraction * step, placement.free).depth(relative, basis))
+            trial_lights = field(_placed(relative, basis, theta + fraction * step))
             trial = _robust_step(data, trial_lights, m, m, penalty).m
             energies.append(_energy(data, _predict(trial, trial_lights), penalty, domain))
         best = torch.tensor([0.0, 0.5, 1.0], device=step.device, dtype=step.dtype)[
@@ -739,40 +684,38 @@ def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain:
         theta = theta + best.unsqueeze(1) * step
     covariance = torch.linalg.inv(hessian)
     for block in (slice(1, 3), slice(3, 6)):
-        if bool(placement.free[block].all()):
+        if bool(free[block].all()):
             shape = theta[:, block]
             q = shape.unsqueeze(1) @ torch.linalg.solve(covariance[:, block, block], shape.unsqueeze(2))
             theta = torch.cat([theta[:, :block.start], shape * q.view(-1, 1) / (q.view(-1, 1) + _TILT_SIGMAS**2),
                                theta[:, block.stop:]], dim=1)
-    return _Placement(theta, placement.free)
+    return theta
 
 
-def _scan_offset(data: _Data, field: _LightField, relative: Tensor, domain: Tensor, placement: _Placement,
-                 search: tuple[float, float], penalty: _Penalty) -> _Placement:
-    """The offset of least energy among heights in ``search`` (mm, around the current one; at most
-    :data:`_SCAN_POINTS`, an eighth of a millimetre apart at least), each with its normals fitted afresh (the
-    lit-weighted least squares and a robust step): the start of the Gauss–Newton steps, whose basin is narrower than
-    the search."""
+def _scan_offset(data: _Data, field: _LightField, relative: Tensor, domain: Tensor, theta: Tensor,
+                 search: tuple[float, float], penalty: _Penalty) -> Tensor:
+    """The offset of least energy among heights in ``search`` (mm, around the current one; at most :data:`_SCAN_POINTS`,
+    an eighth of a millimetre apart at least), each with its normals fitted afresh (the lit-weighted least squares and a
+    robust step): the start of the Gauss–Newton steps, whose basin is narrower than the search."""
     points = min(_SCAN_POINTS, round((search[1] - search[0]) * 8) + 1)
     offsets = torch.linspace(*search, points, device=relative.device, dtype=relative.dtype)
     prior = (data.images * data.valid).amax(dim=1, keepdim=True) * _up(relative)
     basis, energies = _plane_basis(field.xy, domain), []
     for offset in offsets:
         shift = F.pad(offset.view(1), (0, 5))
-        lights = field(_Placement(placement.theta + shift, placement.free).depth(relative, basis))
+        lights = field(_placed(relative, basis, theta + shift))
         m = _robust_step(data, lights, _initial_fit(data, lights, prior).m, prior, penalty).m
         energies.append(_energy(data, _predict(m, lights), penalty, domain))
     best = offsets[torch.stack(energies, dim=1).argmin(dim=1)]
-    return _Placement(placement.theta + F.pad(best[:, None], (0, 5)), placement.free)
+    return theta + F.pad(best[:, None], (0, 5))
 
 
 def near_light_energy(intensities: Tensor, light_model: nn.Module, result: Reconstruction, pixel_pitch_mm: float,
                       card_height_mm: float | None, noise_std: Tensor, valid: Tensor | None = None,
                       options: NearLightOptions | None = None) -> Tensor:
     r"""The energy near light minimises, per sample, at a reconstruction: :math:`\sum_k \lambda_k \psi(r_k)` over the
-    valid readings, :math:`r_k = (I_k - \rho \max(n \cdot L_k(x), 0)) / \sigma_k`,
-    :math:`\lambda_k = I_k^2 / (I_k^2 + 9\sigma_k^2)` (see the module's docstring): the loss of a self-calibration,
-    differentiable in every argument and in the light model's parameters.
+    valid readings (the module's :math:`E`), the loss of a self-calibration, differentiable in every argument and in
+    the light model's parameters.
 
     Args:
         intensities: images :math:`(B, K, H, W)` (flat-fielded when ``card_height_mm`` is given).
@@ -802,18 +745,13 @@ def near_light_energy(intensities: Tensor, light_model: nn.Module, result: Recon
         (torch.Size([1]), True)
     """
     sizes = check_shape(intensities, ["B", "K", "H", "W"], "intensities")
-    depth, albedo, normals = result.depth, result.albedo, result.normals
-    for name, value, channels in (("depth", depth, "1"), ("albedo", albedo, "1"), ("normals", normals, "3")):
-        got = check_shape(value, ["B", channels, "H", "W"], name)
-        if (got["B"], got["H"], got["W"]) != (sizes["B"], sizes["H"], sizes["W"]):
-            raise ShapeError(f"{name} must have shape ({sizes['B']}, {channels}, {sizes['H']}, {sizes['W']}), got "
-                             f"{tuple(value.shape)}")
-    lights = near_light_vectors(light_model, depth, pixel_pitch_mm, card_height_mm)
-    residual_sq = ((intensities - albedo * _predict(normals, lights).clamp_min(0)) / noise_std).square()
+    for name, channels in (("depth", "1"), ("albedo", "1"), ("normals", "3")):
+        check_shape(getattr(result, name), [str(sizes["B"]), channels, str(sizes["H"]), str(sizes["W"])], name)
+    lights = near_light_vectors(light_model, result.depth, pixel_pitch_mm, card_height_mm)
+    residual_sq = ((intensities - result.albedo * _predict(result.normals, lights).clamp_min(0)) / noise_std).square()
     reading = intensities.clamp_min(0).square()
     weight = reading / (reading + (_LIT_SIGMAS * noise_std).square() + torch.finfo(reading.dtype).tiny)
-    if valid is not None:
-        weight = weight * valid.to(weight)
+    weight = weight if valid is None else weight * valid.to(weight)
     return (_check_options(options).penalty_function().value(residual_sq) * weight).sum(dim=(1, 2, 3))
 
 
@@ -827,11 +765,9 @@ def _check_light_model(light_model: object) -> None:
 
 
 def _check_options(options: NearLightOptions | None) -> NearLightOptions:
-    if options is None:
-        return NearLightOptions()
-    if not isinstance(options, NearLightOptions):
+    if options is not None and not isinstance(options, NearLightOptions):
         raise InputError(f"options must be a NearLightOptions, got {type(options).__name__}")
-    return options
+    return NearLightOptions() if options is None else options
 
 
 def solve_near_light(
@@ -870,8 +806,8 @@ def solve_near_light(
 
     Returns:
         :class:`NearLightResult`; ``depth`` is the absolute height above the card plane's origin, mm, ``mask`` the
-        pixels whose normal the readings decide (predicted error under 30°), ``normal_std`` each normal's predicted
-        RMS error, degrees.
+        pixels whose normal the readings decide (error predicted from the noise under 30°), ``normal_std`` each
+        normal's predicted RMS error, degrees (from the noise and the fit's misfit).
 
     Raises:
         ShapeError: when the shapes do not match (K of the images vs the light model, mask, valid, gain).
@@ -916,18 +852,16 @@ class _State:
     """What the alternations carry from one to the next, and from the coarse level to the fine one."""
 
     relative: Tensor  # the integrated depth, zero mean over the domain
-    placement: _Placement
-    basis: Tensor
+    theta: Tensor  # the placement (B, 6): offset (mm), tilt (dz/dx, dz/dy) and bend (second derivatives, 1/mm)
+    free: Tensor  # which of theta the images decide, (6,) bool
+    basis: Tensor = dataclasses.field(init=False)  # theta's shapes on the level's grid, set by _alternate
     m: Tensor | None = None
     normal_std: Tensor | None = None
     weights: Tensor | None = None  # each reading's weight in [0, 1] in the last fit
+    misfit: Tensor | None = None  # the factor of its variance the misfit calls for (_normal_std)
     iterations: int = 0
     changes: list[float] = dataclasses.field(default_factory=list)
     converged: bool = False
-
-    @property
-    def depth(self) -> Tensor:
-        return self.placement.depth(self.relative, self.basis)
 
 
 def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, model: nn.Module, pitch: float,
@@ -945,63 +879,51 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, model: nn.Module,
     start = F.pad(torch.tensor([options.initial_height_mm], device=images.device, dtype=images.dtype), (0, 5))
     free = torch.tensor([options.estimate_offset] + [options.estimate_tilt] * 2 + [options.estimate_bend] * 3,
                         device=images.device)
-    placement = _Placement(start.expand(batch, 6), free)
+    state = _State(torch.zeros_like(images[:, :1]), start.expand(batch, 6), free)
     scan = options.search_mm if options.estimate_offset else None
-    relative = torch.zeros_like(images[:, :1])
-    iterations, changes, coarse_m = 0, [], None
     if height % 2 == 0 and width % 2 == 0 and min(height, width) >= _MIN_COARSE_SIZE:
         small_domain = F.avg_pool2d(domain.to(images.dtype), 2) > 0.5
         small = _Data(F.avg_pool2d(images, 2), (F.avg_pool2d(data.valid, 2) > 0.999).to(images.dtype),
                       F.avg_pool2d(gain, 2) if gain.shape[-1] > 1 else gain, data.noise)
-        coarse = _State(F.avg_pool2d(relative, 2), placement,
-                        _plane_basis(_grid(height // 2, width // 2, 2 * pitch, images), small_domain))
+        coarse = _State(F.avg_pool2d(state.relative, 2), state.theta, free)
         _alternate(small, small_domain, model, 2 * pitch, card_height, options, coarse, scan, _COARSE_ITERATIONS,
                    final=False)
-        relative = F.interpolate(coarse.relative, size=(height, width), mode="bilinear", align_corners=False)
-        placement, iterations, changes = coarse.placement, coarse.iterations, coarse.changes
         assert coarse.m is not None
-        coarse_m = F.interpolate(coarse.m, size=(height, width), mode="bilinear", align_corners=False)
+        upsample = functools.partial(F.interpolate, size=(height, width), mode="bilinear", align_corners=False)
+        state = _State(upsample(coarse.relative), coarse.theta, free, m=upsample(coarse.m),
+                       iterations=coarse.iterations, changes=coarse.changes)
         scan = _FINE_SEARCH_MM if options.estimate_offset else None
-    state = _State(relative, placement, _plane_basis(_grid(height, width, pitch, images), domain), m=coarse_m,
-                   iterations=iterations, changes=changes)
     field = _alternate(data, domain, model, pitch, card_height, options, state, scan, options.max_iterations,
                        final=True)
     return _finish(data, field, state, domain, mask is None, pitch, options)
 
 
-def _grid(height: int, width: int, pitch: float, like: Tensor) -> Tensor:
-    """The pixel centres' x, y (mm), (1, 2, height, width), on ``like``'s device and dtype."""
-    x, y = pixel_grid_mm(height, width, pitch, device=like.device, dtype=like.dtype)
-    return torch.stack([x, y])[None]
-
-
 def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card_height: float | None,
                options: NearLightOptions, state: _State, scan: tuple[float, float] | None, iterations: int,
                final: bool) -> _LightField:
-    """Alternations at one resolution, updating ``state`` (and ``data``'s noise model): lights at the depth, the
-    robust per-pixel fit, the noise model refitted to its residuals, the integration (the Neumann solve at the coarse
-    level, whose depth only places the lights; weighted at full resolution), the placement (after a scan of the height
-    over ``scan`` at first; the tilt and bend at full resolution only). A sample whose normals moved less than the
-    tolerance keeps its state from then on. At full resolution a last alternation after the first ends with its fit:
-    its depth is the finish's. Returns the level's light field."""
+    """Alternations at one resolution, updating ``state`` and ``data``'s noise model; returns the level's light field.
+    The coarse level's depth only places the lights (a full rectangle's Neumann solve, no tilt or bend). A sample whose
+    normals moved less than the tolerance keeps its state; the last alternation at full resolution ends with its fit."""
     size = (data.images.shape[-2], data.images.shape[-1])
     stride = max(1, int((size[0] * size[1] / _PLACE_PIXELS) ** 0.5))
     field = _LightField(model, size, pitch, card_height, data.images)
     sub_field = _LightField(model, size, pitch, card_height, data.images, stride)
+    state.basis = _plane_basis(field.xy, domain)
     penalty = options.penalty_function()
-    free = state.placement.free & torch.tensor([True] + [final] * 5, device=domain.device)
+    free = state.free & torch.tensor([True] + [final] * 5, device=domain.device)
     method = "masked" if final or not bool(domain.all()) else "fill"
     done = torch.zeros(data.images.shape[0], dtype=torch.bool, device=data.images.device)
     before: Tensor | None = None
     for iteration in range(iterations):
         state.iterations += 1
-        lights = field(state.depth)
+        depth = _placed(state.relative, state.basis, state.theta)
+        lights = field(depth)
         # every alternation starts afresh from the lit readings (a fit remembers no rejection made at other lights),
         # with the current surface's normal as the prior (at first the coarse level's, or the flat surface's)
         if state.m is None:
             prior = (data.images * data.valid).amax(dim=1, keepdim=True) * _up(state.relative)
         else:
-            prior = vector_length(state.m, dim=1) * normals_from_height(state.depth, pitch)
+            prior = vector_length(state.m, dim=1) * normals_from_height(depth, pitch)
         if state.weights is None:  # the level's first fit: a noise model from the lit readings' least squares
             first = _initial_fit(data, lights, prior).every(_NOISE_STRIDE)
             data.set_noise(_fit_noise(data.every(_NOISE_STRIDE), _stride(lights, _NOISE_STRIDE), first, penalty, 6))
@@ -1011,10 +933,11 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
             m = fit.m
         data.set_noise(_fit_noise(data.every(_NOISE_STRIDE), _stride(lights, _NOISE_STRIDE),
                                   fit.every(_NOISE_STRIDE), penalty, rounds=2))
-        normal_std = _normal_std_deg(data, lights, fit, prior, penalty.covariance_factor)
+        normal_std, misfit = _normal_std(data, lights, fit, prior, penalty)
         normals = _split(m)[1]
-        if before is not None:
-            change = _mean_change_deg(normals, before, domain)
+        if before is not None:  # the mean angle between the normals and the last alternation's, degrees
+            chord = vector_length(normals - before, dim=1).clamp(max=2)
+            change = _masked_mean(2 * torch.asin(chord / 2) * (180 / math.pi), domain).view(-1)
             state.changes.append(float(change.detach().max()))
             logger.info("near-light alternation %d at %d x %d: normals moved %.2e deg on average",
                         state.iterations, *size, state.changes[-1])
@@ -1022,22 +945,21 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
         before = normals
         state.m, state.normal_std = _keep(done, state.m, m), _keep(done, state.normal_std, normal_std)
         state.weights = _keep(done, state.weights, fit.share if fit.share is not None else fit.weights)
+        state.misfit = _keep(done, state.misfit, misfit)
         if bool(done.all()):
             state.converged = True
             break
         if final and 0 < iteration == iterations - 1:
             break
         relative = _integrate(normals, normal_std, domain, pitch, method, state.relative if iteration else None)
-        placement = _Placement(state.placement.theta, free)
+        theta = state.theta
         if scan is not None and iteration == 0:  # on a quarter of the placement's pixels: only a start
             every = max(1, int((size[0] * size[1] / _PLACE_PIXELS * 4) ** 0.5))
-            placement = _scan_offset(data.every(every), _LightField(model, size, pitch, card_height, data.images,
-                                                                    every), _stride(relative, every),
-                                     _stride(domain, every), placement, scan, penalty)
-        placement = _place(data.every(stride), sub_field, _stride(relative, stride), _stride(m, stride),
-                           _stride(domain, stride), placement, penalty, steps=2 if iteration == 0 else 1)
-        state.relative = _keep(done, state.relative, relative)
-        state.placement = _Placement(_keep(done, state.placement.theta, placement.theta), state.placement.free)
+            theta = _scan_offset(data.every(every), _LightField(model, size, pitch, card_height, data.images, every),
+                                 _stride(relative, every), _stride(domain, every), theta, scan, penalty)
+        theta = _place(data.every(stride), sub_field, _stride(relative, stride), _stride(m, stride),
+                       _stride(domain, stride), theta, free, penalty, steps=2 if iteration == 0 else 1)
+        state.relative, state.theta = _keep(done, state.relative, relative), _keep(done, state.theta, theta)
     return field
 
 
@@ -1052,35 +974,27 @@ def _keep(done: Tensor, old: Tensor | None, new: Tensor) -> Tensor:
     return torch.where(done.view(-1, *([1] * (new.dim() - 1))), old, new)
 
 
-def _mean_change_deg(a: Tensor, b: Tensor, region: Tensor) -> Tensor:
-    """The mean angle between unit normals over the region, degrees, per sample (B,)."""
-    chord = vector_length(a - b, dim=1).clamp(max=2)
-    return _masked_mean(2 * torch.asin(chord / 2) * (180 / math.pi), region).view(-1)
-
-
 def _finish(data: _Data, field: _LightField, state: _State, domain: Tensor, full: bool, pitch: float,
             options: NearLightOptions) -> NearLightResult:
     """The final depth and the result: the last normals integrated by ``options.integrator`` and placed by one
-    Gauss–Newton step on every pixel (the alternations place on a sixteenth of them, whose tilt and bend are too noisy
-    to stand clear of their standard errors: on the benchmark's knit and net the bend left 30 and 36 µm of depth
-    error, 19 and 22 µm after this step), without a line search: the alternations' steps brought the placement into
-    the step's basin, and a half step there is a bias (the net's mean height 117 µm low, 64 µm with the full step)."""
+    Gauss–Newton step on every pixel (on a sixteenth of them a knit's or a net's bend does not stand clear of its
+    noise), without a line search (in the step's basin a half step is a bias): the guide's step 3."""
     assert state.m is not None and state.normal_std is not None and state.weights is not None
+    assert state.misfit is not None
     albedo, normals = _split(state.m)
     relative = _integrate(normals, state.normal_std, domain, pitch, options.integrator, state.relative)
     if options.integrator == "masked" and full:
         # the edge equations' trapezoidal rule flattens the finest relief (a silk's threads to a third): restored on
         # the rectangle, where the integration ran
         relative = _undo_edge_averaging(relative)
-    placement = _place(data, field, relative, state.m, domain, state.placement, options.penalty_function(), 1,
-                       line_search=False)
-    depth = placement.depth(relative, state.basis)
+    theta = _place(data, field, relative, state.m, domain, state.theta, state.free, options.penalty_function(), 1,
+                   line_search=False)
+    depth = _placed(relative, state.basis, theta)
     inside = domain.to(albedo.dtype)
     normals = torch.where(domain, normals, _up(albedo))
     p, q = _slopes_of(normals)
     return NearLightResult(albedo * inside, normals, p, q, depth, domain & (state.normal_std < _SOLVED_BELOW_DEG),
-                           normal_std=state.normal_std, weights=state.weights * inside,
-                           offset_mm=_masked_mean(depth, domain).view(-1), tilt=placement.theta[:, 1:3],
-                           bend=placement.theta[:, 3:],
-                           noise=data.noise.view(-1, 3), iterations=state.iterations,
-                           changes_deg=tuple(state.changes), converged=state.converged)
+                           normal_std=(state.normal_std * state.misfit.sqrt()).clamp(max=180.0),
+                           weights=state.weights * inside, noise=data.noise.view(-1, 3),
+                           offset_mm=_masked_mean(depth, domain).view(-1), tilt=theta[:, 1:3], bend=theta[:, 3:],
+                           iterations=state.iterations, changes_deg=tuple(state.changes), converged=state.converged)

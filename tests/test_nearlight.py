@@ -343,6 +343,24 @@ class TestSolveNearLight(BaseTester):
             ratio.append(float((error / predicted).square().mean()))
         assert 0.55 < float(np.mean(within)) < 0.71 and 0.75 < float(np.mean(ratio)) < 1.3, (within, ratio)
 
+    def test_predicted_errors_hold_where_the_model_misfits(self):
+        """Readings in the left half off the Lambertian model by 6% each (a sheen the model lacks, six times the
+        noise): the fit's covariance alone would understate the errors there (error² / predicted² about 2, 39%
+        below); scaled by the local misfit (the a posteriori variance factor) they are as predicted again."""
+        leds, height, normals, images, card = _capture(size=64, offset_mm=0.5, dtype=torch.float64)
+        within, ratio = [], []
+        for seed in range(3):
+            sheen = torch.ones_like(images)
+            sheen[..., :32] += 0.06 * torch.randn(sheen[..., :32].shape, dtype=images.dtype,
+                                                  generator=torch.Generator().manual_seed(100 + seed))
+            flat = _flat(_noisy(images * sheen, seed), card)
+            result = solve_near_light(flat.images, leds, PITCH, 0.0, flat.valid)
+            error = angular_error_deg(result.normals, normals)[..., 4:-4, 4:24]
+            predicted = result.normal_std[..., 4:-4, 4:24]
+            within.append(float((error < predicted).double().mean()))
+            ratio.append(float((error / predicted).square().mean()))
+        assert 0.55 < float(np.mean(within)) < 0.71 and 0.75 < float(np.mean(ratio)) < 1.3, (within, ratio)
+
     def test_stable_under_rounding_changes(self):
         """A card changed by one part in 10^7, float32 against float64, a batch of four against one: the normals
         move by rounding's size, never by a selection's flip (the energy is smooth in its input)."""
