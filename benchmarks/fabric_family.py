@@ -117,41 +117,38 @@ def measure_relief(depth, mask, height) -> dict[str, tuple[float, float]]:
 STEEPEST_RISE = 2.0
 
 
-def true_normals_bias(height: torch.Tensor, limit: float | None = None) -> tuple[float, float]:
-    """Sa/Sq bias (%) on describe's surface of the true normals (psmini's renderer's central differences)
-    integrated by the near-light solver's final integration (masked least squares on the rectangle, with its
-    restoration of the trapezoidal rule's flattening); with ``limit``, each slope clipped to +-limit first: what a
-    reconstruction would read that measured every facet exactly up to that steepness and none beyond it."""
-    from psmini.fabric import describe_surface_options
+def true_slopes(height: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The slopes (p, q) of the true normals (psmini's renderer's central differences), float64."""
+    from psmini.render import normals_from_height
+
+    normals = normals_from_height(height.double(), PITCH)
+    return -normals[:, :1] / normals[:, 2:], -normals[:, 1:2] / normals[:, 2:]
+
+
+def integrated(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """Slopes integrated by the near-light solver's final integration (masked least squares on the rectangle, with
+    its restoration of the trapezoidal rule's flattening)."""
     from psmini.integrate import integrate
     from psmini.integrate.least_squares import _undo_edge_averaging
-    from psmini.render import normals_from_height
 
-    iso = describe_surface_options(PITCH)
-    normals = normals_from_height(height.double(), PITCH)
-    p, q = -normals[:, :1] / normals[:, 2:], -normals[:, 1:2] / normals[:, 2:]
-    if limit is not None:
-        p, q = p.clamp(-limit, limit), q.clamp(-limit, limit)
-    return bias(amplitude(_undo_edge_averaging(integrate(p, q, "masked", PITCH)), None, iso),
-                amplitude(height, None, iso))
+    return _undo_edge_averaging(integrate(p, q, "masked", PITCH))
 
 
-def steep_share(height: torch.Tensor, limit: float = STEEPEST_RISE) -> float:
-    """The share of pixels (%) whose true slope (gradient magnitude) exceeds ``limit``."""
-    from psmini.render import normals_from_height
-
-    normals = normals_from_height(height.double(), PITCH)
-    rise = normals[:, :2].square().sum(1).sqrt() / normals[:, 2]
-    return 100 * float((rise > limit).double().mean())
-
-
-def masked_truth_bias(height: torch.Tensor, mask: torch.Tensor) -> tuple[float, float]:
-    """Sa/Sq bias (%) on describe's surface of the true height over ``mask`` (the reconstruction's solved pixels)
-    against the whole field's: what leaving the unsolved pixels out costs by itself."""
+def slopes_bias(p: torch.Tensor, q: torch.Tensor, true: tuple[float, float],
+                limit: float | None = None) -> tuple[float, float]:
+    """Sa/Sq bias (%) on describe's surface of the slopes :func:`integrated`, against the true height's ``true``;
+    with ``limit``, each slope clipped to +-limit first: what a reconstruction would read that measured every facet
+    exactly up to that steepness and none beyond it."""
     from psmini.fabric import describe_surface_options
 
-    iso = describe_surface_options(PITCH)
-    return bias(amplitude(height, mask, iso), amplitude(height, None, iso))
+    if limit is not None:
+        p, q = p.clamp(-limit, limit), q.clamp(-limit, limit)
+    return bias(amplitude(integrated(p, q), None, describe_surface_options(PITCH)), true)
+
+
+def steep_share(p: torch.Tensor, q: torch.Tensor, limit: float = STEEPEST_RISE) -> float:
+    """The share of pixels (%) whose slope (gradient magnitude) exceeds ``limit``."""
+    return 100 * float(((p.square() + q.square()).sqrt() > limit).double().mean())
 
 
 def without_fill(reconstruct):
@@ -229,11 +226,9 @@ def main(argv: list[str] | None = None) -> int:
     from data_synth import FABRICS, make_fabric
     from data_synth.rig import RigConfig, render_card
     from data_synth.weaves import WEAVES, draw_weave
-    from psmini.fabric import fabric_structure
-    from psmini.integrate import integrate
-    from psmini.integrate.least_squares import _undo_edge_averaging
-    from psmini.render import normals_from_height
+    from psmini.fabric import describe_surface_options, fabric_structure
 
+    iso = describe_surface_options(PITCH)
     rig = RigConfig(bit_depth=8, size=args.size)
     card = render_card(rig, seed=10_007)
     tag = source_tag(CONFIG, {"rig": rig.__dict__, "card": 10_007})
@@ -246,6 +241,7 @@ def main(argv: list[str] | None = None) -> int:
     counts: collections.Counter = collections.Counter()
     relief: collections.defaultdict[str, collections.defaultdict[str, list]] = collections.defaultdict(
         lambda: collections.defaultdict(list))
+    steep: collections.defaultdict[str, list[float]] = collections.defaultdict(list)  # % of pixels > STEEPEST_RISE
     failures = []
     seeds = range(args.first_seed, args.first_seed + args.samples)
     for seed in seeds:
@@ -262,10 +258,13 @@ def main(argv: list[str] | None = None) -> int:
                 failures.append((source, seed, fabric.name, kinds, fabric.params))
         for key, value in measure_relief(rec.depth, rec.mask, fabric.height_mm).items():
             relief[fabric.name][key].append(value)
-        relief[fabric.name]["true normals"].append(true_normals_bias(fabric.height_mm))
-        relief[fabric.name]["walls limited"].append(true_normals_bias(fabric.height_mm, STEEPEST_RISE))
-        relief[fabric.name]["solved pixels"].append(masked_truth_bias(fabric.height_mm, rec.mask))
-        relief[fabric.name]["steep"].append((steep_share(fabric.height_mm), 0.0))
+        true = amplitude(fabric.height_mm, None, iso)
+        p, q = true_slopes(fabric.height_mm)
+        relief[fabric.name]["true normals"].append(slopes_bias(p, q, true))
+        relief[fabric.name]["walls limited"].append(slopes_bias(p, q, true, STEEPEST_RISE))
+        # what leaving the unsolved pixels out costs by itself: the true height over the solved ones
+        relief[fabric.name]["solved pixels"].append(bias(amplitude(fabric.height_mm, rec.mask, iso), true))
+        steep[fabric.name].append(steep_share(p, q))
         if seed < args.first_seed + args.fill_diagnostic:
             make = capture_maker(fabric, rig, card, seed, lift)
             unfilled = without_fill(lambda key=f"weave{seed}-{args.size}-nofill", make=make: reconstruct_capture(
@@ -294,18 +293,14 @@ def main(argv: list[str] | None = None) -> int:
     relief_rows = []
     columns = ("plane", "describe", "true normals", "walls limited", "solved pixels")
 
-    def mean_share(values: list) -> str:
-        return f"{np.mean([v[0] for v in values]):.1f}%"
-
     for w in weaves:
         r = relief[w]
         relief_rows.append([w, counts[w]] + [f"{summary([v[0] for v in r[k]])} / {summary([v[1] for v in r[k]])}"
-                                             for k in columns] + [mean_share(r["steep"]), within(r["describe"])])
-    every = {k: [v for w in weaves for v in relief[w][k]]
-             for k in columns + ("steep", "with the fill", "without the fill")}
+                                             for k in columns] + [f"{np.mean(steep[w]):.1f}%", within(r["describe"])])
+    every = {k: [v for w in weaves for v in relief[w][k]] for k in columns + ("with the fill", "without the fill")}
     relief_rows.append(["all", args.samples] + [f"{summary([v[0] for v in every[k]])} / "
                                                 f"{summary([v[1] for v in every[k]])}" for k in columns]
-                       + [mean_share(every["steep"]), within(every["describe"])])
+                       + [f"{np.mean([v for w in weaves for v in steep[w]]):.1f}%", within(every["describe"])])
 
     body = [
         f"{args.samples} members of `data_synth.weaves` (seeds {seeds[0]}..{seeds[-1]}), {args.size}x{args.size} px at "
@@ -347,9 +342,6 @@ def main(argv: list[str] | None = None) -> int:
                  f"{summary([v[1] for v in every['without the fill']])}."]
 
     if not args.no_named:
-        from psmini.fabric import describe_surface_options
-
-        iso = describe_surface_options(PITCH)
         clean_rig = rig.replace(noise=False)
         clean_card = render_card(clean_rig, seed=10_007)
         clean_tag = source_tag(CONFIG, {"rig": clean_rig.__dict__, "card": 10_007})
@@ -370,18 +362,15 @@ def main(argv: list[str] | None = None) -> int:
                                         clean_tag, CONFIG)
             m = clean.mask
             t = amplitude(height, None, iso)
-            normals = normals_from_height(height.double(), PITCH)
-            pt, qt = -normals[:, :1] / normals[:, 2:], -normals[:, 1:2] / normals[:, 2:]
-            true_normals = _undo_edge_averaging(integrate(pt, qt, "masked", PITCH))
-            filled = _undo_edge_averaging(integrate(torch.where(m, clean.p.double(), pt),
-                                                    torch.where(m, clean.q.double(), qt), "masked", PITCH))
+            pt, qt = true_slopes(height)
+            filled = integrated(torch.where(m, clean.p.double(), pt), torch.where(m, clean.q.double(), qt))
             extra = []
             if args.fill_diagnostic:
                 unfilled = without_fill(lambda fabric=fabric, name=name: reconstruct_capture(
                     f"{name}-0-{args.size}-nofill", capture_maker(fabric, rig, card, 0, 0.5), args.cache, tag, CONFIG))
                 extra = [cell(measure_relief(unfilled.depth, unfilled.mask, height)["describe"])]
             named_rows.append([name, f"{t[0]:.1f} / {t[1]:.1f}", cell(named["plane"]), cell(named["describe"]),
-                               cell(bias(amplitude(true_normals, None, iso), t)),
+                               cell(slopes_bias(pt, qt, t)),
                                cell(bias(amplitude(clean.depth, m, iso), t)),
                                cell(bias(amplitude(filled, None, iso), t)),
                                f"{1 - float(m.float().mean()):.1%}", *extra])
