@@ -60,17 +60,17 @@ _EFFICIENT_SCALES = {"welsch": 2.9846, "cauchy": 2.3849}
 _MODEL_ERROR = 1e-3
 # A reading counts by I² / (I² + (this × σ)²): within three noise levels of zero it is not known to be lit.
 _LIT_SIGMAS = 3.0
-# The max's Jacobian is a logistic over this fraction of the reading's noise level (98% lit one noise level above
-# zero), not a step, which would let a rounding change of a prediction at zero switch a reading's weight.
-_HINGE_WIDTH = 0.25
+# The max's Jacobian: the chance Φ(m·L / σ) that a reading predicted at m·L, noise σ, is lit, as a logistic of scale
+# 1/1.702 (Φ to 1%). A narrower one (0.25) let rounding move single pixels by 1.3°; a step would flip weights.
+_HINGE_WIDTH = 1 / 1.702
 # Welsch's exp(-z) is taken at z <= this: e^-64 (1.6e-28) is nothing beside any weight that counts, and exp's
 # underflow toward float32's subnormals runs ten times slower on CPUs (shadows put most readings there).
 _WELSCH_CUTOFF = 64.0
 # The first fit weighs each reading by I² / (I² + (this × the pixel's brightest)² + (3σ)²): a penumbra is no light.
 _INIT_SHARE = 0.1
-# A pixel's prior toward the current surface's normal (times its albedo): a Gaussian whose spread is this fraction of
-# its length (a normal known to about 30°), so it decides only directions no reading constrains.
-_PRIOR_SPREAD = 0.5
+# A pixel's prior toward the current surface's normal (times its albedo): a Gaussian of this fraction of its length (23°
+# a direction, 32° RMS: alone, unsolved), firm enough that shadows' faint weights cannot swing it (0.5: 2° by rounding).
+_PRIOR_SPREAD = 0.4
 # A normal whose predicted error exceeds this (degrees) comes from the prior more than from its readings: unsolved.
 _SOLVED_BELOW_DEG = 30.0
 # Slopes are weighted by 1 / (their variance + this²), relative to the typical pixel's and at most 1: the error of a

@@ -525,19 +525,26 @@ class TestSimulatedFabrics:
         assert describe(result.depth, sample.pixel_pitch_mm, result.mask)[0]["iso25178"]["Sku"] < 10
 
     @pytest.mark.parametrize("name", ["knit", "purl"])
-    def test_stable_under_a_rounding_change_of_the_card(self, name):
+    def test_stable_under_rounding_changes_of_a_capture(self, name):
         """Issue 45's stability on the fabrics where hard selections flipped most (knit, purl: 0.32° and 0.46° mean,
-        140° and 166° at single pixels): the card scaled by 1 + 1e-7 moves the mean normal by at most 0.005° and no
-        pixel by more than 1°."""
+        140° and 166° at single pixels), on the benchmark's 400-px captures (at 128 or 256 px no pixel sits where a
+        narrower hinge let 1.1-1.3° through): the card scaled by 1 + 1e-7 and float64 against float32 each move the
+        mean normal by at most 0.005° and no pixel by more than 1° (a batch: test_stable_under_rounding_changes)."""
         from data_synth import make_fabric
         from data_synth.rig import RigConfig, render_capture, render_card
 
-        config = RigConfig(size=128, pixel_pitch_mm=10 / 128, noise=True, bit_depth=8, intensity_spread=0.05)
+        config = RigConfig(size=400, pixel_pitch_mm=0.025, noise=True, bit_depth=8, intensity_spread=0.05)
         card = render_card(config, 0.8)
-        capture = render_capture(make_fabric(name, size=128, pixel_pitch_mm=10 / 128, seed=3), config,
+        capture = render_capture(make_fabric(name, size=400, pixel_pitch_mm=0.025, seed=0), config,
                                  height_offset_mm=0.5)
-        model = PhotometricStereo(capture.lights, 10 / 128)
-        a, b = (model(capture.images[None], reference, capture.dark[None], card.dark[None], card_albedo=0.8,
-                      saturation_level=1.0) for reference in (card.images[None], card.images[None] * (1 + 1e-7)))
-        change = angular_error_deg(a.normals.double(), b.normals.double())
-        assert float(change.mean()) <= 0.005 and float(change.max()) <= 1.0
+
+        def solve(reference, dtype=torch.float32):
+            model = PhotometricStereo(capture.lights.to(dtype=dtype), 0.025)
+            return model(capture.images[None].to(dtype), reference.to(dtype), capture.dark[None].to(dtype),
+                         card.dark[None].to(dtype), card_albedo=0.8, saturation_level=1.0).normals.double()
+
+        alone = solve(card.images[None])
+        others = {"card": solve(card.images[None] * (1 + 1e-7)), "float64": solve(card.images[None], torch.float64)}
+        for change_of, normals in others.items():
+            change = angular_error_deg(alone, normals)
+            assert float(change.mean()) <= 0.005 and float(change.max()) <= 1.0, (change_of, change)
