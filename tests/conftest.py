@@ -7,12 +7,18 @@ from __future__ import annotations
 import psmini  # noqa: F401
 
 # isort: split
+import os
 from pathlib import Path
 
 import pytest
 import torch
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+# Under pytest-xdist (``-n auto``) each worker takes its share of the cores: two workers with two threads each on a
+# 2-core machine wait on each other at every parallel region (psmini.threads)
+if "PYTEST_XDIST_WORKER_COUNT" in os.environ and "OMP_NUM_THREADS" not in os.environ:
+    psmini.set_threads(max(1, (os.cpu_count() or 1) // int(os.environ["PYTEST_XDIST_WORKER_COUNT"])))
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 

@@ -58,7 +58,7 @@ def test_readme_is_a_front_page_with_the_ci_commands():
     assert len(readme.splitlines()) <= 200
     ci = (REPO / ".ci" / "run").read_text(encoding="utf-8")
     for command in ("pip install torch==2.13.0 && pip install -e . && psmini demo",
-                    'pip install torch==2.13.0 && pip install -e ".[dev]" && python -m pytest -q'):
+                    'pip install torch==2.13.0 && pip install -e ".[dev]" && python -m pytest -q -n auto'):
         assert command in readme
         assert command.replace("pip install ", "pip install --quiet ") in ci
     assert "mkdocs build --strict" in ci
