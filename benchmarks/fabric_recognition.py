@@ -112,11 +112,11 @@ def _dataset_sources() -> str:
 
 
 def build(seeds: list[int], options, card, cache: Path | None = None, log_every: int = 11):
-    """Descriptors, baseline features and labels for every class and seed."""
+    """Descriptors, baseline features, labels and seeds (the cross-validation's groups) for every class and seed."""
     from data_synth.fabric_dataset import CLASSES
     from psmini.fabric import describe, descriptor_vector
 
-    structure, texture, labels = [], [], []
+    structure, texture, labels, row_seeds = [], [], [], []
     count, start = 0, time.perf_counter()
     for seed in seeds:
         for name in CLASSES:
@@ -125,10 +125,11 @@ def build(seeds: list[int], options, card, cache: Path | None = None, log_every:
             structure.append(descriptor_vector(entry))
             texture.append(texture_features(image))
             labels.append(name)
+            row_seeds.append(seed)
             count += 1
             if count % log_every == 0:
                 print(f"  {count} samples, {time.perf_counter() - start:.0f} s", flush=True)
-    return np.stack(structure), np.stack(texture), np.array(labels)
+    return np.stack(structure), np.stack(texture), np.array(labels), np.array(row_seeds)
 
 
 def wilson_interval(correct: int, total: int, z: float = 1.959964) -> tuple[float, float]:
@@ -229,8 +230,9 @@ def confusion_png(path: Path, classes, matrices: dict[str, np.ndarray]) -> None:
 
 
 def build_shift(region, seeds: list[int], size: int, card, cache: Path | None, log_every: int = 35):
-    """Relief descriptors, one LED image's texture features and labels of the weave family's structures drawn in
-    ``region`` (:mod:`data_synth.shift`) for ``seeds``, reconstructed by the default pipeline (cached)."""
+    """Relief descriptors, one LED image's texture features, labels and seeds (the cross-validation's groups) of the
+    weave family's structures drawn in ``region`` (:mod:`data_synth.shift`) for ``seeds``, reconstructed by the
+    default pipeline (cached)."""
     from benchmarks._fabric_captures import reconstruct_capture, source_tag
     from data_synth.rig import RigConfig
     from data_synth.shift import draw_shifted, render_shifted
@@ -239,7 +241,7 @@ def build_shift(region, seeds: list[int], size: int, card, cache: Path | None, l
 
     rig = RigConfig(bit_depth=8, size=size)
     tag = source_tag(CONFIG, {"rig": rig.__dict__, "card": 10_007, "sources": _dataset_sources()})
-    relief, texture, labels = [], [], []
+    relief, texture, labels, row_seeds = [], [], [], []
     count, start = 0, time.perf_counter()
     for seed in seeds:
         for weave in WEAVES:
@@ -261,11 +263,12 @@ def build_shift(region, seeds: list[int], size: int, card, cache: Path | None, l
                     np.savez(temporary, relief=relief[-1], texture=texture[-1])
                     temporary.replace(features)
             labels.append(weave)
+            row_seeds.append(seed)
             count += 1
             if count % log_every == 0:
                 print(f"  {region.name}: {count} samples, {time.perf_counter() - start:.0f} s", file=sys.stderr,
                       flush=True)
-    return np.stack(relief), np.stack(texture), np.array(labels)
+    return np.stack(relief), np.stack(texture), np.array(labels), np.array(row_seeds)
 
 
 def shift_protocol(args) -> int:
@@ -285,10 +288,9 @@ def shift_protocol(args) -> int:
     start = time.perf_counter()
     print(f"shift protocol: train {len(train_seeds)} x {len(WEAVES)} in the training region, test "
           f"{len(test_seeds)} x {len(WEAVES)} in the test region", file=sys.stderr, flush=True)
-    train_s, train_t, train_y = build_shift(TRAIN, train_seeds, args.size, card, args.cache)
-    test_s, test_t, test_y = build_shift(TEST, test_seeds, args.size, card, args.cache)
+    train_s, train_t, train_y, groups = build_shift(TRAIN, train_seeds, args.size, card, args.cache)
+    test_s, test_t, test_y, _ = build_shift(TEST, test_seeds, args.size, card, args.cache)
     elapsed = time.perf_counter() - start
-    groups = np.repeat(train_seeds, len(WEAVES))
     relief, image = fit(train_s, train_y, groups), fit(train_t, train_y, groups)
     both = fit(np.hstack([train_s, train_t]), train_y, groups)
     predicted = {"descriptors": relief.predict(test_s), "image": image.predict(test_t),
@@ -416,11 +418,10 @@ def main(argv: list[str] | None = None) -> int:
     card = render_card(options.rig.replace(size=args.size), seed=10_007)
     start = time.perf_counter()
     print(f"train: seeds 0..{args.train_seeds - 1} x {len(CLASSES)} classes")
-    train_s, train_t, train_y = build(list(range(args.train_seeds)), options, card, args.cache)
+    train_s, train_t, train_y, groups = build(list(range(args.train_seeds)), options, card, args.cache)
     print(f"test: seeds 10000..{10000 + args.test_seeds - 1} x {len(CLASSES)} classes")
-    test_s, test_t, test_y = build(list(range(10_000, 10_000 + args.test_seeds)), options, card, args.cache)
+    test_s, test_t, test_y, _ = build(list(range(10_000, 10_000 + args.test_seeds)), options, card, args.cache)
     elapsed = time.perf_counter() - start
-    groups = np.repeat(np.arange(args.train_seeds), len(CLASSES))
     structure = fit(train_s, train_y, groups)
     texture = fit(train_t, train_y, groups)
     right_s, right_t = structure.predict(test_s) == test_y, texture.predict(test_t) == test_y
