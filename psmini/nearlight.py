@@ -264,15 +264,13 @@ class _LightField:
     def __init__(self, model: nn.Module, size: tuple[int, int], pitch: float, card_height: float | None,
                  like: Tensor, stride: int = 1) -> None:
         x, y = pixel_grid_mm(*size, pitch, device=like.device, dtype=like.dtype)
-        self.model = model
-        self.xy = torch.stack([x[::stride, ::stride], y[::stride, ::stride]])[None]  # (1, 2, h, w), mm
+        self.model, self.xy = model, torch.stack([x[::stride, ::stride], y[::stride, ::stride]])[None]  # (1, 2, h, w)
         self.card_scale: Tensor | None = None
         if card_height is not None:
             directions, irradiance = self._evaluate(torch.full_like(self.xy[:, :1], float(card_height)))
-            facing = directions[:, :, 2:3]
-            if bool((facing.detach() <= 0).any()):
+            if bool((directions[:, :, 2:3].detach() <= 0).any()):
                 raise InputError("flat-fielding needs every light above the card plane at every pixel")
-            self.card_scale = 1 / (irradiance * facing)  # (1, K, 1, h, w)
+            self.card_scale = 1 / (irradiance * directions[:, :, 2:3])  # (1, K, 1, h, w)
 
     def _evaluate(self, depth: Tensor) -> tuple[Tensor, Tensor]:
         points = torch.cat([self.xy.expand(depth.shape[0], -1, -1, -1), depth], dim=1)
@@ -452,14 +450,6 @@ def _initial_fit(data: _Data, lights: Tensor, prior: Tensor) -> _Fit:
     return _Fit(lights, images, data.valid * lit / variance, prior)
 
 
-def _start(data: _Data, lights: Tensor, prior: Tensor, penalty: _Penalty) -> Tensor:
-    """Where the robust steps start: :func:`_initial_fit`, then a step of Cauchy's penalty at the same scale, whose
-    weights fall off slowly enough to pull the fit back from a glint that the lit-weighted least squares followed,
-    before the bounded penalty's steps reject it (graduated non-convexity, Blake and Zisserman 1987)."""
-    m = _initial_fit(data, lights, prior).m
-    return _robust_step(data, lights, m, prior, _Penalty("cauchy", penalty.scale)).m
-
-
 def _robust_step(data: _Data, lights: Tensor, m: Tensor, prior: Tensor, penalty: _Penalty) -> _Fit:
     """One re-weighted Gauss–Newton step of the energy at fixed lights from ``m``: the penalty's weights of its
     residuals times :math:`\\lambda_k`, the :math:`\\max`'s Jacobian (readings predicted in attached shadow leave,
@@ -522,17 +512,19 @@ def _non_negative_solve(normal: Tensor, rhs: Tensor) -> Tensor:
     return solution.clamp_min(0)
 
 
-def _normal_std(data: _Data, lights: Tensor, fit: _Fit, prior: Tensor, penalty: _Penalty) -> tuple[Tensor, Tensor]:
-    r"""Predicted RMS angular error (degrees) of each normal from the noise, :math:`(B, 1, h, w)`, and the factor of its
-    variance that the readings' misfit calls for. The first: the fit's covariance :math:`C = c\,(A + \lambda I)^{-1}`
-    (:math:`c` the penalty's covariance factor) across the normal, :math:`\sqrt{\operatorname{tr}((I - nn^\top) C (I -
-    nn^\top))} / \rho`, at most 180°, where a reading predicted within a few noise levels of zero, not known to be lit
-    (the :math:`\max` makes its constraint one-sided), counts by :math:`z^2 / (z^2 + 3^2)`, :math:`z` its prediction in
-    noise levels (a pixel lit by two LEDs that leans on a dark reading at a shadow's edge is not well measured). The
-    second: least-squares adjustment's a posteriori variance factor, at least 1, over each pixel's
-    :data:`_FILL_SIZE`² window: the weighted squared standardised residuals over what noise alone leaves, the
-    penalty's consistency times the weights less their leverages, :math:`\sum_k s_k h_k = \operatorname{tr}(A^{-1}
-    \sum_k s_k w_k L_k L_k^\top)`. Where the model misfits (a metallic glint) the covariance understates the error."""
+def _normal_std(data: _Data, lights: Tensor, fit: _Fit, least_squares: Tensor, prior: Tensor,
+                penalty: _Penalty) -> tuple[Tensor, Tensor]:
+    r"""Predicted RMS angular error (degrees) of each normal from the noise, :math:`(B, 1, h, w)`, and the whole
+    prediction: its variance times the factor the misfit calls for, plus the rejections' part. The first: the fit's
+    covariance :math:`C = c\,(A + \lambda I)^{-1}` (:math:`c` the penalty's covariance factor) across the normal,
+    :math:`\sqrt{\operatorname{tr}((I - nn^\top) C (I - nn^\top))} / \rho`, at most 180°, where a reading predicted
+    within a few noise levels of zero, not known to be lit (the :math:`\max` makes its constraint one-sided), counts by
+    :math:`z^2 / (z^2 + 3^2)`, :math:`z` its prediction in noise levels (a pixel lit by two LEDs that leans on a dark
+    reading is not well measured). The second: least-squares adjustment's a posteriori variance factor, at least 1, over
+    each pixel's :data:`_FILL_SIZE`² window: the weighted squared standardised residuals over what noise alone leaves,
+    the penalty's consistency times the weights less their leverages, :math:`\sum_k s_k h_k = \operatorname{tr}(A^{-1}
+    \sum_k s_k w_k L_k L_k^\top)`. The third: a fit that rejects a share :math:`q` of the pixel's light (a glint, or the
+    readings that were right) errs by :math:`d`, the angle to the lit readings' least squares, with chance :math:`q`."""
     assert fit.share is not None
     predicted = _predict(fit.m, lights)
     variance = data.variance(predicted)
@@ -548,8 +540,13 @@ def _normal_std(data: _Data, lights: Tensor, fit: _Fit, prior: Tensor, penalty: 
                             for c, (i, j) in zip(fit.inverse, pairs, strict=True)]).sum(0)  # _Fit.inverse's order
     freedom = _box_sum((fit.share.sum(1) - leverage.to(variance.dtype)).clamp_min(0).unsqueeze(1))
     residual_sq = (fit.share * (data.images - predicted.clamp_min(0)).square() / variance).sum(1, keepdim=True)
-    misfit = _box_sum(residual_sq) / (freedom * penalty.consistency).clamp_min(1)
-    return (radians.unsqueeze(1) * (180 / math.pi)).clamp(max=180.0), misfit.clamp_min(1)
+    misfit = (_box_sum(residual_sq) / (freedom * penalty.consistency).clamp_min(1)).clamp_min(1)
+    light, tiny = (data.images * data.valid).clamp_min(0), torch.finfo(variance.dtype).tiny
+    rejected = ((1 - fit.share) * light).sum(1, keepdim=True) / light.sum(1, keepdim=True).clamp_min(tiny)
+    apart = 2 * torch.asin(vector_length(_split(least_squares)[1] - normals, dim=1).clamp(max=2) / 2)
+    degrees, apart = radians.unsqueeze(1) * (180 / math.pi), apart * (180 / math.pi)
+    total = (degrees.square() * misfit + rejected * apart.square()).clamp_min(tiny).sqrt()
+    return degrees.clamp(max=180.0), total.clamp(max=180.0)
 
 
 def _split(m: Tensor) -> tuple[Tensor, Tensor]:
@@ -807,7 +804,7 @@ def solve_near_light(
     Returns:
         :class:`NearLightResult`; ``depth`` is the absolute height above the card plane's origin, mm, ``mask`` the
         pixels whose normal the readings decide (error predicted from the noise under 30°), ``normal_std`` each
-        normal's predicted RMS error, degrees (from the noise and the fit's misfit).
+        normal's predicted RMS error, degrees (from the noise, the fit's misfit and the light it rejected).
 
     Raises:
         ShapeError: when the shapes do not match (K of the images vs the light model, mask, valid, gain).
@@ -858,7 +855,7 @@ class _State:
     m: Tensor | None = None
     normal_std: Tensor | None = None
     weights: Tensor | None = None  # each reading's weight in [0, 1] in the last fit
-    misfit: Tensor | None = None  # the factor of its variance the misfit calls for (_normal_std)
+    predicted_std: Tensor | None = None  # normal_std with the misfit and the rejections (_normal_std)
     iterations: int = 0
     changes: list[float] = dataclasses.field(default_factory=list)
     converged: bool = False
@@ -927,13 +924,16 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
         if state.weights is None:  # the level's first fit: a noise model from the lit readings' least squares
             first = _initial_fit(data, lights, prior).every(_NOISE_STRIDE)
             data.set_noise(_fit_noise(data.every(_NOISE_STRIDE), _stride(lights, _NOISE_STRIDE), first, penalty, 6))
-        m = _start(data, lights, prior, penalty)
+        # first a step of Cauchy's penalty: it pulls the fit back from a glint the least squares followed (graduated
+        # non-convexity, Blake and Zisserman 1987), before Welsch's steps reject it
+        least_squares = _initial_fit(data, lights, prior).m
+        m = _robust_step(data, lights, least_squares, prior, _Penalty("cauchy", penalty.scale)).m
         for _ in range(options.irls_steps):
             fit = _robust_step(data, lights, m, prior, penalty)
             m = fit.m
         data.set_noise(_fit_noise(data.every(_NOISE_STRIDE), _stride(lights, _NOISE_STRIDE),
                                   fit.every(_NOISE_STRIDE), penalty, rounds=2))
-        normal_std, misfit = _normal_std(data, lights, fit, prior, penalty)
+        normal_std, predicted_std = _normal_std(data, lights, fit, least_squares, prior, penalty)
         normals = _split(m)[1]
         if before is not None:  # the mean angle between the normals and the last alternation's, degrees
             chord = vector_length(normals - before, dim=1).clamp(max=2)
@@ -945,7 +945,7 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
         before = normals
         state.m, state.normal_std = _keep(done, state.m, m), _keep(done, state.normal_std, normal_std)
         state.weights = _keep(done, state.weights, fit.share if fit.share is not None else fit.weights)
-        state.misfit = _keep(done, state.misfit, misfit)
+        state.predicted_std = _keep(done, state.predicted_std, predicted_std)
         if bool(done.all()):
             state.converged = True
             break
@@ -980,7 +980,7 @@ def _finish(data: _Data, field: _LightField, state: _State, domain: Tensor, full
     Gauss–Newton step on every pixel (on a sixteenth of them a knit's or a net's bend does not stand clear of its
     noise), without a line search (in the step's basin a half step is a bias): the guide's step 3."""
     assert state.m is not None and state.normal_std is not None and state.weights is not None
-    assert state.misfit is not None
+    assert state.predicted_std is not None
     albedo, normals = _split(state.m)
     relative = _integrate(normals, state.normal_std, domain, pitch, options.integrator, state.relative)
     if options.integrator == "masked" and full:
@@ -994,7 +994,7 @@ def _finish(data: _Data, field: _LightField, state: _State, domain: Tensor, full
     normals = torch.where(domain, normals, _up(albedo))
     p, q = _slopes_of(normals)
     return NearLightResult(albedo * inside, normals, p, q, depth, domain & (state.normal_std < _SOLVED_BELOW_DEG),
-                           normal_std=(state.normal_std * state.misfit.sqrt()).clamp(max=180.0),
+                           normal_std=state.predicted_std,
                            weights=state.weights * inside, noise=data.noise.view(-1, 3),
                            offset_mm=_masked_mean(depth, domain).view(-1), tilt=theta[:, 1:3], bend=theta[:, 3:],
                            iterations=state.iterations, changes_deg=tuple(state.changes), converged=state.converged)

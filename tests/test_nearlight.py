@@ -18,7 +18,6 @@ from psmini.nearlight import (
     _initial_fit,
     _Penalty,
     _robust_step,
-    _start,
     near_light_energy,
     near_light_vectors,
     solve_near_light,
@@ -189,7 +188,8 @@ class TestEnergyTerms(BaseTester):
         penalty = _Penalty("welsch", 2.9846)
         prior = corrupted.amax(1, keepdim=True) * torch.tensor([0, 0, 1.0], dtype=torch.float64).view(1, 3, 1, 1)
         data.set_noise(_fit_noise(data, lights, _initial_fit(data, lights, prior), penalty, 6))
-        m = _start(data, lights, prior, penalty)
+        # the solver's start: the lit-weighted least squares, then a step of Cauchy's penalty
+        m = _robust_step(data, lights, _initial_fit(data, lights, prior).m, prior, _Penalty("cauchy", 2.3849)).m
         for _ in range(3):
             fit = _robust_step(data, lights, m, prior, penalty)
             m = fit.m
@@ -523,6 +523,30 @@ class TestSimulatedFabrics:
         error = error - error.median()
         assert float(error.abs().quantile(0.999)) < 0.3
         assert describe(result.depth, sample.pixel_pitch_mm, result.mask)[0]["iso25178"]["Sku"] < 10
+
+    def test_predicted_errors_cover_a_metallic_fabrics_glints(self):
+        """Lurex's metal tapes glint: where the robust fit keeps the wrong three readings of a glinting pixel, its
+        residuals fit that wrong normal to the noise and neither the covariance nor the misfit sees it (error² /
+        predicted² 5.3-5.4 on these captures without the rejections' part). With it (the share of the pixel's light
+        the fit rejects times the angle to the lit readings' least squares, squared) 1.8-1.9, the share below
+        the prediction still about 63%."""
+        from data_synth import make_fabric
+        from data_synth.rig import RigConfig, render_capture, render_card
+
+        config = RigConfig(size=200, pixel_pitch_mm=0.05, noise=True, bit_depth=8, intensity_spread=0.05)
+        card = render_card(config, 0.8)
+        capture = render_capture(make_fabric("lurex", size=200, pixel_pitch_mm=0.05, seed=0), config,
+                                 height_offset_mm=0.5)
+        result = PhotometricStereo(capture.lights, 0.05)(capture.images[None], card.images[None],
+                                                         capture.dark[None], card.dark[None], card_albedo=0.8,
+                                                         saturation_level=1.0)
+        flat = flatfield(capture.images[None], card.images[None], capture.dark[None], card.dark[None], 0.8,
+                         saturation_level=1.0)
+        scored = (((capture.lit & flat.valid[0]).sum(0) >= 3) & capture.mask[0].bool())
+        error = angular_error_deg(result.normals, capture.normals[None])[0, 0][scored]
+        predicted = result.normal_std[0, 0][scored]
+        ratio, within = float((error / predicted).square().mean()), float((error < predicted).double().mean())
+        assert ratio < 2.5 and 0.55 < within < 0.71, (ratio, within)
 
     @pytest.mark.parametrize("name", ["knit", "purl"])
     def test_stable_under_rounding_changes_of_a_capture(self, name):
