@@ -191,6 +191,12 @@ class SimulatedDevice:
             self._pending = [(when, chunk) for when, chunk in self._pending if when > now]
             return b"".join(due)
 
+    def replies_due(self) -> bool:
+        """Whether a reply is due now that :meth:`output` has not handed over yet."""
+        with self._lock:
+            now = self.clock()
+            return any(when <= now for when, _ in self._pending)
+
     def _end_of_line(self) -> None:
         self._last_line = self.clock()
         line = self._line.decode("ascii")
@@ -273,6 +279,7 @@ class PtyLink:
         self.path = os.ttyname(slave)
         os.close(slave)  # held open, the slave would hide the host's open and close from the master
         self._stop = threading.Event()
+        self._cycle = threading.Lock()  # held from a poll's wake-up until its replies are written
         self._thread = threading.Thread(target=self._serve, name=f"psmini-sim-pty {self.path}", daemon=True)
         self._thread.start()
 
@@ -288,20 +295,30 @@ class PtyLink:
                     host_open = False
                     time.sleep(self.poll_s)
                     continue
-                if not host_open:
-                    host_open = True
-                    self.device.reset()
-                if events.get(self._master, 0) & select.POLLIN:
-                    self.device.receive(os.read(self._master, 4096))
-                if not self.device.connected:
-                    return
-                data = self.device.output()
-                if data:
-                    os.write(self._master, data)
+                with self._cycle:
+                    if not host_open:
+                        host_open = True
+                        self.device.reset()
+                    if events.get(self._master, 0) & select.POLLIN:
+                        self.device.receive(os.read(self._master, 4096))
+                    if not self.device.connected:
+                        return
+                    data = self.device.output()
+                    if data:
+                        os.write(self._master, data)
         except OSError as error:  # the host went away mid-transfer
             logger.debug("pty link %s: %s", self.path, error)
         finally:
             self._close_master()
+
+    def idle(self) -> bool:
+        """Whether the device has parsed every byte the host wrote and every reply due is written to the host's
+        side: what a test waits for before it reads what a command brought, however late this thread runs."""
+        with self._cycle:
+            if self._master < 0:
+                return True
+            unread = bool(select.select([self._master], [], [], 0)[0])
+            return not unread and not self.device.replies_due()
 
     def _close_master(self) -> None:
         master, self._master = self._master, -1
@@ -631,6 +648,11 @@ class SimulatedRig:
                                    self.camera_fault, self.fault_after)
         self.captures.append(capture)
         return capture
+
+    def idle(self) -> bool:
+        """Whether the board has answered everything the host sent so far (:meth:`PtyLink.idle`; over a URL, where
+        the host's own thread runs the device, always)."""
+        return self._link.idle() if self._link is not None else True
 
     def close(self) -> None:
         if self._link is not None:

@@ -349,7 +349,13 @@ def board_transcript(emulator, steps):
 
 def twin_transcript(steps):
     with SimulatedRig(size=16, boot_s=0.0) as rig:
-        def settle(link: serial.Serial) -> bytes:  # until 40 ms pass without a byte
+        def settle(link: serial.Serial) -> bytes:
+            # once the twin has answered all it was sent (its pty thread may run late on a busy machine: the reply
+            # of a command whose LED it had already lit came 40 ms late under the parallel suite), until 40 ms pass
+            # without a byte
+            deadline = time.monotonic() + 5.0
+            while not rig.idle() and time.monotonic() < deadline:
+                time.sleep(0.002)
             data = b""
             while True:
                 chunk = read_for(link, 0.04)

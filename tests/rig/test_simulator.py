@@ -141,6 +141,28 @@ def test_pty_link_is_a_serial_port():
         assert device.resets == 2 and device.lit is None
 
 
+def test_replies_due_follow_the_clock():
+    device, clock = booted(fault="timeout", fault_after=0, slow_s=2.0)
+    device.receive(b"PING\n")
+    assert not device.replies_due()  # the slow board answers in 2 s
+    clock.now += 2.0
+    assert device.replies_due()
+    assert device.output() == b"OK PING\r\n" and not device.replies_due()
+
+
+def test_pty_link_idle_once_the_board_answered():
+    device = SimulatedDevice(boot_s=0.0)
+    with PtyLink(device) as link, serial.serial_for_url(link.path, 115200, timeout=1.0) as port:
+        assert port.readline().startswith(b"READY ")
+        port.write(b"ON 2\nPING\n")
+        deadline = time.monotonic() + 5.0
+        while not (link.idle() and device.history[-1:] == ["PING"]) and time.monotonic() < deadline:
+            time.sleep(0.001)
+        assert link.idle() and device.lit == 2  # both lines parsed, both replies written to the host's side
+        assert port.readline() == b"OK ON 2\r\n" and port.readline() == b"OK PING\r\n"
+    assert link.idle()  # a closed link has nothing left to answer
+
+
 def test_url_devices():
     device = SimulatedDevice(boot_s=0.0)
     url = serve_url(device, "test-url-devices")
