@@ -71,7 +71,7 @@ _INIT_SHARE = 0.1
 # A pixel's prior toward the current surface's normal (times its albedo): a Gaussian of this fraction of its length (23°
 # a direction, 32° RMS: alone, unsolved), firm enough that shadows' faint weights cannot swing it (0.5: 2° by rounding).
 _PRIOR_SPREAD = 0.4
-# A normal whose predicted error exceeds this (degrees) comes from the prior more than from its readings: unsolved.
+# A normal whose noise predicts worse than this (degrees) is unsolved: its readings add little to the prior's 32°.
 _SOLVED_BELOW_DEG = 30.0
 # Slopes are weighted by 1 / (their variance + this²), relative to the typical pixel's and at most 1: the error of a
 # measured slope against the forward difference the integration compares it with, about a 1° tilt.
