@@ -214,7 +214,7 @@ class NearLightResult(Reconstruction):
     Attributes:
         normal_std: predicted root-mean-square angular error of each normal, :math:`(B, 1, H, W)`, degrees: from the
             fit's covariance under the fitted noise model, scaled up where the readings fit worse than their noise
-            (a model error such as an unmodelled reflection); ``mask`` uses the noise's part.
+            (an unmodelled reflection) and by the light the fit rejected (:func:`_normal_std`); ``mask``: the noise's.
         weights: each observation's weight in the last fit, :math:`(B, K, H, W)` in [0, 1]: the robust penalty's
             (near 0 for a cast shadow, a highlight or an attached shadow), 0 where not valid.
         offset_mm: mean height of the cloth above the card plane, :math:`(B,)`, mm.

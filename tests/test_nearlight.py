@@ -189,7 +189,8 @@ class TestEnergyTerms(BaseTester):
         prior = corrupted.amax(1, keepdim=True) * torch.tensor([0, 0, 1.0], dtype=torch.float64).view(1, 3, 1, 1)
         data.set_noise(_fit_noise(data, lights, _initial_fit(data, lights, prior), penalty, 6))
         # the solver's start: the lit-weighted least squares, then a step of Cauchy's penalty
-        m = _robust_step(data, lights, _initial_fit(data, lights, prior).m, prior, _Penalty("cauchy", 2.3849)).m
+        start = _initial_fit(data, lights, prior).m
+        m = _robust_step(data, lights, start, prior, _Penalty("cauchy", penalty.scale)).m
         for _ in range(3):
             fit = _robust_step(data, lights, m, prior, penalty)
             m = fit.m
