@@ -34,7 +34,7 @@ from torch import Tensor, nn
 
 from psmini._checks import check_finite, check_mask, check_positive, check_shape
 from psmini._chunks import batch_part, chunks
-from psmini._tensor import vector_length
+from psmini._tensor import box_sum, vector_length
 from psmini.errors import InputError, ShapeError
 from psmini.flatfield import _check_frame
 from psmini.geometry import pixel_grid_mm
@@ -43,6 +43,7 @@ from psmini.integrate import dct_poisson, integrate
 from psmini.integrate.least_squares import _edge_system, _undo_edge_averaging
 from psmini.integrate.poisson import solve_weighted_poisson
 from psmini.lights import LightModel
+from psmini.metrics import angular_error_deg
 from psmini.normals import _slopes_of, _symmetric_adjugate
 from psmini.render import normals_from_height
 from psmini.result import Reconstruction
@@ -214,7 +215,7 @@ class NearLightResult(Reconstruction):
     Attributes:
         normal_std: predicted root-mean-square angular error of each normal, :math:`(B, 1, H, W)`, degrees: from the
             fit's covariance under the fitted noise model, scaled up where the readings fit worse than their noise
-            (an unmodelled reflection) and by the light the fit rejected (:func:`_normal_std`); ``mask``: the noise's.
+            (an unmodelled reflection) and by the light the fit rejected; ``mask``: where the noise's part is under 30°.
         weights: each observation's weight in the last fit, :math:`(B, K, H, W)` in [0, 1]: the robust penalty's
             (near 0 for a cast shadow, a highlight or an attached shadow), 0 where not valid.
         offset_mm: mean height of the cloth above the card plane, :math:`(B,)`, mm.
@@ -512,41 +513,46 @@ def _non_negative_solve(normal: Tensor, rhs: Tensor) -> Tensor:
     return solution.clamp_min(0)
 
 
-def _normal_std(data: _Data, lights: Tensor, fit: _Fit, least_squares: Tensor, prior: Tensor,
-                penalty: _Penalty) -> tuple[Tensor, Tensor]:
-    r"""Predicted RMS angular error (degrees) of each normal from the noise, :math:`(B, 1, h, w)`, and the whole
-    prediction: its variance times the factor the misfit calls for, plus the rejections' part. The first: the fit's
-    covariance :math:`C = c\,(A + \lambda I)^{-1}` (:math:`c` the penalty's covariance factor) across the normal,
+def _normal_std(data: _Data, lights: Tensor, fit: _Fit, prior: Tensor, penalty: _Penalty) -> Tensor:
+    r"""Predicted RMS angular error (degrees) of each normal from the noise, :math:`(B, 1, h, w)`: the fit's covariance
+    :math:`C = c\,(A + \lambda I)^{-1}` (:math:`c` the penalty's covariance factor) across the normal,
     :math:`\sqrt{\operatorname{tr}((I - nn^\top) C (I - nn^\top))} / \rho`, at most 180°, where a reading predicted
     within a few noise levels of zero, not known to be lit (the :math:`\max` makes its constraint one-sided), counts by
     :math:`z^2 / (z^2 + 3^2)`, :math:`z` its prediction in noise levels (a pixel lit by two LEDs that leans on a dark
-    reading is not well measured). The second: least-squares adjustment's a posteriori variance factor, at least 1, over
-    each pixel's :data:`_FILL_SIZE`² window: the weighted squared standardised residuals over what noise alone leaves,
-    the penalty's consistency times the weights less their leverages, :math:`\sum_k s_k h_k = \operatorname{tr}(A^{-1}
-    \sum_k s_k w_k L_k L_k^\top)`. The third: a fit that rejects a share :math:`q` of the pixel's light (a glint, or the
-    readings that were right) errs by :math:`d`, the angle to the lit readings' least squares, with chance :math:`q`."""
-    assert fit.share is not None
+    reading is not well measured)."""
     predicted = _predict(fit.m, lights)
-    variance = data.variance(predicted)
-    snr_sq = predicted.clamp_min(0).square() / variance
+    snr_sq = predicted.clamp_min(0).square() / data.variance(predicted)
     information = _Fit(lights, data.images, fit.weights * snr_sq / (snr_sq + _LIT_SIGMAS**2), prior)
     albedo, normals = _split(fit.m)
     i00, _, _, i11, _, i22 = information.inverse
     across = (i00 + i11 + i22).to(normals.dtype) - information.quadratic(normals.unsqueeze(1))[:, 0]
     albedo = albedo.squeeze(1).clamp_min(torch.finfo(albedo.dtype).eps)
     radians = (across.clamp_min(0) * penalty.covariance_factor).sqrt() / albedo
+    return (radians.unsqueeze(1) * (180 / math.pi)).clamp(max=180.0)
+
+
+def _predicted_std(data: _Data, lights: Tensor, fit: _Fit, least_squares: Tensor, normal_std: Tensor,
+                   penalty: _Penalty) -> Tensor:
+    r"""The result's predicted RMS angular error (degrees), :math:`(B, 1, h, w)`: :func:`_normal_std` times the misfit's
+    factor, plus the rejections' part. The factor: least-squares adjustment's a posteriori variance factor, at least 1,
+    over each pixel's :data:`_FILL_SIZE`² window: the weighted squared standardised residuals over what noise alone
+    leaves, the penalty's consistency times the weights less their leverages, :math:`\sum_k s_k h_k =
+    \operatorname{tr}(A^{-1} \sum_k s_k w_k L_k L_k^\top)`. The rejections: a fit that rejects a share :math:`q` of
+    the pixel's light (a glint, or the right readings) errs by :math:`d`, the angle to the lit least squares, chance
+    :math:`q`."""
+    assert fit.share is not None
+    predicted = _predict(fit.m, lights)
+    variance = data.variance(predicted)
     weighted, pairs = (fit.share * fit.weights).unsqueeze(2) * lights, ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
     leverage = torch.stack([(2 - (i == j)) * c * (weighted[:, :, i] * lights[:, :, j]).sum(1).double()
                             for c, (i, j) in zip(fit.inverse, pairs, strict=True)]).sum(0)  # _Fit.inverse's order
-    freedom = _box_sum((fit.share.sum(1) - leverage.to(variance.dtype)).clamp_min(0).unsqueeze(1))
+    freedom = box_sum((fit.share.sum(1) - leverage.to(variance.dtype)).clamp_min(0).unsqueeze(1), _FILL_SIZE)
     residual_sq = (fit.share * (data.images - predicted.clamp_min(0)).square() / variance).sum(1, keepdim=True)
-    misfit = (_box_sum(residual_sq) / (freedom * penalty.consistency).clamp_min(1)).clamp_min(1)
+    misfit = (box_sum(residual_sq, _FILL_SIZE) / (freedom * penalty.consistency).clamp_min(1)).clamp_min(1)
     light, tiny = (data.images * data.valid).clamp_min(0), torch.finfo(variance.dtype).tiny
     rejected = ((1 - fit.share) * light).sum(1, keepdim=True) / light.sum(1, keepdim=True).clamp_min(tiny)
-    apart = 2 * torch.asin(vector_length(_split(least_squares)[1] - normals, dim=1).clamp(max=2) / 2)
-    degrees, apart = radians.unsqueeze(1) * (180 / math.pi), apart * (180 / math.pi)
-    total = (degrees.square() * misfit + rejected * apart.square()).clamp_min(tiny).sqrt()
-    return degrees.clamp(max=180.0), total.clamp(max=180.0)
+    apart = angular_error_deg(_split(least_squares)[1], _split(fit.m)[1])
+    return (normal_std.square() * misfit + rejected * apart.square()).clamp_min(tiny).sqrt().clamp(max=180.0)
 
 
 def _split(m: Tensor) -> tuple[Tensor, Tensor]:
@@ -578,8 +584,8 @@ def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float
     confidence = (confidence / _masked_median(confidence, domain)).clamp(max=1) * domain
     decided = 1 / (1 + (normal_std / _FILL_ABOVE_DEG).pow(4) + slope_variance.square() / _FILL_SLOPE_STD**8)
     support = confidence * -F.max_pool2d(-decided, 3, stride=1, padding=1)
-    local = _box_sum(support).clamp_min(torch.finfo(p.dtype).tiny)
-    p, q = (decided * g + (1 - decided) * _box_sum(support * g) / local for g in (p, q))
+    local = box_sum(support, _FILL_SIZE).clamp_min(torch.finfo(p.dtype).tiny)
+    p, q = (decided * g + (1 - decided) * box_sum(support * g, _FILL_SIZE) / local for g in (p, q))
     if method not in ("masked", "fill"):
         return integrate(p, q, method, pitch, domain)
     start = dct_poisson(p, q, pitch) if method == "fill" or warm is None else warm
@@ -591,13 +597,6 @@ def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float
     # solution, so the one computed must be it
     tolerance = None if torch.is_grad_enabled() and wu.requires_grad else _CG_TOLERANCE
     return solve_weighted_poisson(wu, wv, tu, tv, domain.to(p.dtype), x0=start, tol=tolerance)
-
-
-def _box_sum(x: Tensor) -> Tensor:
-    """Sums of ``x`` (B, 1, H, W) over each pixel's :data:`_FILL_SIZE`² window (clipped at the borders)."""
-    k = _FILL_SIZE
-    rows = F.avg_pool2d(x, (k, 1), stride=1, padding=(k // 2, 0), count_include_pad=True)
-    return F.avg_pool2d(rows, (1, k), stride=1, padding=(0, k // 2), count_include_pad=True) * k**2
 
 
 def _masked_median(x: Tensor, region: Tensor) -> Tensor:
@@ -696,15 +695,16 @@ def _scan_offset(data: _Data, field: _LightField, relative: Tensor, domain: Tens
     robust step): the start of the Gauss–Newton steps, whose basin is narrower than the search."""
     points = min(_SCAN_POINTS, round((search[1] - search[0]) * 8) + 1)
     offsets = torch.linspace(*search, points, device=relative.device, dtype=relative.dtype)
-    prior = (data.images * data.valid).amax(dim=1, keepdim=True) * _up(relative)
-    basis, energies = _plane_basis(field.xy, domain), []
-    for offset in offsets:
-        shift = F.pad(offset.view(1), (0, 5))
-        lights = field(_placed(relative, basis, theta + shift))
-        m = _robust_step(data, lights, _initial_fit(data, lights, prior).m, prior, penalty).m
-        energies.append(_energy(data, _predict(m, lights), penalty, domain))
-    best = offsets[torch.stack(energies, dim=1).argmin(dim=1)]
-    return theta + F.pad(best[:, None], (0, 5))
+    # every height at once, as a batch of each sample repeated for each height
+    repeat = functools.partial(torch.repeat_interleave, repeats=points, dim=0)
+    trials = _Data(repeat(data.images), repeat(data.valid), repeat(data.gain) if len(data.gain) > 1 else data.gain,
+                   repeat(data.noise))
+    shifted = (theta.unsqueeze(1) + F.pad(offsets.unsqueeze(1), (0, 5))).flatten(0, 1)
+    lights = field(_placed(repeat(relative), repeat(_plane_basis(field.xy, domain)), shifted))
+    prior = (trials.images * trials.valid).amax(dim=1, keepdim=True) * _up(repeat(relative))
+    m = _robust_step(trials, lights, _initial_fit(trials, lights, prior).m, prior, penalty).m
+    energies = _energy(trials, _predict(m, lights), penalty, repeat(domain)).view(-1, points)
+    return theta + F.pad(offsets[energies.argmin(dim=1)].unsqueeze(1), (0, 5))
 
 
 def near_light_energy(intensities: Tensor, light_model: nn.Module, result: Reconstruction, pixel_pitch_mm: float,
@@ -855,7 +855,7 @@ class _State:
     m: Tensor | None = None
     normal_std: Tensor | None = None
     weights: Tensor | None = None  # each reading's weight in [0, 1] in the last fit
-    predicted_std: Tensor | None = None  # normal_std with the misfit and the rejections (_normal_std)
+    predicted_std: Tensor | None = None  # normal_std with the misfit and the rejections (_predicted_std)
     iterations: int = 0
     changes: list[float] = dataclasses.field(default_factory=list)
     converged: bool = False
@@ -900,7 +900,7 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
                final: bool) -> _LightField:
     """Alternations at one resolution, updating ``state`` and ``data``'s noise model; returns the level's light field.
     The coarse level's depth only places the lights (a full rectangle's Neumann solve, no tilt or bend). A sample whose
-    normals moved less than the tolerance keeps its state; the last alternation at full resolution ends with its fit."""
+    normals moved less than the tolerance stops there; the last alternation at full resolution ends with its fit."""
     size = (data.images.shape[-2], data.images.shape[-1])
     stride = max(1, int((size[0] * size[1] / _PLACE_PIXELS) ** 0.5))
     field = _LightField(model, size, pitch, card_height, data.images)
@@ -921,9 +921,10 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
             prior = (data.images * data.valid).amax(dim=1, keepdim=True) * _up(state.relative)
         else:
             prior = vector_length(state.m, dim=1) * normals_from_height(depth, pitch)
+        sample, sample_lights = data.every(_NOISE_STRIDE), _stride(lights, _NOISE_STRIDE)
         if state.weights is None:  # the level's first fit: a noise model from the lit readings' least squares
-            first = _initial_fit(data, lights, prior).every(_NOISE_STRIDE)
-            data.set_noise(_fit_noise(data.every(_NOISE_STRIDE), _stride(lights, _NOISE_STRIDE), first, penalty, 6))
+            first = _initial_fit(sample, sample_lights, _stride(prior, _NOISE_STRIDE))
+            data.set_noise(_fit_noise(sample, sample_lights, first, penalty, 6))
         # first a step of Cauchy's penalty: it pulls the fit back from a glint the least squares followed (graduated
         # non-convexity, Blake and Zisserman 1987), before Welsch's steps reject it
         least_squares = _initial_fit(data, lights, prior).m
@@ -931,25 +932,26 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
         for _ in range(options.irls_steps):
             fit = _robust_step(data, lights, m, prior, penalty)
             m = fit.m
-        data.set_noise(_fit_noise(data.every(_NOISE_STRIDE), _stride(lights, _NOISE_STRIDE),
-                                  fit.every(_NOISE_STRIDE), penalty, rounds=2))
-        normal_std, predicted_std = _normal_std(data, lights, fit, least_squares, prior, penalty)
+        data.set_noise(_fit_noise(data.every(_NOISE_STRIDE), sample_lights, fit.every(_NOISE_STRIDE), penalty, 2))
+        normal_std = _normal_std(data, lights, fit, prior, penalty)
         normals = _split(m)[1]
+        converging = torch.zeros_like(done)
         if before is not None:  # the mean angle between the normals and the last alternation's, degrees
-            chord = vector_length(normals - before, dim=1).clamp(max=2)
-            change = _masked_mean(2 * torch.asin(chord / 2) * (180 / math.pi), domain).view(-1)
+            change = _masked_mean(angular_error_deg(normals, before), domain).view(-1)
             state.changes.append(float(change.detach().max()))
             logger.info("near-light alternation %d at %d x %d: normals moved %.2e deg on average",
                         state.iterations, *size, state.changes[-1])
-            done = done | (change < options.tolerance_deg)
+            converging = ~done & (change < options.tolerance_deg)
         before = normals
+        # the samples done in an earlier alternation keep its state; this one is the last of those converging now
         state.m, state.normal_std = _keep(done, state.m, m), _keep(done, state.normal_std, normal_std)
         state.weights = _keep(done, state.weights, fit.share if fit.share is not None else fit.weights)
-        state.predicted_std = _keep(done, state.predicted_std, predicted_std)
-        if bool(done.all()):
-            state.converged = True
-            break
-        if final and 0 < iteration == iterations - 1:
+        if final and (iteration == iterations - 1 or bool(converging.any())):  # the result's (only it needs them)
+            state.predicted_std = _keep(done, state.predicted_std,
+                                        _predicted_std(data, lights, fit, least_squares, normal_std, penalty))
+        done = done | converging
+        state.converged = bool(done.all())
+        if state.converged or final and 0 < iteration == iterations - 1:
             break
         relative = _integrate(normals, normal_std, domain, pitch, method, state.relative if iteration else None)
         theta = state.theta
@@ -969,9 +971,7 @@ def _stride(x: Tensor, stride: int) -> Tensor:
 
 def _keep(done: Tensor, old: Tensor | None, new: Tensor) -> Tensor:
     """``new``, except for the samples that are ``done``, which keep ``old``."""
-    if old is None or not bool(done.any()):
-        return new
-    return torch.where(done.view(-1, *([1] * (new.dim() - 1))), old, new)
+    return new if old is None or not bool(done.any()) else torch.where(done.view(-1, *[1] * (new.dim() - 1)), old, new)
 
 
 def _finish(data: _Data, field: _LightField, state: _State, domain: Tensor, full: bool, pitch: float,
@@ -994,7 +994,6 @@ def _finish(data: _Data, field: _LightField, state: _State, domain: Tensor, full
     normals = torch.where(domain, normals, _up(albedo))
     p, q = _slopes_of(normals)
     return NearLightResult(albedo * inside, normals, p, q, depth, domain & (state.normal_std < _SOLVED_BELOW_DEG),
-                           normal_std=state.predicted_std,
-                           weights=state.weights * inside, noise=data.noise.view(-1, 3),
+                           normal_std=state.predicted_std, weights=state.weights * inside, noise=data.noise.view(-1, 3),
                            offset_mm=_masked_mean(depth, domain).view(-1), tilt=theta[:, 1:3], bend=theta[:, 3:],
                            iterations=state.iterations, changes_deg=tuple(state.changes), converged=state.converged)

@@ -46,6 +46,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from psmini._tensor import box_sum
 from psmini.errors import InputError
 from psmini.fabric.surface import SurfaceOptions, _check_height, remove_form, scale_limited_surface
 
@@ -254,20 +255,13 @@ def _spectrum(surface: Tensor, weight: Tensor) -> Tensor:
     return torch.fft.fftshift(spec.abs().square(), dim=(-2, -1))
 
 
-def _box_mean(x: Tensor, size: int) -> Tensor:
-    """Mean over a size x size box (zero padded at the borders), separable."""
-    pad = size // 2
-    x = F.avg_pool2d(x, (1, size), stride=1, padding=(0, pad), count_include_pad=True)
-    return F.avg_pool2d(x, (size, 1), stride=1, padding=(pad, 0), count_include_pad=True)
-
-
 def _background(power: Tensor, inner: int = 5, outer: int = 12) -> Tensor:
     """Local background of every bin: the geometric mean of the power over the square annulus between
     ``inner`` and ``outer`` bins around it (a periodic peak's main lobe, ±4 bins of the padded Hann spectrum, lies
     inside; a smooth random surface's spectrum is as high there as at the bin)."""
     logp = power.clamp_min(torch.finfo(power.dtype).tiny).log()
     big, small = 2 * outer + 1, 2 * inner + 1
-    annulus = (_box_mean(logp, big) * big**2 - _box_mean(logp, small) * small**2) / (big**2 - small**2)
+    annulus = (box_sum(logp, big) - box_sum(logp, small)) / (big**2 - small**2)
     return annulus.exp()
 
 

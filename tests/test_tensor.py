@@ -1,0 +1,46 @@
+"""Tests of the small tensor helpers (psmini._tensor) against direct computations."""
+
+import pytest
+import torch
+
+from psmini._tensor import box_sum, vector_length
+from psmini.errors import InputError
+
+
+def _windowed_sums(x: torch.Tensor, size: int) -> torch.Tensor:
+    """Each pixel's window summed offset by offset over a zero-padded copy: the definition, written out."""
+    half = size // 2
+    padded = torch.nn.functional.pad(x, (half, half, half, half))
+    height, width = x.shape[-2:]
+    return sum(padded[..., i : i + height, j : j + width] for i in range(size) for j in range(size))
+
+
+class TestBoxSum:
+    @pytest.mark.parametrize("size", [1, 3, 9])
+    def test_equals_the_windows_sums(self, size):
+        x = torch.randn(2, 3, 11, 14, dtype=torch.float64)
+        torch.testing.assert_close(box_sum(x, size), _windowed_sums(x, size))
+
+    def test_leading_dimensions_any(self):
+        x = torch.randn(5, 7, dtype=torch.float64)
+        torch.testing.assert_close(box_sum(x, 3), _windowed_sums(x, 3))
+
+    def test_gradcheck(self):
+        x = torch.randn(1, 1, 6, 5, dtype=torch.float64, requires_grad=True)
+        assert torch.autograd.gradcheck(lambda t: box_sum(t, 3), (x,))
+
+    @pytest.mark.parametrize("size", [0, 4, -3, 2.0, True])
+    def test_refuses_a_window_without_a_centre(self, size):
+        with pytest.raises(InputError, match="positive odd"):
+            box_sum(torch.zeros(1, 1, 4, 4), size)
+
+
+class TestVectorLength:
+    def test_equals_the_norm(self):
+        x = torch.randn(2, 8, 3, 5, 4, dtype=torch.float64)
+        torch.testing.assert_close(vector_length(x, dim=2), torch.linalg.vector_norm(x, dim=2, keepdim=True))
+
+    def test_zero_vector_has_a_finite_gradient(self):
+        x = torch.zeros(1, 3, dtype=torch.float64, requires_grad=True)
+        vector_length(x, dim=1).sum().backward()
+        assert bool(torch.isfinite(x.grad).all())
