@@ -268,18 +268,14 @@ class _LightField:
         self.model, self.xy = model, torch.stack([x[::stride, ::stride], y[::stride, ::stride]])[None]  # (1, 2, h, w)
         self.card_scale: Tensor | None = None
         if card_height is not None:
-            directions, irradiance = self._evaluate(torch.full_like(self.xy[:, :1], float(card_height)))
+            directions, irradiance = self.model(torch.cat([self.xy, torch.full_like(self.xy[:, :1], card_height)], 1))
             if bool((directions[:, :, 2:3].detach() <= 0).any()):
                 raise InputError("flat-fielding needs every light above the card plane at every pixel")
             self.card_scale = 1 / (irradiance * directions[:, :, 2:3])  # (1, K, 1, h, w)
 
-    def _evaluate(self, depth: Tensor) -> tuple[Tensor, Tensor]:
-        points = torch.cat([self.xy.expand(depth.shape[0], -1, -1, -1), depth], dim=1)
-        return self.model(points)
-
     def __call__(self, depth: Tensor) -> Tensor:
         """Light vectors at the heights ``depth`` :math:`(B, 1, h, w)` (mm): :math:`(B, K, 3, h, w)`."""
-        directions, irradiance = self._evaluate(depth)
+        directions, irradiance = self.model(torch.cat([self.xy.expand(depth.shape[0], -1, -1, -1), depth], dim=1))
         return directions * (irradiance if self.card_scale is None else irradiance * self.card_scale)
 
 
@@ -380,8 +376,8 @@ class _Fit:
         return part
 
     def solve(self, rhs: list[Tensor]) -> Tensor:
-        """:math:`(A + \\lambda I)^{-1} b` per pixel for three right-hand sides (B, h, w) → (B, 3, h, w)."""
-        i00, i01, i02, i11, i12, i22 = self.inverse
+        """:math:`(A + \\lambda I)^{-1} b` per pixel for three right-hand sides (B, ..., h, w) → (B, 3, ..., h, w)."""
+        i00, i01, i02, i11, i12, i22 = (c.view(len(c), *[1] * (rhs[0].dim() - 3), *c.shape[1:]) for c in self.inverse)
         r0, r1, r2 = (r.double() for r in rhs)
         return torch.stack([i00 * r0 + i01 * r1 + i02 * r2, i01 * r0 + i11 * r1 + i12 * r2,
                             i02 * r0 + i12 * r1 + i22 * r2], dim=1).to(self.dtype)
@@ -457,10 +453,13 @@ def _robust_step(data: _Data, lights: Tensor, m: Tensor, prior: Tensor, penalty:
     smoothly: :data:`_HINGE_WIDTH`)."""
     predicted = _predict(m, lights)
     variance = data.variance(predicted)
-    attached = torch.sigmoid(predicted / (_HINGE_WIDTH * variance.sqrt()))
-    share = data.reliability * attached * penalty.weight((data.images - predicted.clamp_min(0)).square()
-                                                                 / variance)
+    share = _lit(data, predicted, variance) * penalty.weight((data.images - predicted.clamp_min(0)).square() / variance)
     return _Fit(lights, data.images, share / variance, prior, share)
+
+
+def _lit(data: _Data, predicted: Tensor, variance: Tensor) -> Tensor:
+    """Each reading's weight before the penalty's: its reliability times the max's Jacobian (the chance it is lit)."""
+    return data.reliability * torch.sigmoid(predicted / (_HINGE_WIDTH * variance.sqrt()))
 
 
 def _fit_noise(data: _Data, lights: Tensor, fit: _Fit, penalty: _Penalty, rounds: int = 3) -> Tensor:
@@ -534,25 +533,33 @@ def _normal_std(data: _Data, lights: Tensor, fit: _Fit, prior: Tensor, penalty: 
 def _predicted_std(data: _Data, lights: Tensor, fit: _Fit, least_squares: Tensor, normal_std: Tensor,
                    penalty: _Penalty) -> Tensor:
     r"""The result's predicted RMS angular error (degrees), :math:`(B, 1, h, w)`: :func:`_normal_std` times the misfit's
-    factor, plus the rejections' part. The factor: least-squares adjustment's a posteriori variance factor, at least 1,
-    over each pixel's :data:`_FILL_SIZE`² window: the weighted squared standardised residuals over what noise alone
-    leaves, the penalty's consistency times the weights less their leverages, :math:`\sum_k s_k h_k =
-    \operatorname{tr}(A^{-1} \sum_k s_k w_k L_k L_k^\top)`. The rejections: a fit that rejects a share :math:`q` of
-    the pixel's light (a glint, or the right readings) errs by :math:`d`, the angle to the lit least squares, chance
-    :math:`q`."""
+    factor, plus the rejections' and the unexplained light's parts. The factor: least-squares adjustment's a posteriori
+    variance factor, at least 1, over each :data:`_FILL_SIZE`² window: the weighted squared standardised residuals over
+    the penalty's consistency times the weights less their leverages :math:`s_k w_k L_k^\top A^{-1} L_k`. Rejections: a
+    fit that rejects a share :math:`q` of the pixel's light (a glint, or the right readings) errs by :math:`d`, the
+    angle to the lit least squares, with chance :math:`q`. Unexplained light: the share :math:`u` of the pixel's light
+    that the penalty rejected above its prediction among readings taken as lit (a glint, a sheen); each kept reading is
+    taken to carry that share unexplained, independently, pulling the normal by :math:`(I - nn^\top) A^{-1} w_k L_k I_k
+    / \rho` per unit."""
     assert fit.share is not None
     predicted = _predict(fit.m, lights)
     variance = data.variance(predicted)
-    weighted, pairs = (fit.share * fit.weights).unsqueeze(2) * lights, ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-    leverage = torch.stack([(2 - (i == j)) * c * (weighted[:, :, i] * lights[:, :, j]).sum(1).double()
-                            for c, (i, j) in zip(fit.inverse, pairs, strict=True)]).sum(0)  # _Fit.inverse's order
-    freedom = box_sum((fit.share.sum(1) - leverage.to(variance.dtype)).clamp_min(0).unsqueeze(1), _FILL_SIZE)
+    leverage = (fit.share * fit.weights * fit.quadratic(lights)).sum(1, keepdim=True)
+    freedom = box_sum((fit.share.sum(1, keepdim=True) - leverage).clamp_min(0), _FILL_SIZE)
     residual_sq = (fit.share * (data.images - predicted.clamp_min(0)).square() / variance).sum(1, keepdim=True)
     misfit = (box_sum(residual_sq, _FILL_SIZE) / (freedom * penalty.consistency).clamp_min(1)).clamp_min(1)
     light, tiny = (data.images * data.valid).clamp_min(0), torch.finfo(variance.dtype).tiny
-    rejected = ((1 - fit.share) * light).sum(1, keepdim=True) / light.sum(1, keepdim=True).clamp_min(tiny)
-    apart = angular_error_deg(_split(least_squares)[1], _split(fit.m)[1])
-    return (normal_std.square() * misfit + rejected * apart.square()).clamp_min(tiny).sqrt().clamp(max=180.0)
+    total_light = light.sum(1, keepdim=True).clamp_min(tiny)
+    rejected = ((1 - fit.share) * light).sum(1, keepdim=True) / total_light
+    above = (light - predicted.clamp_min(0)).clamp_min(0)
+    excess = ((_lit(data, predicted, variance) - fit.share).clamp_min(0) * above).sum(1, keepdim=True) / total_light
+    albedo, normals = _split(fit.m)
+    pulls = fit.solve([fit.weights * light * lights[:, :, j] for j in range(3)])  # (B, 3, K, h, w)
+    pull_sq = (pulls.square().sum(1) - (pulls * normals.unsqueeze(2)).sum(1).square()).sum(1, keepdim=True)
+    unexplained = excess * pull_sq.clamp_min(0).sqrt() / albedo.clamp_min(tiny) * (180 / math.pi)
+    apart = angular_error_deg(_split(least_squares)[1], normals)
+    total = normal_std.square() * misfit + rejected * apart.square() + unexplained.square()
+    return total.clamp_min(tiny).sqrt().clamp(max=180.0)
 
 
 def _split(m: Tensor) -> tuple[Tensor, Tensor]:
@@ -767,16 +774,9 @@ def _check_options(options: NearLightOptions | None) -> NearLightOptions:
     return NearLightOptions() if options is None else options
 
 
-def solve_near_light(
-    intensities: Tensor,
-    light_model: nn.Module,
-    pixel_pitch_mm: float,
-    card_height_mm: float | None,
-    valid: Tensor | None = None,
-    mask: Tensor | None = None,
-    options: NearLightOptions | None = None,
-    gain: Tensor | None = None,
-) -> NearLightResult:
+def solve_near_light(intensities: Tensor, light_model: nn.Module, pixel_pitch_mm: float, card_height_mm: float | None,
+                     valid: Tensor | None = None, mask: Tensor | None = None, options: NearLightOptions | None = None,
+                     gain: Tensor | None = None) -> NearLightResult:
     r"""The near-light stage: images → albedo, normals, absolute depth and each normal's predicted error, by
     minimising the robust energy of the module's docstring.
 
