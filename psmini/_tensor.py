@@ -44,3 +44,16 @@ def box_sum(x: Tensor, size: int) -> Tensor:
     half = size // 2
     rows = F.pad(x, (0, 0, half, half)).unfold(-2, size, 1).sum(-1)
     return F.pad(rows, (half, half)).unfold(-1, size, 1).sum(-1)
+
+
+def masked_median(x: Tensor, region: Tensor) -> Tensor:
+    """The median of ``x`` (B, C, H, W) over ``region`` (broadcastable, bool) per sample, (B, 1, 1, 1); 1 where the
+    region is empty.
+
+    Example:
+        >>> x = torch.arange(8.0).view(2, 1, 2, 2)
+        >>> masked_median(x, x > 2).flatten()
+        tensor([3., 5.])
+    """
+    return torch.stack([values[keep].median() if bool(keep.any()) else values.new_ones(())
+                        for values, keep in zip(x, region.expand_as(x), strict=True)]).view(-1, 1, 1, 1)

@@ -34,7 +34,7 @@ from torch import Tensor, nn
 
 from psmini._checks import check_finite, check_mask, check_positive, check_shape
 from psmini._chunks import batch_part, chunks
-from psmini._tensor import box_sum, vector_length
+from psmini._tensor import box_sum, masked_median, vector_length
 from psmini.errors import InputError, ShapeError
 from psmini.flatfield import _check_frame
 from psmini.geometry import pixel_grid_mm
@@ -376,8 +376,8 @@ class _Fit:
         return part
 
     def solve(self, rhs: list[Tensor]) -> Tensor:
-        """:math:`(A + \\lambda I)^{-1} b` per pixel for three right-hand sides (B, ..., h, w) → (B, 3, ..., h, w)."""
-        i00, i01, i02, i11, i12, i22 = (c.view(len(c), *[1] * (rhs[0].dim() - 3), *c.shape[1:]) for c in self.inverse)
+        """:math:`(A + \\lambda I)^{-1} b` per pixel for three right-hand sides (B, h, w) → (B, 3, h, w)."""
+        i00, i01, i02, i11, i12, i22 = self.inverse
         r0, r1, r2 = (r.double() for r in rhs)
         return torch.stack([i00 * r0 + i01 * r1 + i02 * r2, i01 * r0 + i11 * r1 + i12 * r2,
                             i02 * r0 + i12 * r1 + i22 * r2], dim=1).to(self.dtype)
@@ -482,7 +482,7 @@ def _fit_noise(data: _Data, lights: Tensor, fit: _Fit, penalty: _Penalty, rounds
     level = predicted / gain
     model = _MODEL_ERROR**2 * level.square()
     floor = _MODEL_ERROR**2 * _masked_mean(level.square(), counted) + torch.finfo(level.dtype).tiny
-    alpha = torch.maximum(_masked_median(target, counted > 0) / 0.4549, floor)  # 0.4549: χ²₁'s median
+    alpha = torch.maximum(masked_median(target, counted > 0) / 0.4549, floor)  # 0.4549: χ²₁'s median
     beta = torch.zeros_like(floor)
     features = torch.stack([torch.ones_like(level), level], dim=1)
     for _ in range(rounds):
@@ -532,33 +532,33 @@ def _normal_std(data: _Data, lights: Tensor, fit: _Fit, prior: Tensor, penalty: 
 
 def _predicted_std(data: _Data, lights: Tensor, fit: _Fit, least_squares: Tensor, normal_std: Tensor,
                    penalty: _Penalty) -> Tensor:
-    r"""The result's predicted RMS angular error (degrees), :math:`(B, 1, h, w)`: :func:`_normal_std` times the misfit's
-    factor, plus the rejections' and the unexplained light's parts. The factor: least-squares adjustment's a posteriori
-    variance factor, at least 1, over each :data:`_FILL_SIZE`² window: the weighted squared standardised residuals over
-    the penalty's consistency times the weights less their leverages :math:`s_k w_k L_k^\top A^{-1} L_k`. Rejections: a
-    fit that rejects a share :math:`q` of the pixel's light (a glint, or the right readings) errs by :math:`d`, the
-    angle to the lit least squares, with chance :math:`q`. Unexplained light: the share :math:`u` of the pixel's light
-    that the penalty rejected above its prediction among readings taken as lit (a glint, a sheen); each kept reading is
-    taken to carry that share unexplained, independently, pulling the normal by :math:`(I - nn^\top) A^{-1} w_k L_k I_k
-    / \rho` per unit."""
+    r"""The result's predicted RMS angular error (degrees), :math:`(B, 1, h, w)`: :func:`_normal_std` times the factors
+    of the misfit and of the unexplained light, plus the rejections' part. The misfit's: least-squares adjustment's a
+    posteriori variance factor, at least 1, over each pixel's :data:`_FILL_SIZE`² window: the weighted squared
+    standardised residuals over what noise alone leaves, the penalty's consistency times the weights less their
+    leverages, :math:`\sum_k s_k h_k = \operatorname{tr}(A^{-1} \sum_k s_k w_k L_k L_k^\top)`. The unexplained light's:
+    the penalty rejected a share :math:`u` of the pixel's light above its prediction among readings taken as lit (a
+    glint, a sheen); each kept reading taken to carry that share unexplained, independently, is noise of :math:`u I_k`
+    beside its :math:`\sigma_k`, which adds :math:`u^2 \overline{(I_k/\sigma_k)^2}` (over the kept readings) to the
+    factor. The rejections: a fit that rejects a share :math:`q` of the pixel's light (a glint, or the right readings)
+    errs by :math:`d`, the angle to the lit readings' least squares, with chance :math:`q`."""
     assert fit.share is not None
     predicted = _predict(fit.m, lights)
     variance = data.variance(predicted)
-    leverage = (fit.share * fit.weights * fit.quadratic(lights)).sum(1, keepdim=True)
-    freedom = box_sum((fit.share.sum(1, keepdim=True) - leverage).clamp_min(0), _FILL_SIZE)
+    weighted, pairs = (fit.share * fit.weights).unsqueeze(2) * lights, ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    leverage = torch.stack([(2 - (i == j)) * c * (weighted[:, :, i] * lights[:, :, j]).sum(1).double()
+                            for c, (i, j) in zip(fit.inverse, pairs, strict=True)]).sum(0)  # _Fit.inverse's order
+    freedom = box_sum((fit.share.sum(1) - leverage.to(variance.dtype)).clamp_min(0).unsqueeze(1), _FILL_SIZE)
     residual_sq = (fit.share * (data.images - predicted.clamp_min(0)).square() / variance).sum(1, keepdim=True)
     misfit = (box_sum(residual_sq, _FILL_SIZE) / (freedom * penalty.consistency).clamp_min(1)).clamp_min(1)
     light, tiny = (data.images * data.valid).clamp_min(0), torch.finfo(variance.dtype).tiny
     total_light = light.sum(1, keepdim=True).clamp_min(tiny)
     rejected = ((1 - fit.share) * light).sum(1, keepdim=True) / total_light
-    above = (light - predicted.clamp_min(0)).clamp_min(0)
-    excess = ((_lit(data, predicted, variance) - fit.share).clamp_min(0) * above).sum(1, keepdim=True) / total_light
-    albedo, normals = _split(fit.m)
-    pulls = fit.solve([fit.weights * light * lights[:, :, j] for j in range(3)])  # (B, 3, K, h, w)
-    pull_sq = (pulls.square().sum(1) - (pulls * normals.unsqueeze(2)).sum(1).square()).sum(1, keepdim=True)
-    unexplained = excess * pull_sq.clamp_min(0).sqrt() / albedo.clamp_min(tiny) * (180 / math.pi)
-    apart = angular_error_deg(_split(least_squares)[1], normals)
-    total = normal_std.square() * misfit + rejected * apart.square() + unexplained.square()
+    above = (_lit(data, predicted, variance) - fit.share).clamp_min(0) * (light - predicted.clamp_min(0)).clamp_min(0)
+    snr_sq = (fit.weights * light.square()).sum(1, keepdim=True) / fit.share.sum(1, keepdim=True).clamp_min(tiny)
+    unexplained = (above.sum(1, keepdim=True) / total_light).square() * snr_sq
+    apart = angular_error_deg(_split(least_squares)[1], _split(fit.m)[1])
+    total = normal_std.square() * (misfit + unexplained) + rejected * apart.square()
     return total.clamp_min(tiny).sqrt().clamp(max=180.0)
 
 
@@ -588,7 +588,7 @@ def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float
     p, q = _slopes_of(normals)
     slope_variance = (normal_std * (math.pi / 180)).square() / normals[:, 2:3].clamp_min(0.05).pow(4)
     confidence = 1 / (slope_variance + _SLOPE_FLOOR**2)
-    confidence = (confidence / _masked_median(confidence, domain)).clamp(max=1) * domain
+    confidence = (confidence / masked_median(confidence, domain)).clamp(max=1) * domain
     decided = 1 / (1 + (normal_std / _FILL_ABOVE_DEG).pow(4) + slope_variance.square() / _FILL_SLOPE_STD**8)
     support = confidence * -F.max_pool2d(-decided, 3, stride=1, padding=1)
     local = box_sum(support, _FILL_SIZE).clamp_min(torch.finfo(p.dtype).tiny)
@@ -604,12 +604,6 @@ def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float
     # solution, so the one computed must be it
     tolerance = None if torch.is_grad_enabled() and wu.requires_grad else _CG_TOLERANCE
     return solve_weighted_poisson(wu, wv, tu, tv, domain.to(p.dtype), x0=start, tol=tolerance)
-
-
-def _masked_median(x: Tensor, region: Tensor) -> Tensor:
-    """The median of ``x`` (B, C, H, W) over ``region`` per sample, (B, 1, 1, 1) (1 where the region is empty)."""
-    return torch.stack([values[keep].median() if bool(keep.any()) else values.new_ones(())
-                        for values, keep in zip(x, region.expand_as(x), strict=True)]).view(-1, 1, 1, 1)
 
 
 def _masked_mean(x: Tensor, region: Tensor) -> Tensor:

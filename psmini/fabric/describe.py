@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from psmini._tensor import masked_median
 from psmini.errors import DataFormatError, InputError, ShapeError
 from psmini.fabric.structure import StructureOptions, fabric_structure
 from psmini.fabric.surface import (
@@ -217,9 +218,7 @@ def albedo_periodicity(albedo: Tensor, pixel_pitch_mm: float, mask: Tensor | Non
 
 def _relative(albedo: Tensor, valid: Tensor) -> Tensor:
     """The albedo divided by each item's median over its valid pixels (1 for an item without any), 0 elsewhere."""
-    one = torch.ones((), dtype=albedo.dtype, device=albedo.device)
-    median = torch.stack([albedo[i][valid[i]].median() if valid[i].any() else one for i in range(albedo.shape[0])])
-    return torch.where(valid, albedo / median.view(-1, 1, 1, 1), torch.zeros_like(albedo))
+    return torch.where(valid, albedo / masked_median(albedo, valid), torch.zeros_like(albedo))
 
 
 def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, albedo: Tensor | None = None,
