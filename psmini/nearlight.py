@@ -215,7 +215,8 @@ class NearLightResult(Reconstruction):
     Attributes:
         normal_std: predicted root-mean-square angular error of each normal, :math:`(B, 1, H, W)`, degrees: from the
             fit's covariance under the fitted noise model, scaled up where the readings fit worse than their noise
-            (an unmodelled reflection) and by the light the fit rejected; ``mask``: where the noise's part is under 30°.
+            (an unmodelled reflection) and by the light the fit rejected or could not explain; ``mask``: where the
+            noise's part is under 30°.
         weights: each observation's weight in the last fit, :math:`(B, K, H, W)` in [0, 1]: the robust penalty's
             (near 0 for a cast shadow, a highlight or an attached shadow), 0 where not valid.
         offset_mm: mean height of the cloth above the card plane, :math:`(B,)`, mm.
@@ -849,7 +850,7 @@ class _State:
     m: Tensor | None = None
     normal_std: Tensor | None = None
     weights: Tensor | None = None  # each reading's weight in [0, 1] in the last fit
-    predicted_std: Tensor | None = None  # normal_std with the misfit and the rejections (_predicted_std)
+    predicted_std: Tensor | None = None  # normal_std with the misfit, the unexplained light and the rejections
     iterations: int = 0
     changes: list[float] = dataclasses.field(default_factory=list)
     converged: bool = False
