@@ -916,8 +916,9 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
             prior = (data.images * data.valid).amax(dim=1, keepdim=True) * _up(state.relative)
         else:
             prior = vector_length(state.m, dim=1) * normals_from_height(depth, pitch)
-        sample, sample_lights = data.every(_NOISE_STRIDE), _stride(lights, _NOISE_STRIDE)
+        sample_lights = _stride(lights, _NOISE_STRIDE)
         if state.weights is None:  # the level's first fit: a noise model from the lit readings' least squares
+            sample = data.every(_NOISE_STRIDE)
             first = _initial_fit(sample, sample_lights, _stride(prior, _NOISE_STRIDE))
             data.set_noise(_fit_noise(sample, sample_lights, first, penalty, 6))
         # first a step of Cauchy's penalty: it pulls the fit back from a glint the least squares followed (graduated
