@@ -278,11 +278,23 @@ class TestSmoothCard(BaseTester):
         noisy = card + 0.01 * torch.randn(card.shape, generator=torch.Generator().manual_seed(1), dtype=card.dtype)
         images = 0.5 * card
         plain = flatfield(images, noisy, card_albedo=0.8).images
-        smoothed = flatfield(images, noisy, card_albedo=0.8, card_smoothing_px=2.0).images
-        self.assert_close(smoothed, flatfield(images, smooth_card(noisy, 2.0), card_albedo=0.8).images)
+        smoothed = flatfield(images, noisy, card_albedo=0.8, card_smoothing_px=3.0).images
+        self.assert_close(smoothed, flatfield(images, smooth_card(noisy, 3.0), card_albedo=0.8).images)
         # what the normals see: each LED's share of a pixel's readings (a common factor per pixel cancels)
         share = lambda x: x / x.mean(dim=1, keepdim=True)  # noqa: E731
         assert float((share(smoothed) - 1).abs().mean()) < 0.3 * float((share(plain) - 1).abs().mean())
+
+    def test_keeps_curved_shapes_that_a_linear_fit_bends(self):
+        """Each LED's share quadratic across the field (a near LED's falloff curves): the local quadratic fit keeps
+        it to rounding, where a local linear fit over the same window errs by sigma^2 / 2 times its curvature."""
+        u = torch.linspace(-1, 1, 32, dtype=torch.float64).view(1, 1, 1, 32)
+        v = torch.linspace(-1, 1, 32, dtype=torch.float64).view(1, 1, 32, 1)
+        a, b = 0.3 * u + 0.4 * u**2 + 0 * v, -0.2 * v + 0.3 * u * v
+        shares = torch.cat([1 + a, 1 + b, 1 - a - b], dim=1)  # each LED's ratio to the mean (1): quadratic
+        gain = 0.7 + 0.2 * torch.rand(1, 1, 32, 32, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+        card = gain * shares
+        smoothed = smooth_card(card, 3.0)
+        self.assert_close(smoothed, card, rtol=1e-9, atol=1e-12)
 
     def test_gradcheck(self):
         card = (linear_card(size=7) + 0.01 * torch.rand(1, 3, 7, 7, dtype=torch.float64)).requires_grad_()

@@ -60,9 +60,9 @@ def add_config_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-reference", type=float, default=0.02, metavar="F",
                         help="card pixels darker than F x the LED's brightest card pixel are not trusted "
                              "(default 0.02)")
-    parser.add_argument("--card-smoothing-px", type=float, default=3.0, metavar="S",
-                        help="denoise the card before dividing by it: a local linear fit of each LED's share in a "
-                             "Gaussian window of S pixels (psmini.flatfield.smooth_card; default 3; 0 divides by the "
+    parser.add_argument("--card-smoothing-px", type=float, default=5.0, metavar="S",
+                        help="denoise the card before dividing by it: a local quadratic fit of each LED's share in a "
+                             "Gaussian window of S pixels (psmini.flatfield.smooth_card; default 5; 0 divides by the "
                              "card as captured)")
     parser.add_argument("--dtype", choices=["float32", "float64"], default="float32",
                         help="floating dtype of the computation (default float32)")
