@@ -370,7 +370,9 @@ def _quadratic_fit(moments: dict[tuple[int, int], Tensor], basis: tuple[tuple[in
     unit[0] = 1
     safe = torch.where(well_posed[..., None, None], factor, torch.eye(6, dtype=matrix.dtype, device=matrix.device))
     row = torch.cholesky_solve(unit.expand(*safe.shape[:-2], 6, 1), safe)[..., 0].to(sums[0].dtype)  # (B,1,H,W,6)
-    fitted = sum(row[..., j] * sums[j] for j in range(6))
+    fitted = row[..., 0] * sums[0]
+    for j in range(1, 6):
+        fitted = fitted + row[..., j] * sums[j]
     return torch.where(well_posed, fitted, torch.full_like(fitted, math.nan))
 
 class FlatField(nn.Module):
