@@ -346,7 +346,6 @@ def smooth_card(card: Tensor, sigma_px: float = 5.0, usable: Tensor | None = Non
     return torch.where(positive, common * shape, card)
 
 
-
 def _linear_fit(moments: list[Tensor], sums: list[Tensor]) -> Tensor:
     """The local linear fit's value at each window's centre from its six moments (1, u, v, u², uv, v²) and the
     windowed sums of the data times 1, u, v: NaN where the window does not pin a plane."""
