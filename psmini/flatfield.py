@@ -337,29 +337,29 @@ def smooth_card(card: Tensor, sigma_px: float = 5.0, usable: Tensor | None = Non
     basis = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))  # powers of the offsets (u along a row, v down)
     weighted = ratio * window
     sums = [_window_sums(weighted, taps[v], taps[u]) for u, v in basis]  # each (B, K, H, W)
-    linear = _linear_fit([moments[key] for key in basis], sums[:3])
-    quadratic = _quadratic_fit(moments, basis, sums)
-    fitted = torch.where(torch.isfinite(quadratic), quadratic, linear)
-    shape = torch.where((moments[(0, 0)] >= _MIN_CARD_SUPPORT) & torch.isfinite(fitted), fitted, ratio)
+    linear, plane_pinned = _linear_fit([moments[key] for key in basis], sums[:3])
+    quadratic, quadric_pinned = _quadratic_fit(moments, basis, sums)
+    fitted = torch.where(quadric_pinned, quadratic, linear)
+    shape = torch.where((moments[(0, 0)] >= _MIN_CARD_SUPPORT) & (quadric_pinned | plane_pinned), fitted, ratio)
     common = (card * shape * weight).sum(dim=1, keepdim=True) / (shape.square() * weight).sum(
         dim=1, keepdim=True).clamp_min(torch.finfo(card.dtype).tiny)
     return torch.where(positive, common * shape, card)
 
 
-def _linear_fit(moments: list[Tensor], sums: list[Tensor]) -> Tensor:
+def _linear_fit(moments: list[Tensor], sums: list[Tensor]) -> tuple[Tensor, Tensor]:
     """The local linear fit's value at each window's centre from its six moments (1, u, v, u², uv, v²) and the
-    windowed sums of the data times 1, u, v: NaN where the window does not pin a plane."""
+    windowed sums of the data times 1, u, v; and where the window pins a plane (elsewhere the value means nothing)."""
     m00, m10, m01, m20, m11, m02 = moments
     (c00, c01, c02, _, _, _), det, well_posed = _symmetric_adjugate(m00, m10, m01, m20, m11, m02)
     fitted = (c00 * sums[0] + c01 * sums[1] + c02 * sums[2]) / torch.where(well_posed, det, torch.ones_like(det))
-    return torch.where(well_posed, fitted, torch.full_like(fitted, math.nan))
+    return fitted, well_posed
 
 
 def _quadratic_fit(moments: dict[tuple[int, int], Tensor], basis: tuple[tuple[int, int], ...],
-                   sums: list[Tensor]) -> Tensor:
+                   sums: list[Tensor]) -> tuple[Tensor, Tensor]:
     """The local quadratic fit's value at each window's centre: the first row of the 6 × 6 moment matrix's inverse
-    (by Cholesky in float64, one per pixel, shared by the LEDs) times the windowed sums; NaN where the matrix is not
-    well conditioned (a pivot under 10⁻⁸ of the largest moment)."""
+    (by Cholesky in float64, one per pixel, shared by the LEDs) times the windowed sums; and where that matrix is
+    well conditioned (no pivot under 10⁻⁸ of the largest moment; elsewhere the value means nothing)."""
     matrix = torch.stack([torch.stack([moments[(a[0] + b[0], a[1] + b[1])] for b in basis], -1) for a in basis], -2)
     matrix = matrix.double()  # (B, 1, H, W, 6, 6)
     factor, info = torch.linalg.cholesky_ex(matrix)
@@ -372,7 +372,7 @@ def _quadratic_fit(moments: dict[tuple[int, int], Tensor], basis: tuple[tuple[in
     fitted = row[..., 0] * sums[0]
     for j in range(1, 6):
         fitted = fitted + row[..., j] * sums[j]
-    return torch.where(well_posed, fitted, torch.full_like(fitted, math.nan))
+    return fitted, well_posed
 
 class FlatField(nn.Module):
     """Flat-fielding with a stored reference (card) capture; see :func:`flatfield`.
