@@ -46,6 +46,19 @@ def box_sum(x: Tensor, size: int) -> Tensor:
     return F.pad(rows, (half, half)).unfold(-1, size, 1).sum(-1)
 
 
+def masked_mean(x: Tensor, region: Tensor, dim: tuple[int, ...] = (1, 2, 3)) -> Tensor:
+    """The mean of ``x`` over ``region`` (broadcastable to ``x``, bool or weights) along ``dim``, kept as size-1
+    dimensions; 0 where the region is empty.
+
+    Example:
+        >>> x = torch.arange(8.0).view(1, 2, 2, 2)
+        >>> masked_mean(x, x > 2).flatten(), masked_mean(x, x > 2, dim=(2, 3)).flatten()
+        (tensor([5.]), tensor([3.0000, 5.5000]))
+    """
+    weight = region.to(x.dtype).expand_as(x)
+    return (x * weight).sum(dim, keepdim=True) / weight.sum(dim, keepdim=True).clamp_min(torch.finfo(x.dtype).tiny)
+
+
 def masked_median(x: Tensor, region: Tensor) -> Tensor:
     """The median of ``x`` (B, C, H, W) over ``region`` (broadcastable, bool) per sample, (B, 1, 1, 1); 1 where the
     region is empty.

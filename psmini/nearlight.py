@@ -34,12 +34,13 @@ from torch import Tensor, nn
 
 from psmini._checks import check_finite, check_mask, check_positive, check_shape
 from psmini._chunks import batch_part, chunks
-from psmini._tensor import box_sum, masked_median, vector_length
+from psmini._tensor import box_sum, masked_mean, masked_median, vector_length
 from psmini.errors import InputError, ShapeError
 from psmini.flatfield import _check_frame
 from psmini.geometry import pixel_grid_mm
 from psmini.integrate import METHODS as INTEGRATORS
 from psmini.integrate import dct_poisson, integrate
+from psmini.integrate.bilateral import _Grid
 from psmini.integrate.least_squares import _edge_system, _undo_edge_averaging
 from psmini.integrate.poisson import solve_weighted_poisson
 from psmini.lights import LightModel
@@ -86,6 +87,9 @@ _FILL_SLOPE_STD = 1.0
 _FILL_SIZE = 9
 # Least weight of a slope in the integration: a filled slope still holds its pixel to its neighbours.
 _WEIGHT_FLOOR = 1e-2
+# Sharpness (1/pixel²) of the final integration's choice of an edge's one-sided slope: bilateral normal integration's
+# k (Cao et al. 2022); one-sided depth differences whose squares differ by one pixel² share the edge 0.88 to 0.12.
+_ONE_SIDED_K = 2.0
 # Relative residual at which the weighted integration stops (warm-started: within micrometres of converged).
 _CG_TOLERANCE = 1e-2
 # Most a placement's Gauss–Newton step may move any pixel, mm.
@@ -135,9 +139,8 @@ class NearLightOptions:
         initial_height_mm: starting height of the cloth above the card plane's origin, mm.
         search_mm: interval of heights scanned around ``initial_height_mm`` before the first alternation, mm.
         integrator: the final integration of the normals: ``"masked"`` (weighted least squares on the mask, slopes
-            weighted by their inverse variance; on the whole rectangle the finest relief, which the edge equations'
-            trapezoidal rule flattens, is restored) or another method of :func:`psmini.integrate.integrate`
-            (unweighted).
+            weighted by their inverse variance, an edge's from the side where the depth runs smoother, the finest
+            relief restored on the whole rectangle) or another method of :func:`psmini.integrate.integrate`.
 
     Raises:
         InputError: for values out of range.
@@ -482,7 +485,7 @@ def _fit_noise(data: _Data, lights: Tensor, fit: _Fit, penalty: _Penalty, rounds
                          torch.zeros_like(predicted))
     level = predicted / gain
     model = _MODEL_ERROR**2 * level.square()
-    floor = _MODEL_ERROR**2 * _masked_mean(level.square(), counted) + torch.finfo(level.dtype).tiny
+    floor = _MODEL_ERROR**2 * masked_mean(level.square(), counted) + torch.finfo(level.dtype).tiny
     alpha = torch.maximum(masked_median(target, counted > 0) / 0.4549, floor)  # 0.4549: χ²₁'s median
     beta = torch.zeros_like(floor)
     features = torch.stack([torch.ones_like(level), level], dim=1)
@@ -578,20 +581,24 @@ def _up(like: Tensor) -> Tensor:
 
 
 def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float, method: str,
-               warm: Tensor | None = None) -> Tensor:
+               warm: Tensor | None = None, one_sided: bool = False) -> Tensor:
     """Relative depth (mm, zero mean over ``domain``) of the normals: ``"masked"``, weighted least squares from
     ``warm`` (or the Neumann (DCT) solve); ``"fill"``, that Neumann solve alone; another method of
     :func:`psmini.integrate.integrate`, unweighted. Each slope weighs its inverse variance, relative to the typical
     pixel's and at most 1 (a flat facet is not worth a hundred walls). A normal the readings hardly decide (a crevice)
     or a slope they do not (a wall's normal near the horizontal) is blended into its neighbourhood's, so that it can
     never make a spike, and its neighbours weigh as little (a rim's normal sees the crevice's wall, which the next
-    pixel's depth does not: the many crevices of a knit add up to a dome otherwise)."""
+    pixel's depth does not: the many crevices of a knit add up to a dome otherwise). An edge's slope is its pixels'
+    mean, or with ``one_sided`` and ``warm`` mostly the slope of the pixel on whose side the warm depth runs smoother
+    (Cao et al., "Bilateral normal integration", ECCV 2022): where two flanks meet (a crevice between yarns, a ridge)
+    their mean is neither's, and the crevice comes out shallow. A filled slope, or its neighbour's, keeps the mean."""
     p, q = _slopes_of(normals)
     slope_variance = (normal_std * (math.pi / 180)).square() / normals[:, 2:3].clamp_min(0.05).pow(4)
     confidence = 1 / (slope_variance + _SLOPE_FLOOR**2)
     confidence = (confidence / masked_median(confidence, domain)).clamp(max=1) * domain
     decided = 1 / (1 + (normal_std / _FILL_ABOVE_DEG).pow(4) + slope_variance.square() / _FILL_SLOPE_STD**8)
-    support = confidence * -F.max_pool2d(-decided, 3, stride=1, padding=1)
+    settled = -F.max_pool2d(-decided, 3, stride=1, padding=1)  # decided, and so are its eight neighbours
+    support = confidence * settled
     local = box_sum(support, _FILL_SIZE).clamp_min(torch.finfo(p.dtype).tiny)
     p, q = (decided * g + (1 - decided) * box_sum(support * g, _FILL_SIZE) / local for g in (p, q))
     if method not in ("masked", "fill"):
@@ -599,17 +606,14 @@ def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float
     start = dct_poisson(p, q, pitch) if method == "fill" or warm is None else warm
     if method == "fill":
         return start
-    half = torch.full_like(p, 0.5)
-    wu, wv, tu, tv = _edge_system(p * pitch, -q * pitch, support + _WEIGHT_FLOOR, half, half)
+    forward_u = forward_v = torch.full_like(p, 0.5)
+    if one_sided and warm is not None:
+        forward_u, forward_v = _Grid(domain.to(p.dtype)).shares(warm / pitch, settled, _ONE_SIDED_K)
+    wu, wv, tu, tv = _edge_system(p * pitch, -q * pitch, support + _WEIGHT_FLOOR, forward_u, forward_v)
     # a solve that is differentiated is solved to the dtype's precision: its implicit gradient is that of the exact
     # solution, so the one computed must be it
     tolerance = None if torch.is_grad_enabled() and wu.requires_grad else _CG_TOLERANCE
     return solve_weighted_poisson(wu, wv, tu, tv, domain.to(p.dtype), x0=start, tol=tolerance)
-
-
-def _masked_mean(x: Tensor, region: Tensor) -> Tensor:
-    weight = region.to(x.dtype)
-    return (x * weight).sum(dim=(1, 2, 3), keepdim=True) / weight.sum(dim=(1, 2, 3), keepdim=True).clamp_min(1)
 
 
 def _placed(relative: Tensor, basis: Tensor, theta: Tensor) -> Tensor:
@@ -621,10 +625,10 @@ def _plane_basis(xy: Tensor, domain: Tensor) -> Tensor:
     """The placement's shapes, (B, 6, h, w): 1, the coordinates x, y (mm) centred on the domain, and the quadric's
     x²/2, xy, y²/2 of those, less their mean: the offset is the domain's mean height whatever the tilt and bend."""
     xy = xy.expand(domain.shape[0], -1, -1, -1)
-    xy = xy - _masked_mean(xy, domain)
+    xy = xy - masked_mean(xy, domain, dim=(2, 3))
     x, y = xy.unbind(1)
     quadric = torch.stack([x.square() / 2, x * y, y.square() / 2], dim=1)
-    return torch.cat([torch.ones_like(x[:, None]), xy, quadric - _masked_mean(quadric, domain)], dim=1)
+    return torch.cat([torch.ones_like(x[:, None]), xy, quadric - masked_mean(quadric, domain, dim=(2, 3))], dim=1)
 
 
 def _energy(data: _Data, predicted: Tensor, penalty: _Penalty, domain: Tensor) -> Tensor:
@@ -865,7 +869,7 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, model: nn.Module,
     # a start of a thousandth of the raw readings' RMS, below any camera's noise: the first fit follows its readings,
     # whose residuals then give the noise model
     raw = images / gain.clamp_min(torch.finfo(images.dtype).tiny)
-    alpha = (1e-6 * _masked_mean(raw.square(), valid)).clamp_min(torch.finfo(images.dtype).tiny)
+    alpha = (1e-6 * masked_mean(raw.square(), valid)).clamp_min(torch.finfo(images.dtype).tiny)
     data = _Data(images, valid.to(images.dtype), gain,
                  torch.cat([alpha, torch.zeros_like(alpha), torch.full_like(alpha, _MODEL_ERROR**2)], dim=1))
     start = F.pad(torch.tensor([options.initial_height_mm], device=images.device, dtype=images.dtype), (0, 5))
@@ -933,7 +937,7 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
         normals = _split(m)[1]
         converging = torch.zeros_like(done)
         if before is not None:  # the mean angle between the normals and the last alternation's, degrees
-            change = _masked_mean(angular_error_deg(normals, before), domain).view(-1)
+            change = masked_mean(angular_error_deg(normals, before), domain).view(-1)
             state.changes.append(float(change.detach().max()))
             logger.info("near-light alternation %d at %d x %d: normals moved %.2e deg on average",
                         state.iterations, *size, state.changes[-1])
@@ -978,7 +982,8 @@ def _finish(data: _Data, field: _LightField, state: _State, domain: Tensor, full
     assert state.m is not None and state.normal_std is not None and state.weights is not None
     assert state.predicted_std is not None
     albedo, normals = _split(state.m)
-    relative = _integrate(normals, state.normal_std, domain, pitch, options.integrator, state.relative)
+    relative = _integrate(normals, state.normal_std, domain, pitch, options.integrator, state.relative,
+                          one_sided=True)
     if options.integrator == "masked" and full:
         # the edge equations' trapezoidal rule flattens the finest relief (a silk's threads to a third): restored on
         # the rectangle, where the integration ran
@@ -991,5 +996,5 @@ def _finish(data: _Data, field: _LightField, state: _State, domain: Tensor, full
     p, q = _slopes_of(normals)
     return NearLightResult(albedo * inside, normals, p, q, depth, domain & (state.normal_std < _SOLVED_BELOW_DEG),
                            normal_std=state.predicted_std, weights=state.weights * inside, noise=data.noise.view(-1, 3),
-                           offset_mm=_masked_mean(depth, domain).view(-1), tilt=theta[:, 1:3], bend=theta[:, 3:],
+                           offset_mm=masked_mean(depth, domain).view(-1), tilt=theta[:, 1:3], bend=theta[:, 3:],
                            iterations=state.iterations, changes_deg=tuple(state.changes), converged=state.converged)

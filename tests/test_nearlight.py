@@ -1,4 +1,5 @@
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from psmini.nearlight import (
     _fit_noise,
     _initial_fit,
     _Penalty,
+    _plane_basis,
     _robust_step,
     near_light_energy,
     near_light_vectors,
@@ -319,6 +321,37 @@ class TestSolveNearLight(BaseTester):
         found = solve_near_light(flat.images, leds, PITCH, 0.0, flat.valid)
         assert float(plain.bend.abs().max()) == 0.0 and float(found.bend[0, 0]) < -0.05
         assert _relief_rmse(found, height) < 0.5 * _relief_rmse(plain, height)
+
+    def test_creases_keep_their_depth(self, monkeypatch):
+        """V grooves 0.3 mm deep every 0.8 mm (flanks at 37°, creases at every valley and ridge): the final
+        integration's one-sided equations take each crease's edges from its flanks, where the trapezoidal rule
+        (k = 0) averages the two flanks' slopes into a flat crease: 13.8 µm RMS error against 8.8 µm."""
+        leds = _rig(dtype=torch.float64)
+        coords = (torch.arange(48, dtype=torch.float64) - 23.5) * PITCH
+        y, x = torch.meshgrid(-coords, coords, indexing="ij")
+        phase = torch.remainder(x + 0.05, 0.8) / 0.8
+        height = (0.5 + 0.15 * (1 - 2 * (2 * phase - 1).abs()) + 0.02 * torch.sin(2 * math.pi * y / 1.3))[None, None]
+        images = render(depth_to_points(height, PITCH), normals_from_height(height, PITCH),
+                        torch.full_like(height, 0.6), leds)
+        flat_height = torch.zeros_like(height)
+        card = render(depth_to_points(flat_height, PITCH), normals_from_height(flat_height, PITCH),
+                      torch.full_like(height, 0.8), leds)
+        flat = _flat(images, card)
+        one_sided = _relief_rmse(solve_near_light(flat.images, leds, PITCH, 0.0, flat.valid), height)
+        monkeypatch.setattr(sys.modules["psmini.nearlight"], "_ONE_SIDED_K", 0.0)
+        trapezoid = _relief_rmse(solve_near_light(flat.images, leds, PITCH, 0.0, flat.valid), height)
+        assert one_sided < 0.011 < trapezoid
+        assert one_sided < 0.75 * trapezoid
+
+    def test_placement_shapes_keep_the_mean(self):
+        """On a mask off the field's centre each shape of the placement but the offset has zero mean over the mask,
+        each on its own (so that the offset is the mean height, whatever the tilt and bend are shrunk to)."""
+        x, y = torch.meshgrid(torch.linspace(-2, 2, 20), torch.linspace(-2, 2, 20), indexing="xy")
+        domain = torch.zeros(1, 1, 20, 20, dtype=torch.bool)
+        domain[..., 2:9, 11:19] = True
+        basis = _plane_basis(torch.stack([x, y])[None], domain)
+        means = basis[:, :, domain[0, 0]].mean(dim=2)
+        torch.testing.assert_close(means, torch.tensor([[1.0, 0, 0, 0, 0, 0]]), atol=1e-6, rtol=0)
 
     def test_no_tilt_or_bend_from_noise(self):
         """A smooth surface loses no step: on noisy captures the tilt and bend found stay within their noise (a few

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from psmini._tensor import box_sum, vector_length
+from psmini._tensor import box_sum, masked_mean, vector_length
 from psmini.errors import InputError
 
 
@@ -44,3 +44,24 @@ class TestVectorLength:
         x = torch.zeros(1, 3, dtype=torch.float64, requires_grad=True)
         vector_length(x, dim=1).sum().backward()
         assert bool(torch.isfinite(x.grad).all())
+
+
+class TestMaskedMean:
+    def test_equals_numpy_per_sample_and_per_channel(self):
+        x = torch.randn(2, 3, 5, 4, dtype=torch.float64)
+        region = torch.rand(2, 1, 5, 4, generator=torch.Generator().manual_seed(0)) > 0.4
+        values, keep = x.numpy(), region.expand_as(x).numpy()
+        for b in range(2):
+            assert float(masked_mean(x, region)[b]) == pytest.approx(values[b][keep[b]].mean())
+            for c in range(3):
+                assert float(masked_mean(x, region, dim=(2, 3))[b, c]) == pytest.approx(values[b, c][keep[b, c]].mean())
+
+    def test_weights_and_an_empty_region(self):
+        x = torch.tensor([[[[1.0, 3.0]]]])
+        assert float(masked_mean(x, torch.tensor([[[[1.0, 3.0]]]]))) == pytest.approx(2.5)
+        assert float(masked_mean(x, torch.zeros_like(x, dtype=torch.bool))) == 0.0
+
+    def test_gradcheck(self):
+        x = torch.randn(1, 2, 3, 3, dtype=torch.float64, requires_grad=True)
+        region = torch.rand(1, 1, 3, 3, generator=torch.Generator().manual_seed(1)) > 0.3
+        assert torch.autograd.gradcheck(lambda t: masked_mean(t, region, dim=(2, 3)), (x,))
