@@ -661,6 +661,17 @@ class TestLattice:
         found = fabric_structure(lattice_surface(400, f, f, 0.0, waves), PITCH)[0]
         assert found.threads_per_cm == pytest.approx([10 * f, 10 * f], rel=2e-3)
 
+    @pytest.mark.parametrize(("comb", "repeat"), [
+        ({(0.32, 0.5): 0.003, (0.69, 0.5): 0.003, (0.86, 0.5): 0.003, (0.5, 0.63): 0.003, (0.5, 0.83): 0.003}, 2),
+        ({(0.32, 0.41): 0.003, (0.69, 0.37): 0.003, (0.86, 0.62): 0.003, (0.41, 0.63): 0.003, (0.37, 0.83): 0.003}, 1),
+    ])
+    def test_a_comb_on_the_interlacings_rows(self, comb, repeat):
+        """A plain weave whose half-weft and half-warp rows are modulated along the other system (peaks (x, 1/2) and
+        (1/2, y), x and y anywhere: what integrated slopes of a 50 /cm plain weave carry) keeps its repeat of 2,
+        although the comb outweighs the (1/2, 1/2) peak; the same comb off those rows is scattered: no repeat."""
+        z = lattice_surface(400, 5.0, 5.0, 20.0, {(1, 0): 0.012, (0, 1): 0.012, (0.5, 0.5): 0.004, **comb})
+        assert fabric_structure(z, PITCH)[0].weave_repeat == repeat
+
     @pytest.mark.parametrize(("name", "waves", "repeats", "regular"), [
         ("rib", {(0.5, 0.25): 0.006, (0.5, 0.75): 0.004}, [2, 4], False),
         ("basket", {(0.25, 0.25): 0.006, (0.25, 0.75): 0.006, (0.75, 0.25): 0.004, (0.75, 0.75): 0.004}, [4, 4],

@@ -668,6 +668,14 @@ def _on_repeat_lattice(coords: np.ndarray, lattice: _RepeatLattice, tolerance: f
     return distance <= tolerance, distance
 
 
+def _on_rows(coords: np.ndarray, lattice: _RepeatLattice, tolerance: float) -> np.ndarray:
+    """Which peaks (coords (K, 2)) lie within ``tolerance`` lattice steps of a multiple of 1 / repeat along at
+    least one system: on a row of ``lattice``'s interlacing."""
+    repeats = np.array(lattice.repeats, dtype=float)
+    phase = coords * repeats
+    return ((np.abs(phase - np.round(phase)) / repeats * max(lattice.repeats)) <= tolerance).any(axis=1)
+
+
 def _system_peak(v: np.ndarray, peaks: list[SpectralPeak]) -> SpectralPeak:
     """A system as a peak: its fitted vector (on the upper half plane) with the signal and amplitude of the peak
     nearest to it (0 when none lies within 3%)."""
@@ -743,8 +751,13 @@ def _lattice(peaks: list[SpectralPeak], openness: float, options: StructureOptio
     explained = [float(amplitude[fractional][hit].sum()) for hit in on]
     best_general = max(explained, default=0.0)
     best_regular = max((e for e, lattice in zip(explained, lattices, strict=True) if lattice.regular), default=0.0)
-    # a weave's fractional peaks lie on its repeat lattice; a knit's fibre twist or meander scatters them
-    scattered = best_general < _ON_REPEAT_SHARE * float(amplitude[fractional].sum())
+    # a weave's fractional peaks lie on its repeat lattice; a knit's fibre twist or meander scatters them. A peak on
+    # one of a lattice's rows (its coordinate along one system a multiple of 1/repeat) but off the lattice is that
+    # row's modulation along the other system (integrated slopes of a fine plain weave carry a comb of them), so
+    # it does not count against the lattice
+    rows = [_on_rows(coords[fractional], lattice, tol) & ~hit for lattice, hit in zip(lattices, on, strict=True)]
+    scattered = all(e < _ON_REPEAT_SHARE * float(amplitude[fractional][~row].sum())
+                    for e, row in zip(explained, rows, strict=True))
     repeats, amp_on, regular = (1, 1), np.zeros(0), True
     if centred is not None:  # a stitch lattice: no interlacing; the crimp is the alternate courses' relief wave
         amp_on = np.array([strong[0].amplitude_um, strong[twins[0]].amplitude_um])
