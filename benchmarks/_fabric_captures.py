@@ -27,8 +27,8 @@ from benchmarks._ledger import REPO  # noqa: E402
 # pipeline's code.
 CACHE_SOURCES = ("data_synth/rig.py", "psmini/render.py", "psmini/pipeline.py", "psmini/nearlight.py",
                  "psmini/normals.py", "psmini/flatfield.py", "psmini/lights.py", "psmini/geometry.py",
-                 "psmini/integrate/least_squares.py", "psmini/integrate/poisson.py", "psmini/integrate/fourier.py",
-                 "psmini/integrate/_dct.py")
+                 "psmini/_tensor.py", "psmini/integrate/least_squares.py", "psmini/integrate/poisson.py",
+                 "psmini/integrate/bilateral.py", "psmini/integrate/fourier.py", "psmini/integrate/_dct.py")
 
 
 @dataclass
