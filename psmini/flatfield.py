@@ -374,6 +374,7 @@ def _quadratic_fit(moments: dict[tuple[int, int], Tensor], basis: tuple[tuple[in
         fitted = fitted + row[..., j] * sums[j]
     return fitted, well_posed
 
+
 class FlatField(nn.Module):
     """Flat-fielding with a stored reference (card) capture; see :func:`flatfield`.
 
