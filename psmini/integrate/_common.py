@@ -11,6 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from psmini import _tensor
 from psmini._checks import check_finite, check_mask, check_positive, check_shape
 from psmini.errors import ShapeError
 
@@ -40,10 +41,10 @@ def check_gradients(p: Tensor, q: Tensor, mask: Tensor | None, pixel_pitch_mm: f
 
 
 def masked_mean(x: Tensor, mask: Tensor | None) -> Tensor:
-    """Mean of ``x`` ``(B, 1, H, W)`` over the mask (or every pixel), shape ``(B, 1, 1, 1)``."""
+    """Mean of ``x`` ``(B, C, H, W)`` over the mask (or every pixel) per channel, shape ``(B, C, 1, 1)``."""
     if mask is None:
         return x.mean(dim=(-2, -1), keepdim=True)
-    return (x * mask).sum(dim=(-2, -1), keepdim=True) / mask.sum(dim=(-2, -1), keepdim=True)
+    return _tensor.masked_mean(x, mask, dim=(-2, -1))
 
 
 def centred_grid(height: int, width: int, like: Tensor) -> tuple[Tensor, Tensor]:
