@@ -13,6 +13,9 @@ by the solver's own robust weight).
    without cast shadows: where the loss's minimum lies, the LEDs' common shift there, and its loss against the true
    positions'. Adam's figures after a given number of steps are where a slow descent along a flat valley has got to;
    these are where it ends.
+3. What moves that minimum: Gauss–Newton again with the ring's common height held at the true LEDs' mean (the gauge
+   that cloth captures pin least, taken from the rig's drawing), with the card's noise alone (noise-free cloths) and
+   the cloths' alone (a noise-free card), and on the same three cloths at 128² (four times the pixels).
 
 Run:  python benchmarks/selfcalibration.py [--steps 120] [--no-record]
 """
@@ -34,22 +37,25 @@ CLOTHS = (("jute", 0.0), ("twill", 1.0), ("knit", 0.5))
 PUSH_MM = 0.5
 
 
-def captures(**render_options) -> tuple[object, list[dict]]:
-    """The true LEDs and the three flat-fielded captures (float64)."""
+def captures(size: int = SIZE, noisy_card: bool = True, noisy_cloths: bool = True,
+             **render_options) -> tuple[object, list[dict]]:
+    """The true LEDs and the three flat-fielded captures (float64) at ``size``² over the 10 mm field; a noise-free
+    card or cloths are rendered at 16 bits."""
     import psmini
     from data_synth import CARD_ALBEDO, make_fabric
     from data_synth.rig import RigConfig, render_capture, render_card, rig_lights
 
-    config = RigConfig(size=SIZE, pixel_pitch_mm=10.0 / SIZE, **render_options)
-    card = render_card(config, CARD_ALBEDO, seed=1)
+    config = RigConfig(size=size, pixel_pitch_mm=10.0 / size, **render_options)
+    noise_free = config.replace(noise=False, bit_depth=16)
+    card = render_card(config if noisy_card else noise_free, CARD_ALBEDO, seed=1)
     cloths = []
     for index, (name, lift) in enumerate(CLOTHS):
-        fabric = make_fabric(name, size=SIZE, pixel_pitch_mm=config.pixel_pitch_mm, seed=index)
-        shot = render_capture(fabric, config, seed=index, height_offset_mm=lift)
+        fabric = make_fabric(name, size=size, pixel_pitch_mm=config.pixel_pitch_mm, seed=index)
+        shot = render_capture(fabric, config if noisy_cloths else noise_free, seed=index, height_offset_mm=lift)
         flat = psmini.flatfield(shot.images[None], card.images[None], shot.dark[None], card.dark[None], CARD_ALBEDO,
                                 saturation_level=1.0, card_smoothing_px=3.0)
         cloths.append({"images": flat.images.double(), "valid": flat.valid, "gain": flat.gain.double(),
-                       "height": float(shot.depth_mm.mean())})
+                       "height": float(shot.depth_mm.mean()), "pitch": config.pixel_pitch_mm})
     return rig_lights(config), cloths
 
 
@@ -68,15 +74,15 @@ def reconstruct(model, cloth):
 
     options = psmini.NearLightOptions(estimate_offset=False, estimate_tilt=False, estimate_bend=False,
                                       initial_height_mm=cloth["height"])
-    return psmini.solve_near_light(cloth["images"], model, 10.0 / SIZE, 0.0, valid=cloth["valid"], options=options,
-                                   gain=cloth["gain"])
+    return psmini.solve_near_light(cloth["images"], model, cloth["pitch"], 0.0, valid=cloth["valid"],
+                                   options=options, gain=cloth["gain"])
 
 
 def shading(model, result):
     """m · L per reading (B, K, H, W) before the clamp at 0, and the light vectors."""
     import psmini
 
-    vectors = psmini.near_light_vectors(model, result.depth, 10.0 / SIZE, card_height_mm=0.0)
+    vectors = psmini.near_light_vectors(model, result.depth, 10.0 / result.depth.shape[-1], card_height_mm=0.0)
     return (vectors * (result.albedo * result.normals).unsqueeze(1)).sum(2), vectors
 
 
@@ -148,17 +154,29 @@ def adam(rig, cloths, seed: int, steps: int) -> list[object]:
     return [*row, "", f"{final / at_truth(model, rig, cloths):.4f}"]
 
 
-def gauss_newton(rig, cloths, seed: int, label: str, iterations: int = 8) -> list[object]:
+def gauss_newton(rig, cloths, seed: int, label: str, iterations: int = 8,
+                 ring_height_fixed: bool = False) -> list[object]:
+    """Levenberg-damped Gauss–Newton from the pushed LEDs; with ``ring_height_fixed`` the LEDs' mean height is set to
+    the true one and every step keeps it (the step projected off the common height, a gauge constraint)."""
     model = pushed(rig, seed)
+    free = torch.eye(3 * model.count, dtype=torch.float64)
+    if ring_height_fixed:
+        with torch.no_grad():
+            model.positions_mm[:, 2] += rig.positions_mm.double()[:, 2].mean() - model.positions_mm[:, 2].mean()
+        common = torch.zeros(3 * model.count, dtype=torch.float64)
+        common[2::3] = model.count**-0.5
+        free = free - torch.outer(common, common)
     damping = 1e-3
     for _ in range(iterations):
         model.positions_mm.grad = None
         loss, hessian = loss_of(model, cloths, curvature=True)
         loss.backward()
-        gradient = model.positions_mm.grad.flatten()
+        gradient = free @ model.positions_mm.grad.flatten()
+        # the fixed direction keeps its own curvature, so that the system stays regular; the step has no part in it
+        hessian = free @ hessian @ free + (torch.eye(len(free), dtype=hessian.dtype) - free) * hessian.diagonal().mean()
         saved = model.positions_mm.detach().clone()
         while damping < 1e6:
-            step = -torch.linalg.solve(hessian + damping * torch.diag(hessian.diagonal()), gradient)
+            step = -free @ torch.linalg.solve(hessian + damping * torch.diag(hessian.diagonal()), gradient)
             with torch.no_grad():
                 model.positions_mm.copy_(saved + step.view(-1, 3))
                 if float(loss_of(model, cloths)[0]) < float(loss):
@@ -184,14 +202,23 @@ def main() -> int:
     rig, noisy = captures()
     rows = [adam(rig, noisy, seed, args.steps) for seed in (5, 6, 7)]
     rows += [gauss_newton(rig, noisy, seed, "noisy") for seed in (5, 6, 7)]
+    rows += [gauss_newton(rig, noisy, seed, "noisy, the ring's height fixed", ring_height_fixed=True)
+             for seed in (5, 6, 7)]
     rig, clean = captures(noise=False, shadows=False)
     rows.append(gauss_newton(rig, clean, 6, "noise-free, no cast shadows"))
+    rig, cloths = captures(noisy_cloths=False)
+    rows.append(gauss_newton(rig, cloths, 6, "the card's noise alone"))
+    rig, cloths = captures(noisy_card=False)
+    rows.append(gauss_newton(rig, cloths, 6, "the cloths' noise alone"))
+    rig, cloths = captures(size=2 * SIZE)
+    rows += [gauss_newton(rig, cloths, seed, f"noisy, {2 * SIZE}²") for seed in (5, 6)]
     report = table(["fit", "after 30 steps: mean / largest (mm)", "after 60", f"after {args.steps} (or the end)",
                     "mean shift of the LEDs x, y, z (mm)", "loss / loss at the true positions"], rows)
-    note = (f"LEDs pushed {PUSH_MM} mm each; {len(CLOTHS)} captures at {SIZE}² over 10 mm (jute 0, twill 1, knit "
-            "0.5 mm above the card, mean heights known), flat-fielded by a card at 0 mm smoothed by 3 px; loss: the "
-            "re-rendering error of each near-light reconstruction weighted by the solver's robust weights. One "
-            "torch thread.")
+    note = (f"LEDs pushed {PUSH_MM} mm each; {len(CLOTHS)} captures at {SIZE}² (unless the row says otherwise) over "
+            "10 mm (jute 0, twill 1, knit 0.5 mm above the card, mean heights known), 8-bit with noise, flat-fielded "
+            "by a card at 0 mm smoothed by 3 px; a noise-free card or noise-free cloths are 16-bit renders. "
+            "\"The ring's height fixed\": the LEDs' mean height set to the true one and held. Loss: the re-rendering "
+            "error of each near-light reconstruction weighted by the solver's robust weights. One torch thread.")
     print(report)
     print(note)
     if not args.no_record:
