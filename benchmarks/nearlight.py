@@ -31,8 +31,12 @@ then solved again with the card scaled by 1 + 1e-7 (about one float32 ulp), in f
 the third item of a batch of four: the mean and the largest change of the normals, and the depth's RMS change, for
 each. Recorded on its own.
 
-    python benchmarks/nearlight.py [--quick | --speed | --stability] [--json] [--size N] [--device cpu|cuda]
-                                   [--threads N] [--no-record]
+With ``--compile-diagnostic``, what ``torch.compile`` would buy: the solver's per-pixel fits and light field compiled
+against the eager solve on four captures, the compilation's time and the results' difference (psmini itself does
+not compile; this measures whether it should). Recorded on its own.
+
+    python benchmarks/nearlight.py [--quick | --speed | --stability | --compile-diagnostic] [--json] [--size N]
+                                   [--device cpu|cuda] [--threads N] [--no-record]
 """
 
 from __future__ import annotations
@@ -220,6 +224,79 @@ def speed_only(size: int, pitch: float, device: torch.device, args: argparse.Nam
     return 0
 
 
+#: What ``--compile-diagnostic`` hands to ``torch.compile``: the near-light solver's per-pixel fits, its energy and its
+#: light field, where the profile puts most of a solve (elementwise passes over (B, K, H, W) tensors).
+COMPILED = ("_robust_step", "_initial_fit", "_normal_std", "_predicted_std", "_fit_noise", "_predict", "_energy")
+
+
+def compile_diagnostic(size: int, pitch: float, device: torch.device, args: argparse.Namespace) -> int:
+    """What ``torch.compile`` would buy near light (a diagnostic, not a configuration): four noisy captures (cotton,
+    knit, net, twill, 0.5 mm above the card) solved eagerly, then with :data:`COMPILED` and the light field's call
+    compiled (dynamic shapes; the solver calls them at half and full resolution and on strided grids), each pass over
+    the four timed three times, the fastest kept, beside the distant pipeline on the same captures; the first
+    compiled call's time (the compilation) and how far the compiled solve's normals and depth are from the eager
+    ones'."""
+    solver = sys.modules["psmini.nearlight"]
+    config = RigConfig(size=size, pixel_pitch_mm=pitch, noise=True, bit_depth=8, intensity_spread=0.05)
+    card = render_card(config, CARD_ALBEDO, device=device)
+    captures = [render_capture(make_fabric(name, size=size, pixel_pitch_mm=pitch, seed=0), config,
+                               height_offset_mm=0.5, device=device) for name in ("cotton", "knit", "net", "twill")]
+    near = PhotometricStereo(captures[0].lights, pitch, NEAR)
+    far = PhotometricStereo(captures[0].lights, pitch, DISTANT)
+
+    def solve(method, capture):
+        return method(capture.images[None], card.images[None], capture.dark[None], card.dark[None],
+                      card_albedo=CARD_ALBEDO, saturation_level=1.0)
+
+    def per_sample(method) -> float:
+        best = float("inf")
+        for _ in range(3):
+            start = time.perf_counter()
+            for capture in captures:
+                solve(method, capture)
+            best = min(best, (time.perf_counter() - start) / len(captures))
+        return best
+
+    eager_results = [solve(near, capture) for capture in captures]
+    eager, distant = per_sample(near), per_sample(far)
+    originals = {name: getattr(solver, name) for name in COMPILED}
+    call = solver._LightField.__call__
+    limit = torch._dynamo.config.cache_size_limit
+    try:
+        torch._dynamo.config.cache_size_limit = 64
+        for name in COMPILED:
+            setattr(solver, name, torch.compile(originals[name], dynamic=True))
+        solver._LightField.__call__ = torch.compile(call, dynamic=True)
+        start = time.perf_counter()
+        compiled_results = [solve(near, capture) for capture in captures]
+        first = time.perf_counter() - start
+        compiled = per_sample(near)
+    finally:
+        for name, function in originals.items():
+            setattr(solver, name, function)
+        solver._LightField.__call__ = call
+        torch._dynamo.config.cache_size_limit = limit
+    normals = max(float(angular_error_deg(a.normals.double(), b.normals.double()).max())
+                  for a, b in zip(eager_results, compiled_results, strict=True))
+    depth = max(float((a.depth - b.depth).abs().max()) for a, b in zip(eager_results, compiled_results, strict=True))
+    rows = [["near light, eager", f"{eager:.3f}", f"{eager / distant:.1f}"],
+            ["near light, compiled", f"{compiled:.3f}", f"{compiled / distant:.1f}"],
+            ["distant pipeline", f"{distant:.4f}", "1.0"]]
+    report = table(["run", "s per sample", "× distant"], rows)
+    note = (f"Noisy 8-bit captures of cotton, knit, net and twill 0.5 mm above the card, 8 × {size} × {size} px at "
+            f"{pitch:.4f} mm/px, on {device}, {torch.get_num_threads()} thread(s). Compiled: "
+            f"{', '.join(COMPILED)} and the light field's call (torch.compile, dynamic shapes). Eager / compiled: "
+            f"{eager / compiled:.2f}; the first compiled pass over the four captures took {first:.0f} s (the "
+            f"compilation). Compiled against eager: normals at most {normals:.2e}° apart, depth at most "
+            f"{1e3 * depth:.2e} µm. A diagnostic: psmini does not compile.")
+    print(report)
+    print(note)
+    if not args.no_record:
+        append_results(f"Near-light speed with torch.compile (benchmarks/nearlight.py --compile-diagnostic, {size} px)",
+                       report + "\n\n" + note, device)
+    return 0
+
+
 def stability_only(size: int, pitch: float, device: torch.device, args: argparse.Namespace) -> int:
     """How far a rounding-sized change carries through near light (see the module docstring)."""
     config = RigConfig(size=size, pixel_pitch_mm=pitch, noise=True, bit_depth=8, intensity_spread=0.05)
@@ -272,6 +349,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="only the speed of near light against the distant pipeline")
     parser.add_argument("--stability", action="store_true",
                         help="only how far a change of one part in 10^7 of the card carries through near light")
+    parser.add_argument("--compile-diagnostic", action="store_true",
+                        help="only: near light's hottest functions handed to torch.compile against the eager solve "
+                        "(how much compilation would buy; psmini does not compile)")
     parser.add_argument("--json", action="store_true", help="last line: one JSON object of mean errors")
     parser.add_argument("--size", type=int, default=None, help="image side in pixels (default 400, quick 128)")
     parser.add_argument("--device", default="cpu")
@@ -293,6 +373,8 @@ def main(argv: list[str] | None = None) -> int:
         return speed_only(size, pitch, device, args)
     if args.stability:
         return stability_only(size, pitch, device, args)
+    if args.compile_diagnostic:
+        return compile_diagnostic(size, pitch, device, args)
 
     rows, summary, worst, floors = [], {}, {}, {False: [], True: []}
     per_fabric: dict[str, list[tuple[float, float, float, float]]] = {}
