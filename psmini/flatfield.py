@@ -27,7 +27,7 @@ from psmini._checks import check_finite, check_out, check_positive, check_shape,
 from psmini.errors import InputError, ShapeError
 from psmini.normals import _symmetric_adjugate
 
-__all__ = ["FlatFieldResult", "flatfield", "FlatField", "smooth_card"]
+__all__ = ["FlatFieldResult", "flatfield", "FlatField", "smooth_card", "fill_saturated_card"]
 
 
 @dataclass
@@ -88,6 +88,7 @@ def flatfield(
     saturation_level: float | None = None,
     *,
     card_smoothing_px: float | None = None,
+    card_shading: Tensor | None = None,
     out: Tensor | None = None,
 ) -> FlatFieldResult:
     r"""Subtract the dark frame and divide by the per-LED reference (matte card) images.
@@ -105,6 +106,14 @@ def flatfield(
             the reference); ``None`` disables the check.
         card_smoothing_px: when given, the dark-subtracted card is first denoised by :func:`smooth_card` with
             this window (pixels); ``None`` (default) divides by the card as captured.
+        card_shading: what each LED's card reading is proportional to, :math:`E_k(x)\,l_{k,z}(x)` (the irradiance
+            times the foreshortening on the card, from a light model: the near-light pipeline passes its
+            :func:`~psmini.nearlight.near_light_vectors`' z component at the card's height), broadcastable to
+            :math:`(B, K, H, W)`. With ``saturation_level``, the card's saturated readings are then predicted
+            instead of dropped: the pixel's gain (the camera's and the card's, common to its LEDs) is fitted to its
+            unsaturated readings by least squares and times the shading gives the saturated ones (see
+            :func:`fill_saturated_card`), so that the LEDs that saturate the card near them still count there.
+            ``None`` (default): a saturated card reading is not trusted, and neither is any reading divided by it.
         out: optional :math:`(B, K, H, W)` tensor of the images' dtype and device that receives the flat-fielded
             images (the pipeline reuses one such buffer chunk after chunk of a CPU batch: a fresh one of several
             MB is page-faulted in on every first touch). Not differentiable: refused when an input requires grad
@@ -162,8 +171,10 @@ def flatfield(
         return FlatFieldResult(signal.mul_(unsaturated), unsaturated)
 
     # card_tensors[0] is the caller's reference, which is not None here: mypy does not relate the two
+    card_shading = _check_frame(card_shading, *shape, "card_shading")
     scale, trusted, all_trusted = _card_terms(reference, reference_dark, card_tensors,  # type: ignore[arg-type]
-                                              images, card_albedo, min_reference, saturation_level, card_smoothing_px)
+                                              images, card_albedo, min_reference, saturation_level, card_smoothing_px,
+                                              card_shading)
     ratio = signal.mul_(scale)
     valid = trusted.expand(shape)
     if unsaturated is not None:
@@ -196,7 +207,8 @@ def _data_of(x: Tensor) -> tuple[Tensor, tuple]:
 
 def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tuple[Tensor, Tensor | None],
                 images: Tensor, card_albedo: float, min_reference: float,
-                saturation_level: float | None, smoothing_px: float | None = None) -> tuple[Tensor, Tensor, bool]:
+                saturation_level: float | None, smoothing_px: float | None = None,
+                shading: Tensor | None = None) -> tuple[Tensor, Tensor, bool]:
     """The card's scale ``card_albedo / (R - D_R)`` (0 where not trusted), where it is trusted, and whether it
     is everywhere: everything that depends on the card alone, computed at the card's size, not per sample.
 
@@ -209,7 +221,9 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
     flat-field, normals and Frankot–Chellappa make per capture, were that test on an unchanged card).
     """
     original, original_dark = originals
-    cacheable = not reference.requires_grad and not (reference_dark is not None and reference_dark.requires_grad)
+    # a card completed from a light model's shading is not kept: the shading is recomputed with every call
+    cacheable = shading is None and not reference.requires_grad and not (
+        reference_dark is not None and reference_dark.requires_grad)
     owner, where = _data_of(original)
     owner_dark, where_dark = (None, None) if original_dark is None else _data_of(original_dark)
     key = (where, where_dark, images.dtype, images.device, card_albedo, min_reference, saturation_level, smoothing_px)
@@ -222,6 +236,8 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
     converted = check_finite(reference, "reference").to(images)
     card = converted if reference_dark is None else converted - reference_dark.to(images)
     unsaturated = None if saturation_level is None else converted < saturation_level
+    if shading is not None and unsaturated is not None:
+        card, unsaturated = fill_saturated_card(card, unsaturated, shading.to(card))
     if smoothing_px is not None:
         card = smooth_card(card, smoothing_px, unsaturated)
     trusted = (card > min_reference * card.amax(dim=(-2, -1), keepdim=True)) & (card > 0)
@@ -235,6 +251,49 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
         _last_card[:] = [_CardEntry(key, weakref.ref(owner, partial(_forget, key)), None if owner_dark is None
                                     else weakref.ref(owner_dark, partial(_forget, key)), terms)]
     return terms
+
+
+def fill_saturated_card(card: Tensor, unsaturated: Tensor, shading: Tensor) -> tuple[Tensor, Tensor]:
+    r"""The card's saturated readings predicted from the unsaturated ones of the same pixel and a light model.
+
+    A matte card reads :math:`R_k(x) = g(x)\,S_k(x)` under LED k: the camera's gain, vignetting and the card's
+    albedo, common to the LEDs, times the LED's shading :math:`S_k = E_k\,l_{k,z}` on the card. Where some LEDs
+    saturate it (the ones nearest a corner of the field), :math:`g` is fitted to the pixel's unsaturated readings by
+    least squares, :math:`\hat g = \sum_j R_j S_j / \sum_j S_j^2`, and the saturated ones become
+    :math:`\hat g\,S_k`. Exact for an exact model (the error of the model's shading between LEDs otherwise); a
+    pixel with no unsaturated reading keeps its readings, still saturated. Differentiable in ``card`` and
+    ``shading``.
+
+    Args:
+        card: dark-subtracted card images, :math:`(B, K, H, W)`.
+        unsaturated: bool map of the card's unsaturated readings, the card's shape.
+        shading: :math:`S_k(x)`, :math:`(B|1, K|1, H, W)`, positive where the LED lights the card.
+
+    Returns:
+        the completed card and the map of its readings that are now usable (the unsaturated ones and the
+        predicted ones).
+
+    Raises:
+        ShapeError: when ``unsaturated`` does not have the card's shape or ``shading`` does not fit it.
+
+    Example:
+        >>> shading = torch.tensor([1.0, 2.0, 4.0]).view(1, 3, 1, 1).expand(1, 3, 2, 2)
+        >>> card = (0.3 * shading).clamp(max=1.0)    # the third LED saturates the card (1.2 clipped at 1.0)
+        >>> filled, usable = fill_saturated_card(card, card < 1.0, shading)
+        >>> [round(float(v), 4) for v in filled[0, :, 0, 0]], bool(usable.all())
+        ([0.3, 0.6, 1.2], True)
+    """
+    check_shape(card, ["B", "K", "H", "W"], "card")
+    if unsaturated.shape != card.shape:
+        raise ShapeError(f"unsaturated must have the card's shape {tuple(card.shape)}, got {tuple(unsaturated.shape)}")
+    if shading.ndim != 4 or shading.shape[-2:] != card.shape[-2:] or shading.shape[1] not in (1, card.shape[1]):
+        raise ShapeError(f"shading must be (B|1, K|1, H, W) for the card's shape {tuple(card.shape)}, got "
+                         f"{tuple(shading.shape)}")
+    weight = (unsaturated & (card > 0)).to(card.dtype)
+    fitted = (shading.square() * weight).sum(dim=1, keepdim=True)
+    gain = (card * shading * weight).sum(dim=1, keepdim=True) / fitted.clamp_min(torch.finfo(card.dtype).tiny)
+    predicted = ~unsaturated & (fitted > 0) & (shading > 0)
+    return torch.where(predicted, gain * shading, card), unsaturated | predicted
 
 
 #: Least share of a pixel's window (in Gaussian weight) that must hold usable card pixels for :func:`smooth_card`

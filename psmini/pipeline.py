@@ -29,7 +29,7 @@ from psmini.errors import InputError
 from psmini.flatfield import flatfield
 from psmini.integrate import integrate
 from psmini.lights import DirectionalLights, LightModel, check_spans_3d
-from psmini.nearlight import NearLightResult, solve_near_light
+from psmini.nearlight import NearLightResult, near_light_vectors, solve_near_light
 from psmini.nonlambertian import nonlambertian_normals
 from psmini.normals import _slopes_of, _solve_with_pinv, albedo_normals
 from psmini.result import Reconstruction
@@ -211,8 +211,14 @@ class PhotometricStereo(nn.Module):
         config = self.config
         if self.pixel_pitch_mm is None:  # refused by __init__, unless the attribute was set to None since
             raise InputError("the near-light solver needs the pixel pitch (mm per pixel on the cloth); got None")
+        # the card's readings that saturate are predicted from the light model's shading on the card (the LEDs
+        # nearest a corner saturate it there, and would otherwise take every reading there out of the fit)
+        shading = None
+        if reference is not None and saturation_level is not None:
+            plane = torch.full_like(images[:1, :1], card_height_mm)
+            shading = near_light_vectors(self.lights, plane, self.pixel_pitch_mm)[:, :, 2]
         flat = flatfield(images, reference, dark, reference_dark, card_albedo, config.min_reference, saturation_level,
-                         card_smoothing_px=config.card_smoothing_px)
+                         card_smoothing_px=config.card_smoothing_px, card_shading=shading)
         card_height = card_height_mm if reference is not None else None
         return solve_near_light(flat.images, self.lights, self.pixel_pitch_mm, card_height, flat.valid, mask,
                                 config.near_options(mask is not None), flat.gain)

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from psmini import InputError, ShapeError
-from psmini.flatfield import FlatField, flatfield, smooth_card
+from psmini.flatfield import FlatField, fill_saturated_card, flatfield, smooth_card
 from tests.conftest import BaseTester
 
 
@@ -312,3 +312,69 @@ class TestSmoothCard(BaseTester):
             smooth_card(card, 2.0, torch.ones(1, 3, 8, 7, dtype=torch.bool))
         with pytest.raises(InputError, match="card_smoothing_px"):
             flatfield(torch.rand(1, 3, 8, 8), card, card_smoothing_px=-1.0)
+
+
+def shaded_card(size: int = 6, dtype=torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
+    """A card that reads a pixel gain times each LED's shading, three LEDs, and that shading: the third LED's
+    shading reaches 1.5 at one corner, where a card of gain 0.8 clips at 1."""
+    u = torch.linspace(0, 1, size, dtype=dtype)
+    ramp = (u.view(1, -1) + u.view(-1, 1)) / 2  # 0 at one corner, 1 at the other
+    shading = torch.stack([torch.full_like(ramp, 0.6), 0.9 - 0.3 * ramp, 0.5 + ramp])[None]
+    gain = 0.8 + 0.1 * torch.cos(7 * u).view(1, -1) * torch.sin(5 * u).view(-1, 1)
+    return gain * shading, shading
+
+
+class TestFillSaturatedCard(BaseTester):
+    def test_predicts_the_clipped_readings_exactly(self):
+        """With the shading the card was made of, the readings that clipped come back as the card read them before
+        the clip, and the flat-field keeps every reading there instead of dropping the saturating LED's."""
+        card, shading = shaded_card()
+        clipped = card.clamp(max=1.0)
+        assert bool((card > 1.0).any()) and bool((card > 1.0).float().mean() < 0.5)
+        filled, usable = fill_saturated_card(clipped, clipped < 1.0, shading)
+        self.assert_close(filled, card)
+        assert bool(usable.all())
+        images = 0.5 * card  # a cloth of albedo 0.4 under the same light, unsaturated
+        kept = flatfield(images, clipped, card_albedo=0.8, saturation_level=1.0, card_shading=shading)
+        self.assert_close(kept.images, torch.full_like(images, 0.4))
+        assert bool(kept.valid.all())
+        dropped = flatfield(images, clipped, card_albedo=0.8, saturation_level=1.0)
+        assert torch.equal(dropped.valid, (card < 1.0).expand_as(images))
+
+    def test_pixel_saturated_under_every_led_stays_untrusted(self):
+        card, shading = shaded_card()
+        clipped = card.clamp(max=1.0)
+        clipped[:, :, 0, 0] = 1.0  # nothing left to fit the gain to
+        filled, usable = fill_saturated_card(clipped, clipped < 1.0, shading)
+        assert not bool(usable[:, :, 0, 0].any()) and torch.equal(filled[:, :, 0, 0], clipped[:, :, 0, 0])
+        result = flatfield(0.5 * card, clipped, card_albedo=0.8, saturation_level=1.0, card_shading=shading)
+        assert not bool(result.valid[:, :, 0, 0].any())
+
+    def test_a_wrong_model_errs_by_its_error_between_leds(self):
+        """The prediction is as good as the model's shading of the saturating LED relative to the others."""
+        card, shading = shaded_card()
+        clipped = card.clamp(max=1.0)
+        wrong = shading * torch.tensor([1.0, 1.0, 1.02], dtype=shading.dtype).view(1, 3, 1, 1)
+        filled, _ = fill_saturated_card(clipped, clipped < 1.0, wrong)
+        over = card > 1.0
+        self.assert_close(filled[over], 1.02 * card[over])
+
+    def test_gradcheck(self):
+        card, shading = shaded_card(size=4)
+        unsaturated = card < 1.0
+        card = card.clamp(max=1.0).requires_grad_()
+        self.gradcheck(lambda c, s: fill_saturated_card(c, unsaturated, s)[0], (card, shading.clone().requires_grad_()))
+
+    def test_errors(self):
+        card, shading = shaded_card()
+        with pytest.raises(ShapeError, match="unsaturated"):
+            fill_saturated_card(card, torch.ones(1, 3, 6, 5, dtype=torch.bool), shading)
+        with pytest.raises(ShapeError, match="shading"):
+            fill_saturated_card(card, card < 1.0, shading[..., :5])
+        with pytest.raises(ShapeError, match="card must have shape"):
+            fill_saturated_card(card[0], card[0] < 1.0, shading)
+        with pytest.raises(ShapeError, match="card_shading"):
+            flatfield(card, card, saturation_level=1.0, card_shading=shading[..., :5])
+        unknown = shading.index_fill(3, torch.tensor([1]), float("nan"))
+        with pytest.raises(InputError, match="card_shading"):
+            flatfield(card, card, saturation_level=1.0, card_shading=unknown)

@@ -238,3 +238,31 @@ def test_card_smoothing_lowers_the_noise_of_near_light_normals():
             assert errors[1] < 0.9 * errors[0], errors
         else:
             assert abs(errors[1] - errors[0]) < 0.005, errors
+
+
+def test_near_light_predicts_the_cards_saturated_readings():
+    """A card bright enough to saturate under the LEDs nearest its corners: near light predicts those readings from
+    its light model (flatfield's card_shading) instead of dropping every reading divided by them, and reads the
+    cloth as it does with a dimmer card that nothing saturates (noise-free renders, so that only the card's clip
+    differs)."""
+    from data_synth import make_fabric
+    from data_synth.rig import RigConfig, render_capture, render_card
+    from psmini.metrics import angular_error_deg
+
+    size, pitch = 160, 0.0625
+    config = RigConfig(size=size, pixel_pitch_mm=pitch, noise=False, bit_depth=16)
+    capture = render_capture(make_fabric("knit", size=size, pixel_pitch_mm=pitch, seed=0), config,
+                             height_offset_mm=0.5)
+    region = capture.mask.bool() & (capture.lit.sum(0, keepdim=True) >= 3)
+    results = {}
+    for albedo in (1.0, 0.5):
+        card = render_card(config, albedo)
+        results[albedo] = PhotometricStereo(capture.lights, pitch, ReconstructionConfig(solver="near"))(
+            capture.images[None], card.images[None], capture.dark[None], card.dark[None], card_albedo=albedo,
+            saturation_level=1.0)
+        if albedo == 1.0:
+            assert float((card.images >= 1.0).float().mean()) > 0.01  # the precondition: it saturates
+    bright, dim = (angular_error_deg(results[a].normals, capture.normals[None])[0][region] for a in (1.0, 0.5))
+    assert abs(float(bright.mean()) - float(dim.mean())) < 0.01, (float(bright.mean()), float(dim.mean()))
+    depth = (results[1.0].depth - results[0.5].depth)[0, 0][region[0]]
+    assert float((depth - depth.mean()).abs().max()) < 0.005  # mm
