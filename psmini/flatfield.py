@@ -184,8 +184,8 @@ def flatfield(
 
 class _CardEntry(NamedTuple):
     key: tuple
-    reference: weakref.ref
-    reference_dark: weakref.ref | None
+    sources: tuple[weakref.ref | None, ...]  # the reference's and its dark frame's data
+    shading: Tensor | None  # compared by value: the near-light pipeline computes it afresh in every call
     terms: tuple[Tensor, Tensor, bool]
 
 
@@ -214,24 +214,23 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
 
     The last card's terms are kept while the caller's reference (and dark) data (``originals``, before any
     reshaping view: the tensors that own their data, and where they lie in it) are alive and unmodified (same
-    ``_version``) and need no gradient: a batch run passes one card with every batch, and its ten passes over
-    the card (a third of the flat-field's time at batch 4) are then done once, also when the caller slices the
-    card's dark frame afresh in every call. The card's test for NaN and infinities runs with the terms: a kept
+    ``_version``), the shading is equal (compared by value: a light model computes it afresh), and none needs a
+    gradient: a batch run passes one card with every batch, and its
+    ten passes over the card (a third of the flat-field's time at batch 4; with near light's smoothing and
+    shading, half a second) are then done once, also when the caller slices the card's dark frame afresh in every
+    call. The card's test for NaN and infinities runs with the terms: a kept
     card was tested when they were computed (8 of the ~40 passes over a capture's worth of memory that a
     flat-field, normals and Frankot–Chellappa make per capture, were that test on an unchanged card).
     """
-    original, original_dark = originals
-    # a card completed from a light model's shading is not kept: the shading is recomputed with every call
-    cacheable = shading is None and not reference.requires_grad and not (
-        reference_dark is not None and reference_dark.requires_grad)
-    owner, where = _data_of(original)
-    owner_dark, where_dark = (None, None) if original_dark is None else _data_of(original_dark)
-    key = (where, where_dark, images.dtype, images.device, card_albedo, min_reference, saturation_level, smoothing_px)
+    cacheable = not any(x is not None and x.requires_grad for x in (*originals, shading))
+    owners, wheres = zip(*((None, None) if x is None else _data_of(x) for x in originals), strict=True)
+    key = (wheres, images.dtype, images.device, card_albedo, min_reference, saturation_level, smoothing_px,
+           None if shading is None else (tuple(shading.shape), shading.dtype, shading.device))
     if cacheable and _last_card:
         entry = _last_card[0]
-        if (entry.key == key and entry.reference() is owner
-                and (owner_dark is None or (entry.reference_dark is not None
-                                            and entry.reference_dark() is owner_dark))):
+        if (entry.key == key and all((ref is None and owner is None) or (ref is not None and ref() is owner)
+                                     for ref, owner in zip(entry.sources, owners, strict=True))
+                and (shading is None or (entry.shading is not None and torch.equal(entry.shading, shading)))):
             return entry.terms  # a card already checked for NaN and infinities, unchanged since
     converted = check_finite(reference, "reference").to(images)
     card = converted if reference_dark is None else converted - reference_dark.to(images)
@@ -248,8 +247,8 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
     scale = card_albedo / torch.where(trusted, card, torch.inf)
     terms = (scale, trusted, bool(trusted.all()))
     if cacheable:
-        _last_card[:] = [_CardEntry(key, weakref.ref(owner, partial(_forget, key)), None if owner_dark is None
-                                    else weakref.ref(owner_dark, partial(_forget, key)), terms)]
+        _last_card[:] = [_CardEntry(key, tuple(None if owner is None else weakref.ref(owner, partial(_forget, key))
+                                               for owner in owners), shading, terms)]
     return terms
 
 

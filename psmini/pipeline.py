@@ -214,7 +214,7 @@ class PhotometricStereo(nn.Module):
         # the card's readings that saturate are predicted from the light model's shading on the card (the LEDs
         # nearest a corner saturate it there, and would otherwise take every reading there out of the fit)
         shading = None
-        if reference is not None and saturation_level is not None:
+        if reference is not None and saturation_level is not None:  # (1, K, H, W): E_k l_z on the card
             plane = torch.full_like(images[:1, :1], card_height_mm)
             shading = near_light_vectors(self.lights, plane, self.pixel_pitch_mm)[:, :, 2]
         flat = flatfield(images, reference, dark, reference_dark, card_albedo, config.min_reference, saturation_level,

@@ -378,3 +378,18 @@ class TestFillSaturatedCard(BaseTester):
         unknown = shading.index_fill(3, torch.tensor([1]), float("nan"))
         with pytest.raises(InputError, match="card_shading"):
             flatfield(card, card, saturation_level=1.0, card_shading=unknown)
+
+    def test_card_terms_kept_while_the_shading_is_equal(self):
+        """A batch run passes the same card with every batch and near light an equal shading (computed afresh from
+        its light model): the card's terms (its smoothing and prediction, half a second at 400²) are computed once;
+        a shading of other values is another card."""
+        card, shading = shaded_card()
+        clipped = card.clamp(max=1.0)
+        images = 0.5 * card
+        first = flatfield(images, clipped, card_albedo=0.8, saturation_level=1.0, card_shading=shading)
+        again = flatfield(images, clipped, card_albedo=0.8, saturation_level=1.0, card_shading=shading.clone())
+        assert again.gain is first.gain
+        moved = shading * torch.tensor([1.0, 1.0, 1.01], dtype=shading.dtype).view(1, 3, 1, 1)
+        other = flatfield(images, clipped, card_albedo=0.8, saturation_level=1.0, card_shading=moved)
+        assert other.gain is not first.gain
+        assert not torch.allclose(other.gain, first.gain)

@@ -266,3 +266,4 @@ def test_near_light_predicts_the_cards_saturated_readings():
     assert abs(float(bright.mean()) - float(dim.mean())) < 0.01, (float(bright.mean()), float(dim.mean()))
     depth = (results[1.0].depth - results[0.5].depth)[0, 0][region[0]]
     assert float((depth - depth.mean()).abs().max()) < 0.005  # mm
+
