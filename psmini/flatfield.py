@@ -215,12 +215,11 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
     The last card's terms are kept while the caller's reference (and dark) data (``originals``, before any
     reshaping view: the tensors that own their data, and where they lie in it) are alive and unmodified (same
     ``_version``), the shading is equal (compared by value: a light model computes it afresh), and none needs a
-    gradient: a batch run passes one card with every batch, and its
-    ten passes over the card (a third of the flat-field's time at batch 4; with near light's smoothing and
-    shading, half a second) are then done once, also when the caller slices the card's dark frame afresh in every
-    call. The card's test for NaN and infinities runs with the terms: a kept
-    card was tested when they were computed (8 of the ~40 passes over a capture's worth of memory that a
-    flat-field, normals and Frankot–Chellappa make per capture, were that test on an unchanged card).
+    gradient: a batch run passes one card with every batch, and its ten passes over the card (a third of the
+    flat-field's time at batch 4; with near light's smoothing and shading, half a second) are then done once, also
+    when the caller slices the card's dark frame afresh in every call. The card's test for NaN and infinities runs
+    with the terms: a kept card was tested when they were computed (8 of the ~40 passes over a capture's worth of
+    memory that a flat-field, normals and Frankot–Chellappa make per capture, were that test on an unchanged card).
     """
     cacheable = not any(x is not None and x.requires_grad for x in (*originals, shading))
     owners, wheres = zip(*((None, None) if x is None else _data_of(x) for x in originals), strict=True)
@@ -236,7 +235,7 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
     card = converted if reference_dark is None else converted - reference_dark.to(images)
     unsaturated = None if saturation_level is None else converted < saturation_level
     if shading is not None and unsaturated is not None:
-        card, unsaturated = fill_saturated_card(card, unsaturated, shading.to(card))
+        card, unsaturated = fill_saturated_card(card, unsaturated.expand_as(card), shading.to(card))
     if smoothing_px is not None:
         card = smooth_card(card, smoothing_px, unsaturated)
     trusted = (card > min_reference * card.amax(dim=(-2, -1), keepdim=True)) & (card > 0)

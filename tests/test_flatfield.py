@@ -359,6 +359,16 @@ class TestFillSaturatedCard(BaseTester):
         over = card > 1.0
         self.assert_close(filled[over], 1.02 * card[over])
 
+    def test_a_dark_frame_per_sample_broadcasts_with_the_card(self):
+        """A card (1, K, H, W) with a dark frame per sample (2, 1, H, W): the completed card follows the broadcast."""
+        card, shading = shaded_card()
+        dark = torch.tensor([0.01, 0.02], dtype=card.dtype).view(2, 1, 1, 1).expand(2, 1, 6, 6)
+        raw = (card + 0.01).clamp(max=1.0)  # the card's frames were taken with the first sample's dark level
+        images = 0.5 * card + dark
+        result = flatfield(images, raw, dark, dark, card_albedo=0.8, saturation_level=1.0, card_shading=shading)
+        assert bool(result.valid.all())
+        self.assert_close(result.images[0], torch.full_like(card[0], 0.4))
+
     def test_gradcheck(self):
         card, shading = shaded_card(size=4)
         unsaturated = card < 1.0
