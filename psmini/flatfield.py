@@ -109,10 +109,12 @@ def flatfield(
         card_shading: what each LED's card reading is proportional to, :math:`E_k(x)\,l_{k,z}(x)` (the irradiance
             times the foreshortening on the card, from a light model: the near-light pipeline passes its
             :func:`~psmini.nearlight.near_light_vectors`' z component at the card's height), broadcastable to
-            :math:`(B, K, H, W)`. With ``saturation_level``, the card's saturated readings are then predicted
-            instead of dropped: the pixel's gain (the camera's and the card's, common to its LEDs) is fitted to its
-            unsaturated readings by least squares and times the shading gives the saturated ones (see
-            :func:`fill_saturated_card`), so that the LEDs that saturate the card near them still count there.
+            :math:`(B, K, H, W)`. With ``saturation_level``, the card's saturated readings (and those at the dark
+            level, which a flat-field capture written by ``psmini calibrate flatfield`` stores for them) are then
+            predicted instead of dropped: the pixel's gain (the camera's and the card's, common to its LEDs) is
+            fitted to its other readings by least squares and times the shading gives the missing ones (see
+            :func:`fill_saturated_card`), so that the LEDs that saturate the card near them still count there; a
+            prediction below ``min_reference`` of the LED's brightest stays untrusted.
             ``None`` (default): a saturated card reading is not trusted, and neither is any reading divided by it.
         out: optional :math:`(B, K, H, W)` tensor of the images' dtype and device that receives the flat-fielded
             images (the pipeline reuses one such buffer chunk after chunk of a CPU batch: a fresh one of several
@@ -235,7 +237,9 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
     card = converted if reference_dark is None else converted - reference_dark.to(images)
     unsaturated = None if saturation_level is None else converted < saturation_level
     if shading is not None and unsaturated is not None:
-        card, unsaturated = fill_saturated_card(card, unsaturated.expand_as(card), shading.to(card))
+        # a reading at the dark level is missing too: a flat-field capture written by `psmini calibrate flatfield`
+        # stores the card's saturated pixels as the dark frame (a reference of 0)
+        card, unsaturated = fill_saturated_card(card, unsaturated & (card > 0), shading.to(card))
     if smoothing_px is not None:
         card = smooth_card(card, smoothing_px, unsaturated)
     trusted = (card > min_reference * card.amax(dim=(-2, -1), keepdim=True)) & (card > 0)

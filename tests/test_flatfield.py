@@ -359,6 +359,16 @@ class TestFillSaturatedCard(BaseTester):
         over = card > 1.0
         self.assert_close(filled[over], 1.02 * card[over])
 
+    def test_a_reference_file_s_untrusted_pixels_are_predicted_too(self):
+        """`psmini calibrate flatfield` writes the card's saturated pixels as the dark frame (a reference of 0):
+        those readings are predicted as the clipped ones are."""
+        card, shading = shaded_card()
+        written = torch.where(card >= 1.0, torch.zeros_like(card), card)
+        images = 0.5 * card
+        result = flatfield(images, written, card_albedo=0.8, saturation_level=1.0, card_shading=shading)
+        assert bool(result.valid.all())
+        self.assert_close(result.images, torch.full_like(images, 0.4))
+
     def test_a_dark_frame_per_sample_broadcasts_with_the_card(self):
         """A card (1, K, H, W) with a dark frame per sample (2, 1, H, W): the completed card follows the broadcast."""
         card, shading = shaded_card()
