@@ -292,8 +292,7 @@ def fill_saturated_card(card: Tensor, unsaturated: Tensor, shading: Tensor) -> t
         raise ShapeError(f"shading must be (B|1, K|1, H, W) for the card's shape {tuple(card.shape)}, got "
                          f"{tuple(shading.shape)}")
     weight = (unsaturated & (card > 0)).to(card.dtype)
-    fitted = (shading.square() * weight).sum(dim=1, keepdim=True)
-    gain = (card * shading * weight).sum(dim=1, keepdim=True) / fitted.clamp_min(torch.finfo(card.dtype).tiny)
+    gain, fitted = _common_gain(card, shading, weight)
     predicted = ~unsaturated & (fitted > 0) & (shading > 0)
     return torch.where(predicted, gain * shading, card), unsaturated | predicted
 
@@ -402,9 +401,16 @@ def smooth_card(card: Tensor, sigma_px: float = 5.0, usable: Tensor | None = Non
     quadratic, quadric_pinned = _quadratic_fit(moments, basis, sums)
     fitted = torch.where(quadric_pinned, quadratic, linear)
     shape = torch.where((moments[(0, 0)] >= _MIN_CARD_SUPPORT) & (quadric_pinned | plane_pinned), fitted, ratio)
-    common = (card * shape * weight).sum(dim=1, keepdim=True) / (shape.square() * weight).sum(
-        dim=1, keepdim=True).clamp_min(torch.finfo(card.dtype).tiny)
+    common, _ = _common_gain(card, shape, weight)
     return torch.where(positive, common * shape, card)
+
+
+def _common_gain(card: Tensor, shape: Tensor, weight: Tensor) -> tuple[Tensor, Tensor]:
+    """Each pixel's gain common to its LEDs, fitted to its card readings by weighted least squares,
+    :math:`\\hat g = \\sum_k w_k R_k S_k / \\sum_k w_k S_k^2`, and the denominator (0 where no reading counts):
+    ``(B, 1, H, W)`` each, from the card ``(B, K, H, W)``, each LED's ``shape`` and the readings' ``weight``."""
+    support = (shape.square() * weight).sum(dim=1, keepdim=True)
+    return (card * shape * weight).sum(dim=1, keepdim=True) / support.clamp_min(torch.finfo(card.dtype).tiny), support
 
 
 def _linear_fit(moments: list[Tensor], sums: list[Tensor]) -> tuple[Tensor, Tensor]:
