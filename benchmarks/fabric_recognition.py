@@ -284,7 +284,7 @@ def shift_protocol(args) -> int:
     rig = RigConfig(bit_depth=8, size=args.size)
     card = render_card(rig, seed=10_007)
     train_seeds = list(range(args.train_seeds))
-    test_seeds = list(range(10_000, 10_000 + args.test_seeds))
+    test_seeds = list(range(args.test_seed_start, args.test_seed_start + args.test_seeds))
     start = time.perf_counter()
     print(f"shift protocol: train {len(train_seeds)} x {len(WEAVES)} in the training region, test "
           f"{len(test_seeds)} x {len(WEAVES)} in the test region", file=sys.stderr, flush=True)
@@ -331,7 +331,7 @@ def shift_protocol(args) -> int:
         "x1.0-1.3, prints on 75% (two thirds of them imitating another weave's shading), orientation 90-180 deg, LEDs "
         "drifted up to +-20%, exposure +-1 stop, 0.3-1 mm above the card. The reconstruction knows the nominal "
         f"calibration only. {len(train_y)} training samples (seeds 0..{args.train_seeds - 1}), {n_test} test "
-        f"samples (seeds 10000..{10000 + args.test_seeds - 1}), {args.size}x{args.size} px at 0.025 mm, 8-bit "
+        f"samples (seeds {test_seeds[0]}..{test_seeds[-1]}), {args.size}x{args.size} px at 0.025 mm, 8-bit "
         "captures, reconstructed by psmini's default pipeline (near light). Relief descriptors: `descriptor_vector` "
         "of `describe` on the depth without the albedo; image: GLCM + LBP of LED 0's image. Classifier: "
         "scikit-learn LogisticRegression on standardised features, C chosen by 5-fold cross-validation on the "
@@ -379,6 +379,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="training seeds per class (default 24; 40 with --protocol shift)")
     parser.add_argument("--test-seeds", type=int, default=None,
                         help="test seeds per class (default 20; 145 with --protocol shift: 1,015 test samples)")
+    parser.add_argument("--test-seed-start", type=int, default=10_000, metavar="N",
+                        help="--protocol shift: the first test seed (default 10000; another start draws test samples "
+                        "no one has looked at, for a check of a change found by reading the usual ones' errors)")
     parser.add_argument("--size", type=int, default=None,
                         help="crop side, pixels (0.025 mm each; default 256; 400 with --protocol shift)")
     parser.add_argument("--json", action="store_true", help="--protocol shift: print one JSON object (image, "

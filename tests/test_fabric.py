@@ -444,7 +444,7 @@ class TestDescribe:
         assert structure_row(rec, None)["structure_found"] is False
         entry = describe(z, PITCH)[0]
         vector = descriptor_vector(entry)
-        assert vector.shape == (39,) and np.isfinite(vector).all()
+        assert vector.shape == (47,) and np.isfinite(vector).all()
 
         expected = 1000 * math.sqrt((0.05 * passed(0.25)) ** 2 / 2 + (0.03 * passed(0.5)) ** 2 / 2)
         assert entry["waviness_um"] == pytest.approx(expected, rel=0.02)
@@ -693,8 +693,11 @@ class TestLattice:
         names = list(__import__("psmini.fabric", fromlist=["DESCRIPTOR_NAMES"]).DESCRIPTOR_NAMES)
         assert vector[names.index("repeat_min")] == min(repeats)
         assert vector[names.index("regular_weave")] == float(regular)
-        indicators = [vector[names.index(f"weave_repeat_is_{k}")] for k in range(1, 9)]
+        # the larger repeat's indicator, on the side of its regularity: a basket's 4 is not a 3/1 twill's 4
+        kind, other = ("regular", "irregular") if regular else ("irregular", "regular")
+        indicators = [vector[names.index(f"{kind}_repeat_is_{k}")] for k in range(1, 9)]
         assert indicators == [float(k == max(repeats)) for k in range(1, 9)]
+        assert [vector[names.index(f"{other}_repeat_is_{k}")] for k in range(1, 9)] == [0.0] * 8
         assert vector[names.index(f"repeat_min_is_{min(repeats)}")] == 1.0
 
     @pytest.mark.parametrize("weave", ["plain", "basket", "twill_2_1", "twill_3_1", "satin_5", "rib", "jersey"])

@@ -80,7 +80,8 @@ DESCRIPTOR_NAMES = (
     "structure_found", "log_density_1", "log_density_2", "density_ratio", "crossing_angle_deg",
     "weave_repeat", "crimp_um", "openness", "log_sq_over_sal", "log_waviness_um", "albedo_relief_coupling",
     "log_albedo_periodicity", "repeat_min", "regular_weave",
-    *(f"weave_repeat_is_{k}" for k in range(1, _REPEAT_CATEGORIES + 1)),
+    *(f"regular_repeat_is_{k}" for k in range(1, _REPEAT_CATEGORIES + 1)),
+    *(f"irregular_repeat_is_{k}" for k in range(1, _REPEAT_CATEGORIES + 1)),
     *(f"repeat_min_is_{k}" for k in range(1, _REPEAT_CATEGORIES + 1)),
 )
 
@@ -96,7 +97,7 @@ COUPLING_OPTIONS = SurfaceOptions(form_degree=1, s_cutoff_mm=0.5, l_cutoff_mm=1.
 _STRUCTURE = StructureOptions()
 
 MODEL_FORMAT = "psmini-fabric-classifier"
-MODEL_VERSION = 2
+MODEL_VERSION = 3
 
 
 def reconstruct_for_description(sample: Any, config: Any = None) -> Any:
@@ -347,15 +348,20 @@ def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
     directions, the repeat as the larger (``weave_repeat``) and the smaller of the two systems' repeats (a 2/2 rib:
     4 and 2), ``regular_weave`` 1 for a weave whose interlacing one shift generates (plain, twill, satin; not a
     basket or a rib), and a missing structure as zeros with ``structure_found`` 0; without albedo, the coupling as
-    0 and the albedo periodicity as log(0.001). Both repeats also enter as indicators (``weave_repeat_is_k``,
-    ``repeat_min_is_k`` for k = 1..8, the last for 8 or more): a repeat is a category, and a linear classifier on
-    the number alone cannot tell a 2/2 basket (4) from a 3/1 twill (4) and a 5-end satin (5) apart from the
-    amplitudes, which change with the capture (``benchmarks/fabric_recognition.py --protocol shift`` measures it).
+    0 and the albedo periodicity as log(0.001). Both repeats also enter as indicators (k = 1..8, the last for 8 or
+    more): a repeat is a category, and a linear classifier on the number alone cannot tell a 2/2 basket (4) from a
+    3/1 twill (4) and a 5-end satin (5) apart from the amplitudes, which change with the capture
+    (``benchmarks/fabric_recognition.py --protocol shift`` measures it). The larger repeat's indicators are split
+    by ``regular_weave`` (``regular_repeat_is_k``: one shift generates the interlacing; ``irregular_repeat_is_k``:
+    none does, or no interlacing was resolved, a repeat of 1 included), because a weave is its repeat *and* how
+    its crossings are placed in it: a 2/2 basket and a 3/1 twill share the repeat 4, and only the pair tells them
+    apart in one feature, where a linear model on the two apart must learn the conjunction and, strongly
+    regularised, leans on amplitudes instead. ``repeat_min_is_k`` are the smaller repeat's.
 
     Example:
         >>> entry = {"iso25178": dict.fromkeys(ISO_PARAMETERS, 1.0), "structure_found": False}
         >>> descriptor_vector(entry).shape
-        (39,)
+        (47,)
     """
     iso = entry["iso25178"]
 
@@ -370,6 +376,7 @@ def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
     crossing = abs((angles[0] - angles[1] + 90.0) % 180.0 - 90.0) if found and len(angles) > 1 else 0.0
     repeats = list(entry.get("repeat_threads") or []) if found else []
     sal = num(iso.get("Sal"))
+    regular = 1.0 if found and num(entry.get("weave_repeat")) >= 2 and entry.get("float_length") is not None else 0.0
     values = [num(iso.get("Sq")), num(iso.get("Ssk")), num(iso.get("Sku")), num(iso.get("Sz")), num(iso.get("Sa")),
               num(iso.get("Sdq")), num(iso.get("Sdr")), sal, num(iso.get("Str")), float(found),
               math.log(d1) if d1 > 0 else 0.0, math.log(d2) if d2 > 0 else 0.0, d2 / d1 if d1 > 0 else 0.0, crossing,
@@ -378,10 +385,11 @@ def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
               math.log(num(entry.get("waviness_um"))) if num(entry.get("waviness_um")) > 0 else 0.0,
               num(entry.get("albedo_relief_coupling")), math.log(num(entry.get("albedo_periodicity")) + 1e-3),
               float(min(repeats)) if repeats else 0.0,
-              1.0 if found and num(entry.get("weave_repeat")) >= 2 and entry.get("float_length") is not None else 0.0]
+              regular]
     largest = int(num(entry.get("weave_repeat"))) if found else 0
     smallest = min(repeats) if repeats else 0
-    values += [float(min(largest, _REPEAT_CATEGORIES) == k) for k in range(1, _REPEAT_CATEGORIES + 1)]
+    largest_is = [float(min(largest, _REPEAT_CATEGORIES) == k) for k in range(1, _REPEAT_CATEGORIES + 1)]
+    values += [regular * v for v in largest_is] + [(1.0 - regular) * v for v in largest_is]
     values += [float(min(smallest, _REPEAT_CATEGORIES) == k) for k in range(1, _REPEAT_CATEGORIES + 1)]
     return np.asarray(values, dtype=np.float64)
 
@@ -453,7 +461,7 @@ class FabricClassifier:
             >>> FabricClassifier.from_dict({"format": MODEL_FORMAT, "version": 99})
             Traceback (most recent call last):
             ...
-            psmini.errors.DataFormatError: fabric model version 99 is not supported; this psmini reads version 2
+            psmini.errors.DataFormatError: fabric model version 99 is not supported; this psmini reads version 3
         """
         if not isinstance(data, dict) or data.get("format") != MODEL_FORMAT:
             raise DataFormatError(f"not a fabric model: expected format {MODEL_FORMAT!r}, got "
