@@ -17,13 +17,15 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 
 
 def commit() -> str:
-    """Short hash of HEAD, with ``+dirty`` when the tree has uncommitted changes to tracked files."""
+    """Short hash of HEAD, with ``+dirty`` when the code that makes the figures (psmini, data_synth, the benchmark
+    scripts) has uncommitted changes."""
     try:
         head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True,
                               check=True)
-        # the ledger itself does not count: appending to it is what a benchmark does
-        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "psmini", "benchmarks",
-                                ":!benchmarks/results.md"], cwd=REPO).returncode
+        # what a benchmark writes does not count (the ledger, a fitted model, a figure, a JSON result): a run that
+        # rewrites its own outputs before appending to the ledger is still a run of HEAD's code
+        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "psmini", "data_synth",
+                                ":(glob)benchmarks/*.py"], cwd=REPO).returncode
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
     return head.stdout.strip() + ("+dirty" if dirty else "")
