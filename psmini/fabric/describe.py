@@ -354,9 +354,9 @@ def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
     (``benchmarks/fabric_recognition.py --protocol shift`` measures it). The larger repeat's indicators are split
     by ``regular_weave`` (``regular_repeat_is_k``: one shift generates the interlacing; ``irregular_repeat_is_k``:
     none does, or no interlacing was resolved, a repeat of 1 included), because a weave is its repeat *and* how
-    its crossings are placed in it: a 2/2 basket and a 3/1 twill share the repeat 4, and only the pair tells them
-    apart in one feature, where a linear model on the two apart must learn the conjunction and, strongly
-    regularised, leans on amplitudes instead. ``repeat_min_is_k`` are the smaller repeat's.
+    its crossings are placed in it: a 2/2 basket and a 3/1 twill share the repeat 4, and from one indicator of the
+    repeat and one of regularity a linear model must learn their conjunction; strongly regularised, it leaned on
+    amplitudes instead (baskets read as 3/1 twills under shift). ``repeat_min_is_k`` are the smaller repeat's.
 
     Example:
         >>> entry = {"iso25178": dict.fromkeys(ISO_PARAMETERS, 1.0), "structure_found": False}
