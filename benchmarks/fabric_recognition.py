@@ -380,8 +380,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--test-seeds", type=int, default=None,
                         help="test seeds per class (default 20; 145 with --protocol shift: 1,015 test samples)")
     parser.add_argument("--test-seed-start", type=int, default=10_000, metavar="N",
-                        help="--protocol shift: the first test seed (default 10000; another start draws test samples "
-                        "no one has looked at, for a check of a change found by reading the usual ones' errors)")
+                        help="the first test seed (default 10000; another start draws test samples no one has "
+                        "looked at, for a check of a change found by reading the usual ones' errors)")
     parser.add_argument("--size", type=int, default=None,
                         help="crop side, pixels (0.025 mm each; default 256; 400 with --protocol shift)")
     parser.add_argument("--json", action="store_true", help="--protocol shift: print one JSON object (image, "
@@ -422,8 +422,9 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     print(f"train: seeds 0..{args.train_seeds - 1} x {len(CLASSES)} classes")
     train_s, train_t, train_y, groups = build(list(range(args.train_seeds)), options, card, args.cache)
-    print(f"test: seeds 10000..{10000 + args.test_seeds - 1} x {len(CLASSES)} classes")
-    test_s, test_t, test_y, _ = build(list(range(10_000, 10_000 + args.test_seeds)), options, card, args.cache)
+    test_seeds = list(range(args.test_seed_start, args.test_seed_start + args.test_seeds))
+    print(f"test: seeds {test_seeds[0]}..{test_seeds[-1]} x {len(CLASSES)} classes")
+    test_s, test_t, test_y, _ = build(test_seeds, options, card, args.cache)
     elapsed = time.perf_counter() - start
     structure = fit(train_s, train_y, groups)
     texture = fit(train_t, train_y, groups)
@@ -446,7 +447,7 @@ def main(argv: list[str] | None = None) -> int:
     n_train, n_test = len(train_y), len(test_y)
     body = [
         f"{len(classes)} classes, {n_train} training samples (seeds 0..{args.train_seeds - 1}), {n_test} test samples "
-        f"(seeds 10000..{10000 + args.test_seeds - 1}); {args.size}x{args.size} px at 0.025 mm "
+        f"(seeds {test_seeds[0]}..{test_seeds[-1]}); {args.size}x{args.size} px at 0.025 mm "
         f"({args.size * 0.025:.1f} mm fields), 8-bit simulated rig captures (noise, shadows, vignetting), "
         "reconstructed by psmini's default pipeline (`reconstruct_for_description`, `ReconstructionConfig()`: near "
         "light for the LED captures); randomised spacing (x0.92-1.08), width, crimp (x0.7-1.3), orientation 0-180 "
