@@ -232,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     from data_synth import FABRICS, make_fabric
     from data_synth.rig import RigConfig, render_card
     from data_synth.weaves import WEAVES, draw_weave
-    from psmini.fabric import describe_surface_options, fabric_structure
+    from psmini.fabric import describe_surface_options, fabric_structure, structure_surface
 
     iso = describe_surface_options(PITCH)
     rig = RigConfig(bit_depth=8, size=args.size)
@@ -256,8 +256,10 @@ def main(argv: list[str] | None = None) -> int:
         rec = reconstruct_capture(f"weave{seed}-{args.size}", capture_maker(fabric, rig, card, seed, lift), args.cache,
                                   tag, CONFIG)
         counts[fabric.name] += 1
+        # the reconstruction's structure is read as describe_reconstruction reads it: from its slopes' integration
         for source, (height, mask) in {"truth": (fabric.height_mm, None),
-                                       "reconstruction": (rec.depth, rec.mask)}.items():
+                                       "reconstruction": (structure_surface(rec.p, rec.q, PITCH, rec.mask),
+                                                          rec.mask)}.items():
             kinds = structure_failures(fabric_structure(height, PITCH, mask)[0], truth)
             found_kinds[source][fabric.name]["right" if not kinds else " + ".join(kinds)] += 1
             if kinds:

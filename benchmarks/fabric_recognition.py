@@ -43,6 +43,7 @@ Needs the ``fabric`` extra (scikit-learn, scikit-image). Usage::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 import time
@@ -82,8 +83,8 @@ CONFIG = ReconstructionConfig()
 
 
 def reconstruction(name: str, seed: int, options, card, cache: Path | None):
-    """(depth, mask, albedo) of one sample by the default pipeline and its first LED image, from the cache when
-    there (``cache/<class>-<seed>-<size>-<tag>.npz``: :mod:`benchmarks._fabric_captures`)."""
+    """The default pipeline's reconstruction of one sample (depth, mask, albedo, slopes) and its first LED image,
+    from the cache when there (``cache/<class>-<seed>-<size>-<tag>.npz``: :mod:`benchmarks._fabric_captures`)."""
     from benchmarks._fabric_captures import reconstruct_capture, source_tag
     from data_synth.fabric_dataset import render_sample
 
@@ -92,8 +93,7 @@ def reconstruction(name: str, seed: int, options, card, cache: Path | None):
         return sample, capture
 
     tag = source_tag(CONFIG, {"dataset": repr(options), "sources": _dataset_sources()})
-    rec = reconstruct_capture(f"{name}-{seed}-{options.size}", make, cache, tag, CONFIG)
-    return rec.depth, rec.mask, rec.albedo, rec.image
+    return reconstruct_capture(f"{name}-{seed}-{options.size}", make, cache, tag, CONFIG)
 
 
 def _fabric_sources() -> str:
@@ -114,16 +114,15 @@ def _dataset_sources() -> str:
 def build(seeds: list[int], options, card, cache: Path | None = None, log_every: int = 11):
     """Descriptors, baseline features, labels and seeds (the cross-validation's groups) for every class and seed."""
     from data_synth.fabric_dataset import CLASSES
-    from psmini.fabric import describe, descriptor_vector
+    from psmini.fabric import describe_reconstruction, descriptor_vector
 
     structure, texture, labels, row_seeds = [], [], [], []
     count, start = 0, time.perf_counter()
     for seed in seeds:
         for name in CLASSES:
-            depth, mask, albedo, image = reconstruction(name, seed, options, card, cache)
-            entry = describe(depth, options.rig.pixel_pitch_mm, mask, albedo)[0]
-            structure.append(descriptor_vector(entry))
-            texture.append(texture_features(image))
+            rec = reconstruction(name, seed, options, card, cache)
+            structure.append(descriptor_vector(describe_reconstruction(rec, options.rig.pixel_pitch_mm)[0]))
+            texture.append(texture_features(rec.image))
             labels.append(name)
             row_seeds.append(seed)
             count += 1
@@ -237,7 +236,7 @@ def build_shift(region, seeds: list[int], size: int, card, cache: Path | None, l
     from data_synth.rig import RigConfig
     from data_synth.shift import draw_shifted, render_shifted
     from data_synth.weaves import WEAVES
-    from psmini.fabric import describe, descriptor_vector
+    from psmini.fabric import describe_reconstruction, descriptor_vector
 
     rig = RigConfig(bit_depth=8, size=size)
     tag = source_tag(CONFIG, {"rig": rig.__dict__, "card": 10_007, "sources": _dataset_sources()})
@@ -256,7 +255,8 @@ def build_shift(region, seeds: list[int], size: int, card, cache: Path | None, l
                 rec = reconstruct_capture(key, lambda draw=draw, seed=seed: render_shifted(draw, rig, card, seed),
                                           cache, tag, CONFIG)
                 # the relief alone: no albedo (a dye or a print is no structure; the premise is about the image)
-                relief.append(descriptor_vector(describe(rec.depth, rig.pixel_pitch_mm, rec.mask)[0]))
+                entry = describe_reconstruction(dataclasses.replace(rec, albedo=None), rig.pixel_pitch_mm)[0]
+                relief.append(descriptor_vector(entry))
                 texture.append(texture_features(rec.image))
                 if features is not None:
                     temporary = features.with_name(f".{features.stem}.tmp.npz")

@@ -30,7 +30,7 @@ LIFTS_MM = (0.0, 0.5, 1.0)
 def measure() -> list[tuple[str, int, bool]]:
     """(fabric, size, repeat right) for every case."""
     from data_synth.rig import RigConfig, write_synthetic_capture
-    from psmini.fabric import fabric_structure
+    from psmini.fabric import fabric_structure, structure_surface
     from psmini.io import load_sample
     from psmini.pipeline import reconstruct
 
@@ -43,7 +43,8 @@ def measure() -> list[tuple[str, int, bool]]:
                                               height_offset_mm=LIFTS_MM[index % len(LIFTS_MM)])
             sample = load_sample(path)
             result = reconstruct(sample)
-            found = fabric_structure(result.depth, float(sample.pixel_pitch_mm), result.mask)[0]
+            pitch = float(sample.pixel_pitch_mm)
+            found = fabric_structure(structure_surface(result.p, result.q, pitch, result.mask), pitch, result.mask)[0]
             cases.append((fabric, size, found.weave_repeat == REPEATS[fabric]))
     return cases
 

@@ -4,6 +4,7 @@ against data_synth's generator parameters, the no-structure result and the error
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from psmini.fabric import (
     SurfaceOptions,
     autocorrelation,
     describe,
+    describe_reconstruction,
     descriptor_vector,
     fabric_structure,
     gaussian_filter,
@@ -23,6 +25,7 @@ from psmini.fabric import (
     remove_form,
     scale_limited_surface,
     structure_row,
+    structure_surface,
 )
 from tests.conftest import BaseTester
 
@@ -419,8 +422,59 @@ class TestStructure:
                             reference=card.images, reference_dark=card.dark, card_albedo=0.8,
                             pixel_pitch_mm=PITCH, saturation_level=1.0)
             rec = reconstruct_for_description(sample, ReconstructionConfig(solver=solver))
-            density, angle = structure_errors(fabric_structure(rec.depth, PITCH, rec.mask)[0], truth_systems(fabric))
+            surface = structure_surface(rec.p, rec.q, PITCH, rec.mask)  # where describe_reconstruction reads it
+            density, angle = structure_errors(fabric_structure(surface, PITCH, rec.mask)[0], truth_systems(fabric))
             assert density < 0.02 and angle < 1.0, (lift, orientation, density, angle)
+
+
+class TestStructureSurface:
+    """The surface describe_reconstruction reads the structure from: the slopes integrated without weights."""
+
+    def test_analytic_relief_and_masked_slopes(self):
+        x, y = grid(128)
+        z = 0.02 * torch.cos(2 * math.pi * x / 0.4) * torch.cos(2 * math.pi * y / 0.32)
+        p = -0.02 * 2 * math.pi / 0.4 * torch.sin(2 * math.pi * x / 0.4) * torch.cos(2 * math.pi * y / 0.32)
+        q = -0.02 * 2 * math.pi / 0.32 * torch.cos(2 * math.pi * x / 0.4) * torch.sin(2 * math.pi * y / 0.32)
+        got = structure_surface(p[None, None], q[None, None], PITCH)[0, 0]
+        # the DCT solve of central differences: the relief within 3% of its amplitude
+        assert float((got - (z - z.mean())).abs().max()) < 0.03 * 0.02
+        mask = torch.ones(1, 1, 128, 128, dtype=torch.bool)
+        mask[..., 60:68, 60:68] = False
+        nonsense = torch.full_like(p[None, None], 1e3)
+        masked = structure_surface(torch.where(mask, p[None, None], nonsense), q[None, None], PITCH, mask)
+        unmasked_zero = structure_surface(p[None, None] * mask, q[None, None] * mask, PITCH)
+        torch.testing.assert_close(masked, unmasked_zero)
+
+    def test_gradcheck(self):
+        p = torch.rand(1, 1, 8, 8, dtype=torch.float64, requires_grad=True)
+        q = torch.rand(1, 1, 8, 8, dtype=torch.float64, requires_grad=True)
+        assert torch.autograd.gradcheck(lambda a, b: structure_surface(a, b, PITCH), (p, q))
+
+    def test_errors(self):
+        p = torch.zeros(1, 1, 16, 16)
+        with pytest.raises(ShapeError, match="mask must have the slopes' shape"):
+            structure_surface(p, p, PITCH, torch.ones(1, 1, 8, 8, dtype=torch.bool))
+        with pytest.raises((InputError, ShapeError)):
+            structure_surface(p, torch.zeros(1, 1, 8, 8), PITCH)
+        with pytest.raises(ShapeError, match="structure_height must have the height's shape"):
+            describe(p, PITCH, structure_height=torch.zeros(1, 1, 8, 8))
+
+    def test_describe_reconstruction_reads_structure_from_the_slopes(self):
+        """A depth that lost every other groove (paired threads read as one) beside slopes that keep it: the density
+        comes from the slopes, the ISO amplitudes from the depth."""
+        from psmini.result import Reconstruction
+
+        x, y = grid(256)
+        depth = (0.03 * torch.cos(2 * math.pi * x / 0.5))[None, None].float()  # 20 /cm, what the depth kept
+        p = (-0.03 * 2 * math.pi / 0.25 * torch.sin(2 * math.pi * x / 0.25))[None, None].float()  # 40 /cm, the cloth's
+        rec = Reconstruction(torch.ones_like(depth), torch.zeros(1, 3, 256, 256), p, torch.zeros_like(p), depth,
+                             depth > -1)
+        entry = describe_reconstruction(rec, PITCH)[0]
+        assert entry["threads_per_cm"][0] == pytest.approx(40.0, rel=1e-3)
+        assert entry["iso25178"]["Sq"] == pytest.approx(describe(depth, PITCH)[0]["iso25178"]["Sq"], rel=1e-6)
+        assert describe(depth, PITCH)[0]["threads_per_cm"][0] == pytest.approx(20.0, rel=1e-3)
+        no_slopes = describe_reconstruction(SimpleNamespace(depth=depth, mask=depth > -1, p=None, q=None), PITCH)[0]
+        assert no_slopes["threads_per_cm"][0] == pytest.approx(20.0, rel=1e-3)
 
 
 class TestDescribe:
@@ -429,7 +483,9 @@ class TestDescribe:
 
         x, y = grid(200)
         z = (0.05 * torch.cos(2 * math.pi * x / 0.25) + 0.03 * torch.cos(2 * math.pi * y / 0.5))[None, None].float()
-        rec = Reconstruction(torch.ones_like(z), torch.zeros(1, 3, 200, 200), z, z, z, z > -1)
+        p = (-0.05 * 2 * math.pi / 0.25 * torch.sin(2 * math.pi * x / 0.25))[None, None].float()
+        q = (-0.03 * 2 * math.pi / 0.5 * torch.sin(2 * math.pi * y / 0.5))[None, None].float()
+        rec = Reconstruction(torch.ones_like(z), torch.zeros(1, 3, 200, 200), p, q, z, z > -1)
         row = structure_row(rec, PITCH)
         assert row["structure_found"] and row["threads_per_cm_1"] == pytest.approx(40.0, rel=1e-3)
         alpha = math.sqrt(math.log(2) / math.pi)

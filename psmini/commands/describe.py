@@ -15,6 +15,7 @@ import json
 import math
 import time
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -75,8 +76,10 @@ def _is_reconstruction(path: Path) -> bool:
     return (path / "outputs.json").is_file() or (path / "depth.npy").is_file()
 
 
-def load_height(path: Path, config) -> tuple[Any, Any, Any, float, str]:
-    """Height (1, 1, H, W) mm, mask, albedo (or None), pixel pitch and a name, from any accepted PATH."""
+def load_for_description(path: Path, config) -> SimpleNamespace:
+    """What :func:`psmini.fabric.describe_reconstruction` needs, from any accepted PATH: ``depth`` (1, 1, H, W) mm,
+    ``mask``, ``albedo`` (or None), the slopes ``p`` and ``q`` (from ``normals.png`` in a reconstruction folder;
+    None without one), ``pitch`` (mm) and ``name``."""
     import torch
 
     path = Path(path)
@@ -96,6 +99,8 @@ def load_height(path: Path, config) -> tuple[Any, Any, Any, float, str]:
             raise InputError(f"{path}: the reconstruction has no pixel pitch (outputs.json pixel_pitch_mm), so no "
                              "length in mm can be measured")
         height = torch.from_numpy(depth.astype(np.float32))[None, None].to(config.device)
+        mask = torch.isfinite(height)
+        p, q = _slopes(path / "normals.png", mask)
         albedo = None
         if (path / "albedo.png").is_file():  # 8-bit, divided by a robust maximum: a relative albedo, what is needed
             from psmini.io.images import read_gray
@@ -104,7 +109,7 @@ def load_height(path: Path, config) -> tuple[Any, Any, Any, float, str]:
             values = values.astype(np.float32)
             if values.shape == depth.shape:
                 albedo = torch.from_numpy(values)[None, None].to(config.device)
-        return height, torch.isfinite(height), albedo, float(pitch), path.name
+        return SimpleNamespace(depth=height, mask=mask, albedo=albedo, p=p, q=q, pitch=float(pitch), name=path.name)
     from psmini.fabric import reconstruct_for_description
     from psmini.io import load_sample
 
@@ -119,7 +124,26 @@ def load_height(path: Path, config) -> tuple[Any, Any, Any, float, str]:
         raise InputError(f"{path}: the sample has no pixel pitch (DiLiGenT has none), so no length in mm can be "
                          "measured")
     rec = reconstruct_for_description(sample, config)
-    return rec.depth[:1], rec.mask[:1], rec.albedo[:1], float(sample.pixel_pitch_mm), sample.name
+    return SimpleNamespace(depth=rec.depth[:1], mask=rec.mask[:1], albedo=rec.albedo[:1], p=rec.p[:1], q=rec.q[:1],
+                           pitch=float(sample.pixel_pitch_mm), name=sample.name)
+
+
+def _slopes(normals_png: Path, mask) -> tuple[Any, Any]:
+    """The slopes (p, q) of a reconstruction folder's ``normals.png`` (1, 1, H, W), flat outside ``mask``; (None,
+    None) without the file or when its size is not the depth's."""
+    import torch
+
+    from psmini.io import read_normal_png
+    from psmini.normals import normals_to_gradients
+
+    if not normals_png.is_file():
+        return None, None
+    normals = read_normal_png(normals_png)  # a DataFormatError for an unreadable file
+    if normals.shape[1:] != tuple(mask.shape[2:]):
+        return None, None
+    normals = torch.from_numpy(np.nan_to_num(normals, nan=0.0))[None].to(mask.device)
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=normals.dtype, device=normals.device).view(1, 3, 1, 1)
+    return normals_to_gradients(torch.where(mask, normals, up))
 
 
 def add_structure_columns(out: Path, summary: dict, config) -> dict:
@@ -129,8 +153,6 @@ def add_structure_columns(out: Path, summary: dict, config) -> dict:
     A finished sample is measured on its written ``depth.npy``; a failed one, one without a pixel pitch (DiLiGenT)
     or one whose output cannot be read gets empty cells and ``structure_found`` False with the reason.
     """
-    from types import SimpleNamespace
-
     from psmini.batch import SUMMARY_FIELDS, save_summary
     from psmini.fabric import structure_row
 
@@ -140,8 +162,8 @@ def add_structure_columns(out: Path, summary: dict, config) -> dict:
             extra = {**empty, "structure_reason": "the sample was not reconstructed"}
         else:
             try:
-                height, mask, _, pitch, _ = load_height(Path(out) / row["sample"], config)
-                extra = structure_row(SimpleNamespace(depth=height, mask=mask), pitch)
+                loaded = load_for_description(Path(out) / row["sample"], config)
+                extra = structure_row(loaded, loaded.pitch)
             except InputError as error:  # no pixel pitch, no valid pixel
                 extra = {**empty, "structure_reason": str(error)}
             except DataFormatError as error:
@@ -151,18 +173,20 @@ def add_structure_columns(out: Path, summary: dict, config) -> dict:
     return summary
 
 
-def _figure(target: Path, height, mask, pitch: float, entry: dict) -> None:
-    """The spectrum with its peaks and the levelled height with the yarn directions (structure.png)."""
+def _figure(target: Path, loaded: SimpleNamespace, entry: dict) -> None:
+    """The spectrum the structure was read from (the slopes' integration when there are slopes) with its peaks, and
+    the levelled height with the yarn directions (structure.png)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from psmini.fabric import StructureOptions, scale_limited_surface, structure_spectrum
+    from psmini.fabric import StructureOptions, scale_limited_surface, structure_spectrum, structure_surface
     from psmini.fabric.surface import SurfaceOptions
 
-    options = StructureOptions()
-    spectrum, step = structure_spectrum(height, pitch, mask, options)
+    height, mask, pitch = loaded.depth, loaded.mask, loaded.pitch
+    read = height if loaded.p is None else structure_surface(loaded.p, loaded.q, pitch, mask)
+    spectrum, step = structure_spectrum(read, pitch, mask, StructureOptions())
     power = spectrum[0, 0].double().cpu().numpy()
     n = power.shape[0]
     surface, _ = scale_limited_surface(height, pitch, mask, SurfaceOptions(form_degree=2, l_cutoff_mm=2.5))
@@ -236,27 +260,27 @@ def _table(name: str, entry: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from psmini.fabric import describe, descriptor_vector
+    from psmini.fabric import describe_reconstruction, descriptor_vector
 
     config = config_from_args(args)
     model = read_model(args.model) if args.model is not None else None  # fail before any work
     start = time.perf_counter()
-    height, mask, albedo, pitch, name = load_height(args.path, config)
-    entry = describe(height, pitch, mask, albedo)[0]
+    loaded = load_for_description(args.path, config)
+    entry = describe_reconstruction(loaded, loaded.pitch)[0]
     if model is not None:
         probabilities = model.predict_proba(descriptor_vector(entry))[0]
         entry["class_probabilities"] = {c: float(p) for c, p in zip(model.classes, probabilities, strict=True)}
         entry["class"] = model.classes[int(np.argmax(probabilities))]
-    entry["name"] = name
+    entry["name"] = loaded.name
     entry["time_s"] = time.perf_counter() - start
-    print(_table(name, entry))
+    print(_table(loaded.name, entry))
     if args.out is not None:
         from psmini.io._atomic import atomic_folder
 
         with atomic_folder(args.out, args.overwrite) as target:
             (target / "structure.json").write_text(json.dumps(entry, indent=2, allow_nan=False) + "\n",
                                                    encoding="utf-8")
-            _figure(target / "structure.png", height, mask, pitch, entry)
+            _figure(target / "structure.png", loaded, entry)
         print(f"  wrote {args.out / 'structure.json'}, {args.out / 'structure.png'}")
     if args.json:
         emit_json(entry)

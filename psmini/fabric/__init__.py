@@ -18,10 +18,12 @@ from psmini.fabric.describe import (
     albedo_periodicity,
     albedo_relief_coupling,
     describe,
+    describe_reconstruction,
     describe_surface_options,
     descriptor_vector,
     reconstruct_for_description,
     structure_row,
+    structure_surface,
 )
 from psmini.fabric.structure import (
     FabricStructure,
@@ -52,6 +54,7 @@ __all__ = [
     "spatial_parameters", "valid_pixels",
     "FabricStructure", "SpectralPeak", "StructureOptions", "fabric_structure", "structure_spectrum",
     "COUPLING_OPTIONS", "albedo_periodicity", "albedo_relief_coupling", "DESCRIBE_SURFACE_OPTIONS",
-    "DESCRIPTOR_NAMES", "MODEL_FORMAT", "MODEL_VERSION", "FabricClassifier", "describe", "describe_surface_options",
-    "descriptor_vector", "reconstruct_for_description", "structure_row",
+    "DESCRIPTOR_NAMES", "MODEL_FORMAT", "MODEL_VERSION", "FabricClassifier", "describe", "describe_reconstruction",
+    "describe_surface_options", "descriptor_vector", "reconstruct_for_description", "structure_row",
+    "structure_surface",
 ]

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -32,7 +33,8 @@ from psmini.fabric.surface import (
 
 __all__ = ["WAVINESS_OPTIONS", "COUPLING_OPTIONS", "DESCRIBE_SURFACE_OPTIONS", "describe_surface_options",
            "DESCRIPTOR_NAMES", "MODEL_FORMAT", "MODEL_VERSION", "FabricClassifier", "albedo_periodicity",
-           "albedo_relief_coupling", "describe", "descriptor_vector", "structure_row", "reconstruct_for_description"]
+           "albedo_relief_coupling", "describe", "describe_reconstruction", "descriptor_vector", "structure_row",
+           "structure_surface", "reconstruct_for_description"]
 
 #: The form removal and L-filter of the scale-limited surface on which :func:`describe` reports the ISO parameters:
 #: plane removed, an L-filter of 2.5 mm (an ISO 25178-3 nesting index; it removes wrinkles and drape, keeps yarn
@@ -223,8 +225,8 @@ def _relative(albedo: Tensor, valid: Tensor) -> Tensor:
 
 
 def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, albedo: Tensor | None = None,
-             surface: SurfaceOptions | None = None,
-             structure: StructureOptions = _STRUCTURE) -> list[dict[str, Any]]:
+             surface: SurfaceOptions | None = None, structure: StructureOptions = _STRUCTURE,
+             structure_height: Tensor | None = None) -> list[dict[str, Any]]:
     """ISO 25178-2 parameters and the yarn structure of each sample, as JSON-ready dicts.
 
     Args:
@@ -237,6 +239,9 @@ def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, 
         surface: the scale-limited surface of the ISO parameters (default: :func:`describe_surface_options` of the
             pitch: plane removed, the ISO S-filter of the pitch, an L-filter of 2.5 mm).
         structure: options of :func:`~psmini.fabric.fabric_structure`.
+        structure_height: optional :math:`(B, 1, H, W)` mm, the surface the yarn structure (densities, directions,
+            repeat, crimp, openness, peaks) is read from instead of ``height``: a reconstruction's
+            :func:`structure_surface`. The ISO parameters, the waviness and the coupling stay on ``height``.
 
     Returns:
         one dict per sample: ``threads_per_cm``, ``thread_angles_deg``, ``weave_repeat``, ``float_length``,
@@ -247,7 +252,7 @@ def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, 
         ``pixel_pitch_mm``, ``peaks`` (the refined spectral peaks).
 
     Raises:
-        InputError, ShapeError: as :func:`~psmini.fabric.iso25178`.
+        InputError, ShapeError: as :func:`~psmini.fabric.iso25178`; a ``structure_height`` of another shape.
 
     Example:
         >>> y, x = torch.meshgrid(torch.arange(120.0), torch.arange(120.0), indexing="ij")
@@ -258,11 +263,15 @@ def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, 
     """
     from psmini.fabric.surface import ISO_UNITS, height_parameters, scale_limited_surface, valid_pixels
 
+    if structure_height is not None and structure_height.shape != height.shape:
+        raise ShapeError(f"structure_height must have the height's shape {tuple(height.shape)}, got "
+                         f"{tuple(structure_height.shape)}")
     iso = iso25178(height, pixel_pitch_mm, mask, surface if surface is not None else describe_surface_options(
         pixel_pitch_mm))
     band, band_valid = scale_limited_surface(height, pixel_pitch_mm, mask, WAVINESS_OPTIONS)
     waviness = height_parameters(band, band_valid)["Sq"] * 1000
-    found = fabric_structure(height, pixel_pitch_mm, mask, structure)
+    found = fabric_structure(height if structure_height is None else structure_height, pixel_pitch_mm, mask,
+                             structure)
     valid = valid_pixels(height, mask)
     coupling = albedo_relief_coupling(height, albedo, pixel_pitch_mm, mask) if albedo is not None else None
     periodicity = albedo_periodicity(albedo, pixel_pitch_mm, valid) if albedo is not None else None
@@ -285,6 +294,82 @@ def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, 
     return out
 
 
+def structure_surface(p: Tensor, q: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None) -> Tensor:
+    r"""The surface a reconstruction's yarn structure is read from: its slopes integrated without weights.
+
+    Frankot–Chellappa on the mirrored field (:func:`psmini.integrate.frankot_chellappa`) divides the slopes'
+    spectrum by the derivative's own, :math:`i\omega`, at every frequency, so the lattice the slopes hold is this
+    surface's, up to the finest threads (a silk's 2.4 pixels, which a least-squares solve's trapezoidal edges would
+    damp to a quarter and lose). A reconstruction's ``depth`` is integrated for another aim: near light weighs each
+    slope by its inverse variance, which is right for the height's error but lets the integration cut across the
+    steep flanks between paired threads (a 2/2 rib's or basket's), and their groove, and with it every other thread
+    of the density, can be lost (measured in ``docs/guides/fabric.md``). Amplitudes (the ISO parameters) are not
+    read here: an unweighted integration carries a hole's step and a wall's noise into the relief.
+
+    Args:
+        p: :math:`\partial z/\partial x`, :math:`(B, 1, H, W)` (x right).
+        q: :math:`\partial z/\partial y`, :math:`(B, 1, H, W)` (y up).
+        pixel_pitch_mm: pixel size, mm.
+        mask: optional solved pixels :math:`(B, 1, H, W)`; a slope outside it is no measurement and is taken as 0
+            (what a reconstruction folder's ``normals.png`` holds there, so that a folder and the reconstruction in
+            memory read alike).
+
+    Returns:
+        height, mm, :math:`(B, 1, H, W)`, zero mean.
+
+    Raises:
+        InputError, ShapeError: as :func:`~psmini.integrate.frankot_chellappa`; a mask of another shape.
+
+    Example:
+        >>> x = torch.arange(64.0).expand(64, 64) * 0.025
+        >>> p = (0.02 * 2 * math.pi / 0.5 * torch.cos(2 * math.pi * x / 0.5))[None, None]
+        >>> z = structure_surface(p, torch.zeros_like(p), 0.025)
+        >>> round(float(z.max() - z.min()), 3)
+        0.04
+    """
+    from psmini.integrate import frankot_chellappa
+
+    if mask is not None:
+        if mask.shape != p.shape:
+            raise ShapeError(f"mask must have the slopes' shape {tuple(p.shape)}, got {tuple(mask.shape)}")
+        p, q = p * mask, q * mask
+    return frankot_chellappa(p, q, pixel_pitch_mm)
+
+
+def describe_reconstruction(reconstruction: Any, pixel_pitch_mm: float, surface: SurfaceOptions | None = None,
+                            structure: StructureOptions = _STRUCTURE) -> list[dict[str, Any]]:
+    """:func:`describe` of a reconstruction: the ISO parameters of its depth over its mask, with its albedo, and
+    the yarn structure from its slopes (:func:`structure_surface`).
+
+    Args:
+        reconstruction: anything with ``depth`` and ``mask`` :math:`(B, 1, H, W)`, ``p`` and ``q`` (the slopes,
+            :math:`(B, 1, H, W)`; None: the structure read from the depth, as for a height map alone) and
+            optionally ``albedo`` (a :class:`psmini.pipeline.Reconstruction` has them all).
+        pixel_pitch_mm: pixel size, mm.
+        surface: as :func:`describe`.
+        structure: as :func:`describe`.
+
+    Returns:
+        one :func:`describe` dict per sample.
+
+    Raises:
+        InputError, ShapeError: as :func:`describe`.
+
+    Example:
+        >>> from psmini.result import Reconstruction
+        >>> x = torch.arange(128.0).expand(128, 128) * 0.025
+        >>> z = (0.02 * torch.sin(2 * math.pi * x / 0.25))[None, None]
+        >>> p = 0.02 * 2 * math.pi / 0.25 * torch.cos(2 * math.pi * x / 0.25)[None, None]
+        >>> rec = Reconstruction(torch.ones_like(z), torch.zeros(1, 3, 128, 128), p, torch.zeros_like(z), z, z > -1)
+        >>> round(describe_reconstruction(rec, 0.025)[0]["threads_per_cm"][0], 2)
+        40.0
+    """
+    p, q, mask = getattr(reconstruction, "p", None), getattr(reconstruction, "q", None), reconstruction.mask
+    structure_height = structure_surface(p, q, pixel_pitch_mm, mask) if p is not None and q is not None else None
+    return describe(reconstruction.depth, pixel_pitch_mm, reconstruction.mask, getattr(reconstruction, "albedo", None),
+                    surface, structure, structure_height)
+
+
 def _number(x: Tensor | float) -> float | None:
     """A finite float, or None (JSON has no NaN or infinity)."""
     value = float(x)
@@ -295,8 +380,9 @@ def structure_row(reconstruction: Any, pixel_pitch_mm: float | None) -> dict[str
     """The scalar columns a feature table (``summary.csv`` of ``psmini batch --describe``) gets for one sample.
 
     Args:
-        reconstruction: a :class:`psmini.pipeline.Reconstruction` with a batch of one (its ``depth`` and ``mask``
-            are used).
+        reconstruction: a :class:`psmini.pipeline.Reconstruction` with a batch of one, or anything with its
+            ``depth``, ``mask``, ``p`` and ``q`` (:func:`describe_reconstruction`: the ISO parameters from the depth,
+            the structure from the slopes; ``p`` or ``q`` None, from the depth).
         pixel_pitch_mm: the sample's pixel size, mm; ``None`` (unknown, DiLiGenT) gives empty structure columns.
 
     Returns:
@@ -321,7 +407,9 @@ def structure_row(reconstruction: Any, pixel_pitch_mm: float | None) -> dict[str
         row["structure_found"] = False
         row["structure_reason"] = "the pixel pitch is unknown: no lengths in mm"
         return row
-    entry = describe(reconstruction.depth[:1], pixel_pitch_mm, reconstruction.mask[:1])[0]
+    first = SimpleNamespace(**{k: None if getattr(reconstruction, k, None) is None else getattr(reconstruction, k)[:1]
+                               for k in ("depth", "mask", "p", "q")})
+    entry = describe_reconstruction(first, pixel_pitch_mm)[0]
     density = (entry["threads_per_cm"] or []) + [None, None]
     angles = (entry["thread_angles_deg"] or []) + [None, None]
     repeats = (entry.get("repeat_threads") or []) + [None, None]

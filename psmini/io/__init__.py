@@ -16,6 +16,7 @@ from psmini.io.capture import (
 )
 from psmini.io.diligent import is_diligent_folder, read_diligent
 from psmini.io.export import (
+    read_normal_png,
     robust_max,
     save_albedo_png,
     save_depth,
@@ -77,6 +78,7 @@ __all__ = [
     # export
     "robust_max",
     "save_albedo_png",
+    "read_normal_png",
     "save_normal_png",
     "save_mesh_ply",
     "save_depth",

@@ -172,6 +172,37 @@ def save_normal_png(path: str | Path, normals: Any, mask: Any = None, *, bit_dep
     write_image(path, np.rint(rgb * top).astype(np.uint8 if bit_depth == 8 else np.uint16))
 
 
+def read_normal_png(path: str | Path) -> np.ndarray:
+    """Read the normals :func:`save_normal_png` wrote: ``n = value / (2**bit_depth - 1) * 2 - 1``.
+
+    Args:
+        path: an 8- or 16-bit RGB ``normals.png``.
+
+    Returns:
+        the normals, ``float32``, :math:`(3, H, W)`, renormalised to unit length (the 8-bit file's rounding moves
+        a normal by up to 0.3 degrees); outside the writer's mask (black pixels) NaN.
+
+    Raises:
+        DataFormatError: a missing, corrupt or non-RGB file.
+
+    Example:
+        >>> normals = read_normal_png("out/normals.png")  # doctest: +SKIP
+        >>> normals.shape  # doctest: +SKIP
+        (3, 400, 400)
+    """
+    from psmini.io.images import read_image_raw
+
+    pixels, bits = read_image_raw(path)
+    if pixels.ndim != 3 or pixels.shape[2] != 3:
+        raise DataFormatError(f"{path}: normals must be an RGB image, got shape {pixels.shape}")
+    outside = ~pixels.any(axis=2)
+    values = pixels.transpose(2, 0, 1).astype(np.float32) * np.float32(2 / (2**bits - 1)) - 1
+    length = np.sqrt((values**2).sum(axis=0, keepdims=True))
+    normals = values / np.maximum(length, np.float32(1e-6))
+    normals[:, outside] = np.nan
+    return normals
+
+
 def save_depth(path: str | Path, depth: Any, mask: Any = None, *, units: str = "mm",
                pixel_pitch_mm: float | None = None) -> list[Path]:
     """Write depth as ``.npy`` (``float32``, NaN outside the mask), a picture to look at, and a JSON sidecar.

@@ -15,6 +15,7 @@ from psmini import DataFormatError, InputError, ShapeError
 from psmini.geometry import depth_to_points
 from psmini.io import export as export_module
 from psmini.io.export import (
+    read_normal_png,
     robust_max,
     save_albedo_png,
     save_depth,
@@ -100,6 +101,30 @@ class TestNormals:
         mask = torch.zeros(H, W, dtype=torch.bool)
         save_normal_png(tmp_path / "n.png", sphere_normals(), mask)
         assert (read_image_raw(tmp_path / "n.png")[0] == 0).all()
+
+    @pytest.mark.parametrize("bits", [8, 16])
+    def test_read_normal_png_round_trip(self, tmp_path, bits):
+        """read_normal_png inverts save_normal_png to the file's rounding (0.3 deg at 8 bits), NaN outside the mask."""
+        normals = sphere_normals()
+        mask = torch.ones(H, W, dtype=torch.bool)
+        mask[:3] = False
+        save_normal_png(tmp_path / "n.png", normals, mask, bit_depth=bits)
+        read = torch.from_numpy(read_normal_png(tmp_path / "n.png")).double()
+        assert read.shape == (3, H, W) and torch.isnan(read[:, :3]).all()
+        sine = torch.linalg.cross(read[:, 3:], normals[:, 3:].double(), dim=0).norm(dim=0)  # exact near 0, unlike acos
+        limit = 0.3 if bits == 8 else 0.002
+        assert float(torch.rad2deg(torch.asin(sine)).max()) < limit
+        torch.testing.assert_close(read[:, 3:].norm(dim=0), torch.ones(H - 3, W, dtype=torch.float64))
+
+    def test_read_normal_png_errors(self, tmp_path):
+        with pytest.raises(DataFormatError, match="does not exist"):
+            read_normal_png(tmp_path / "missing.png")
+        cv2.imwrite(str(tmp_path / "gray.png"), np.zeros((4, 4), np.uint8))
+        with pytest.raises(DataFormatError, match=r"normals must be an RGB image, got shape \(4, 4\)"):
+            read_normal_png(tmp_path / "gray.png")
+        (tmp_path / "bad.png").write_bytes(b"not a png")
+        with pytest.raises(DataFormatError, match="cannot decode"):
+            read_normal_png(tmp_path / "bad.png")
 
     def test_errors(self, tmp_path):
         with pytest.raises(InputError, match="bit_depth must be 8 or 16"):
