@@ -7,8 +7,9 @@ reconstructed by psmini's default pipeline (near light for the rig's LED capture
    0..N-1: plain, 2/2 basket, 2/1 and 3/1 twill, 5-end satin, 2/2 warp rib, jersey; 10-40 threads/cm per system,
    any orientation, cross-section, crimp 0.15-2 times the yarn height). A sample is right when both thread
    densities are within 3%, both directions within 1.5° and the repeat along each system exact, by
-   :func:`psmini.fabric.fabric_structure` on the ground-truth height and on the reconstruction; the failures are
-   counted by kind.
+   :func:`psmini.fabric.fabric_structure` on the ground-truth height and on the reconstruction (on its slopes'
+   unweighted integration, :func:`psmini.fabric.structure_surface`, where ``describe_reconstruction`` reads the
+   structure); the failures are counted by kind.
 2. **Relief amplitude.** Sa and Sq of the reconstructed depth against the true height's,
    the reconstruction's over its solved pixels (what ``describe`` reports), the true height's over the whole
    field, two ways: levelled by a plane alone (as issue 46 measured), and on ``describe``'s scale-limited surface (the
@@ -321,7 +322,8 @@ def main(argv: list[str] | None = None) -> int:
         + (" (reconstructions from the cache where present)." if args.cache else "."),
         "",
         "Descriptors right (both densities within 3%, both directions within 1.5 deg, the repeat along each system "
-        "exact), by `fabric_structure`:",
+        "exact), by `fabric_structure` (the reconstruction's from its slopes' unweighted integration, "
+        "`structure_surface`, as `describe_reconstruction` reads it):",
         "",
         table(["height", "all"] + weaves, rows),
         "",

@@ -4,8 +4,9 @@ Every class of ``data_synth.FABRICS``, each sample drawn by ``data_synth.fabric_
 spacing, width, crimp, orientation over 0-180 deg, dyed and printed albedo independent of the relief, the cloth
 0-1 mm above the card, wrinkles, the simulator's noise and 8-bit quantisation), reconstructed by psmini's default
 pipeline (``psmini.fabric.reconstruct_for_description``: near light for these LED captures), described
-(``psmini.fabric.describe`` -> ``descriptor_vector``: ISO 25178-2 parameters, densities, crossing angle, repeat,
-crimp, openness, waviness, and the albedo-relief coupling; no albedo level or contrast). ``--cache DIR`` keeps
+(``psmini.fabric.describe_reconstruction`` -> ``descriptor_vector``: ISO 25178-2 parameters of the depth; densities,
+crossing angle, repeat, crimp and openness of the slopes' unweighted integration; waviness, and the albedo-relief
+coupling; no albedo level or contrast). ``--cache DIR`` keeps
 each reconstruction (keyed by a hash of the dataset, rig and pipeline code), so a second run only describes.
 Beside it, the seed paper's premise: the same classifier on texture features of ONE LED image (scikit-image's
 grey-level co-occurrence properties at 4 distances, averaged and ranged over 4 angles, and uniform local binary
@@ -29,7 +30,7 @@ weave family (:mod:`data_synth.weaves`: plain, 2/2 basket, 2/1 and 3/1 twill, 5-
 (:mod:`data_synth.shift`: other dyes and prints, half of the test prints imitating another weave's shading, the
 cloth turned by 90-180 deg, LEDs drifted up to 20%, the exposure off by up to a stop, the cloth 0.3-1 mm off the
 card), 40 training and 145 test seeds per class (1,015 test samples) at 400 x 400 px by default. Three rows: the
-relief descriptors (``describe`` without the albedo), one LED image's GLCM + LBP, both; each with its Wilson
+relief descriptors (``describe_reconstruction`` without the albedo), one LED image's GLCM + LBP, both; each with its Wilson
 interval, the differences with the exact McNemar test; ``--json`` prints one object with ``image``,
 ``descriptors``, ``both`` (accuracies in [0, 1]) and ``n_test``; the accuracies and confusion matrices are written
 to ``benchmarks/fabric_shift.json`` (read by ``notebooks/06_fabric_structure.ipynb``).
@@ -333,7 +334,8 @@ def shift_protocol(args) -> int:
         f"calibration only. {len(train_y)} training samples (seeds 0..{args.train_seeds - 1}), {n_test} test "
         f"samples (seeds {test_seeds[0]}..{test_seeds[-1]}), {args.size}x{args.size} px at 0.025 mm, 8-bit "
         "captures, reconstructed by psmini's default pipeline (near light). Relief descriptors: `descriptor_vector` "
-        "of `describe` on the depth without the albedo; image: GLCM + LBP of LED 0's image. Classifier: "
+        "of `describe_reconstruction` without the albedo (the ISO parameters of the depth, the structure of the "
+        "slopes' unweighted integration); image: GLCM + LBP of LED 0's image. Classifier: "
         "scikit-learn LogisticRegression on standardised features, C chosen by 5-fold cross-validation on the "
         f"training samples grouped by seed, which also estimates the accuracy under the training conditions "
         f"(descriptors: {chosen(relief)}; image: {chosen(image)}; both: {chosen(both)}). Built in {elapsed:.0f} s"
