@@ -30,8 +30,8 @@ weave family (:mod:`data_synth.weaves`: plain, 2/2 basket, 2/1 and 3/1 twill, 5-
 (:mod:`data_synth.shift`: other dyes and prints, half of the test prints imitating another weave's shading, the
 cloth turned by 90-180 deg, LEDs drifted up to 20%, the exposure off by up to a stop, the cloth 0.3-1 mm off the
 card), 40 training and 145 test seeds per class (1,015 test samples) at 400 x 400 px by default. Three rows: the
-relief descriptors (``describe_reconstruction`` without the albedo), one LED image's GLCM + LBP, both; each with its Wilson
-interval, the differences with the exact McNemar test; ``--json`` prints one object with ``image``,
+relief descriptors (``describe_reconstruction`` without the albedo), one LED image's GLCM + LBP, both; each with
+its Wilson interval, the differences with the exact McNemar test; ``--json`` prints one object with ``image``,
 ``descriptors``, ``both`` (accuracies in [0, 1]) and ``n_test``; the accuracies and confusion matrices are written
 to ``benchmarks/fabric_shift.json`` (read by ``notebooks/06_fabric_structure.ipynb``).
 
