@@ -3,10 +3,10 @@
 PATH is a capture or DiLiGenT folder (reconstructed first with psmini's default pipeline) or a reconstruction
 output folder of ``psmini reconstruct`` (its ``depth.npy``, NaN outside the mask, ``outputs.json`` with the pixel
 pitch, and ``normals.png``). The ISO parameters are measured on the depth, the yarn structure on the slopes
-integrated without weights (:func:`psmini.fabric.describe_reconstruction`). Prints a table; ``--json`` prints one object; ``--out DIR`` writes ``structure.json`` and
-``structure.png`` (the height spectrum with the detected peaks; the levelled height with the yarn directions) into
-DIR, atomically; ``--model FILE`` adds the class and its probabilities from a fabric model (JSON, see
-``benchmarks/fabric_recognition.py``).
+integrated without weights (:func:`psmini.fabric.describe_reconstruction`). Prints a table; ``--json`` prints one
+object; ``--out DIR`` writes ``structure.json`` and ``structure.png`` (the spectrum the structure was read from,
+with the detected peaks; the levelled height with the yarn directions) into DIR, atomically; ``--model FILE`` adds
+the class and its probabilities from a fabric model (JSON, see ``benchmarks/fabric_recognition.py``).
 """
 
 from __future__ import annotations

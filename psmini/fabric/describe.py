@@ -99,7 +99,9 @@ COUPLING_OPTIONS = SurfaceOptions(form_degree=1, s_cutoff_mm=0.5, l_cutoff_mm=1.
 _STRUCTURE = StructureOptions()
 
 MODEL_FORMAT = "psmini-fabric-classifier"
-MODEL_VERSION = 3
+#: 4 since the structure descriptors of a reconstruction are read from its slopes (:func:`describe_reconstruction`):
+#: a model trained on version 3's, read from near light's depth, would be fed values of another distribution.
+MODEL_VERSION = 4
 
 
 def reconstruct_for_description(sample: Any, config: Any = None) -> Any:
@@ -549,7 +551,7 @@ class FabricClassifier:
             >>> FabricClassifier.from_dict({"format": MODEL_FORMAT, "version": 99})
             Traceback (most recent call last):
             ...
-            psmini.errors.DataFormatError: fabric model version 99 is not supported; this psmini reads version 3
+            psmini.errors.DataFormatError: fabric model version 99 is not supported; this psmini reads version 4
         """
         if not isinstance(data, dict) or data.get("format") != MODEL_FORMAT:
             raise DataFormatError(f"not a fabric model: expected format {MODEL_FORMAT!r}, got "
