@@ -446,9 +446,24 @@ class TestStructureSurface:
         torch.testing.assert_close(masked, unmasked_zero)
 
     def test_gradcheck(self):
-        p = torch.rand(1, 1, 8, 8, dtype=torch.float64, requires_grad=True)
-        q = torch.rand(1, 1, 8, 8, dtype=torch.float64, requires_grad=True)
+        gen = torch.Generator().manual_seed(0)
+        p = (torch.randn(1, 1, 8, 8, generator=gen, dtype=torch.float64) * 4).requires_grad_()  # some beyond 80 deg
+        q = torch.randn(1, 1, 8, 8, generator=gen, dtype=torch.float64)
+        q[..., :2, :] = 0  # a flat patch: no NaN from the limit's norm at zero slope
+        q.requires_grad_()
         assert torch.autograd.gradcheck(lambda a, b: structure_surface(a, b, PITCH), (p, q))
+
+    def test_grazing_slopes_limited(self):
+        """One grazing normal (a slope of 100, the gradients' clamp) beside a flat field: limited to 80 deg, its step
+        is tan(80 deg) pixels' pitch, not a hundred."""
+        p = torch.zeros(1, 1, 32, 32, dtype=torch.float64)
+        p[..., 16, 16] = 100.0
+        z = structure_surface(p, torch.zeros_like(p), PITCH)
+        step = math.tan(math.radians(80.0)) * PITCH
+        assert float(z.max() - z.min()) < 1.01 * step
+        assert float(z.max() - z.min()) > 0.3 * step
+        with pytest.raises(InputError, match=r"max_slope_deg must be in \(0, 90\)"):
+            structure_surface(p, p, PITCH, max_slope_deg=90.0)
 
     def test_errors(self):
         p = torch.zeros(1, 1, 16, 16)

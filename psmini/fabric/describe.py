@@ -296,7 +296,8 @@ def describe(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None, 
     return out
 
 
-def structure_surface(p: Tensor, q: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None) -> Tensor:
+def structure_surface(p: Tensor, q: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None,
+                      max_slope_deg: float = 80.0) -> Tensor:
     r"""The surface a reconstruction's yarn structure is read from: its slopes integrated without weights.
 
     Frankot–Chellappa on the mirrored field (:func:`psmini.integrate.frankot_chellappa`) divides the slopes'
@@ -308,6 +309,13 @@ def structure_surface(p: Tensor, q: Tensor, pixel_pitch_mm: float, mask: Tensor 
     of the density, can be lost (measured in ``docs/guides/fabric.md``). Amplitudes (the ISO parameters) are not
     read here: an unweighted integration carries a hole's step and a wall's noise into the relief.
 
+    Unweighted, one grazing normal would carry a step of up to a hundred pixels' pitch (the :math:`n_z \ge 0.01`
+    clamp of :func:`~psmini.normals.normals_to_gradients`) into every pixel beyond it: on psmini's jute a few
+    hundred such pixels bent a 6.4 mm field by 1.2 mm and hid its lattice at 160 and 256 pixels. So each slope is
+    limited to ``max_slope_deg`` from the card's plane along its own direction: a facet steeper than 80° is a wall
+    that the rig's LEDs, about 32° above the cloth's plane, light at grazing incidence from half the ring at most,
+    whose slope no reading determines (limits of 72-84° read psmini's cotton and jute alike).
+
     Args:
         p: :math:`\partial z/\partial x`, :math:`(B, 1, H, W)` (x right).
         q: :math:`\partial z/\partial y`, :math:`(B, 1, H, W)` (y up).
@@ -315,12 +323,14 @@ def structure_surface(p: Tensor, q: Tensor, pixel_pitch_mm: float, mask: Tensor 
         mask: optional solved pixels :math:`(B, 1, H, W)`; a slope outside it is no measurement and is taken as 0
             (what a reconstruction folder's ``normals.png`` holds there, so that a folder and the reconstruction in
             memory read alike).
+        max_slope_deg: the steepest facet kept, degrees in (0, 90); a steeper slope is scaled down to it.
 
     Returns:
         height, mm, :math:`(B, 1, H, W)`, zero mean.
 
     Raises:
-        InputError, ShapeError: as :func:`~psmini.integrate.frankot_chellappa`; a mask of another shape.
+        InputError, ShapeError: as :func:`~psmini.integrate.frankot_chellappa`; a mask of another shape; a
+            ``max_slope_deg`` outside (0, 90).
 
     Example:
         >>> x = torch.arange(64.0).expand(64, 64) * 0.025
@@ -331,11 +341,17 @@ def structure_surface(p: Tensor, q: Tensor, pixel_pitch_mm: float, mask: Tensor 
     """
     from psmini.integrate import frankot_chellappa
 
+    if p.shape != q.shape:
+        raise ShapeError(f"p and q must have one shape, got {tuple(p.shape)} and {tuple(q.shape)}")
+    if not 0 < max_slope_deg < 90:
+        raise InputError(f"max_slope_deg must be in (0, 90) degrees, got {max_slope_deg!r}")
+    if mask is not None and mask.shape != p.shape:
+        raise ShapeError(f"mask must have the slopes' shape {tuple(p.shape)}, got {tuple(mask.shape)}")
+    limit = math.tan(math.radians(max_slope_deg))
+    scale = limit * torch.rsqrt((p.square() + q.square()).clamp_min(limit**2))  # 1 up to the limit; smooth at 0
     if mask is not None:
-        if mask.shape != p.shape:
-            raise ShapeError(f"mask must have the slopes' shape {tuple(p.shape)}, got {tuple(mask.shape)}")
-        p, q = p * mask, q * mask
-    return frankot_chellappa(p, q, pixel_pitch_mm)
+        scale = scale * mask
+    return frankot_chellappa(p * scale, q * scale, pixel_pitch_mm)
 
 
 def describe_reconstruction(reconstruction: Any, pixel_pitch_mm: float, surface: SurfaceOptions | None = None,

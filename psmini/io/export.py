@@ -461,7 +461,7 @@ def write_outputs(
     reconstruction: Any,
     *,
     pixel_pitch_mm: float | None = None,
-    normal_bit_depth: int = 8,
+    normal_bit_depth: int = 16,
     metadata: Mapping[str, Any] | None = None,
     overwrite: bool = False,
 ) -> list[Path]:
@@ -484,7 +484,9 @@ def write_outputs(
             albedo, mm) and optionally ``mask`` (like albedo, bool) and ``normal_std`` (like albedo, degrees); a
             batch of one or none.
         pixel_pitch_mm: size of a pixel, mm, for the point cloud's x and y; None gives pixel units.
-        normal_bit_depth: 8 or 16 for ``normals.png``.
+        normal_bit_depth: 8 or 16 for ``normals.png`` (16 by default: ``psmini describe`` and ``batch --describe``
+            read a folder's slopes back from it, and 8 bits round a normal by up to 0.3°, enough to move the repeat
+            of a weak interlacing, a fine plain weave's 1 µm).
         metadata: extra JSON-serialisable entries for ``outputs.json``.
         overwrite: replace an existing ``out_dir``.
 
