@@ -1,9 +1,10 @@
-"""The weave repeat that ``psmini describe`` reads from the default pipeline's depth, on 45 simulated captures.
+"""The weave repeat that ``psmini describe`` reads from the default pipeline's reconstruction, on 45 captures.
 
 Five woven fabrics of known repeat (cotton, jute and lurex: plain, 2; twill: 3; satin: 5), each at three orientations
 (0°, 35°, 110°) and three crop sizes (160, 256 and 400 px at 0.025 mm, i.e. 4, 6.4 and 10 mm), the lift cycling
 through 0, 0.5 and 1 mm above the card, noisy 8-bit renders of the rig, reconstructed by the default pipeline (near
-light for these LED captures) and measured by :func:`psmini.fabric.fabric_structure`. The fabric guide's "Known
+light for these LED captures) and measured by :func:`psmini.fabric.fabric_structure` on the reconstruction's slopes
+integrated without weights (:func:`psmini.fabric.structure_surface`, where ``describe_reconstruction`` reads it). The fabric guide's "Known
 limits" quote the table. One capture per case, so a count moves by the occasional borderline sample between runs.
 
 Run:  python benchmarks/weave_repeat.py [--no-record]
@@ -63,7 +64,8 @@ def main() -> int:
                    rows)
     note = (f"{len(cases)} noisy 8-bit captures (orientations {', '.join(f'{o:g}' for o in ORIENTATIONS_DEG)}°, "
             f"lifts {', '.join(f'{h:g}' for h in LIFTS_MM)} mm in turn, seed = case index), default pipeline, "
-            "weave repeat of psmini.fabric.fabric_structure on the reconstructed depth.")
+            "weave repeat of psmini.fabric.fabric_structure where describe_reconstruction reads it: on the "
+            "reconstruction's slopes integrated without weights (structure_surface).")
     print(report)
     print(note)
     if not args.no_record:
