@@ -4,8 +4,9 @@ Five woven fabrics of known repeat (cotton, jute and lurex: plain, 2; twill: 3; 
 (0°, 35°, 110°) and three crop sizes (160, 256 and 400 px at 0.025 mm, i.e. 4, 6.4 and 10 mm), the lift cycling
 through 0, 0.5 and 1 mm above the card, noisy 8-bit renders of the rig, reconstructed by the default pipeline (near
 light for these LED captures) and measured by :func:`psmini.fabric.fabric_structure` on the reconstruction's slopes
-integrated without weights (:func:`psmini.fabric.structure_surface`, where ``describe_reconstruction`` reads it). The fabric guide's "Known
-limits" quote the table. One capture per case, so a count moves by the occasional borderline sample between runs.
+integrated without weights (:func:`psmini.fabric.structure_surface`, where ``describe_reconstruction`` reads it).
+The fabric guide's "Known limits" quote the table. One capture per case, so a count moves by the occasional
+borderline sample between runs.
 
 Run:  python benchmarks/weave_repeat.py [--no-record]
 """
