@@ -139,10 +139,10 @@ def _slopes(normals_png: Path, mask) -> tuple[Any, Any]:
 
     if not normals_png.is_file():
         return None, None
-    normals = read_normal_png(normals_png)  # a DataFormatError for an unreadable file
-    if normals.shape[1:] != tuple(mask.shape[2:]):
+    stored = read_normal_png(normals_png)  # a DataFormatError for an unreadable file
+    if stored.shape[1:] != tuple(mask.shape[2:]):
         return None, None
-    normals = torch.from_numpy(np.nan_to_num(normals, nan=0.0))[None].to(mask.device)
+    normals = torch.from_numpy(np.nan_to_num(stored, nan=0.0))[None].to(mask.device)
     up = torch.tensor([0.0, 0.0, 1.0], dtype=normals.dtype, device=normals.device).view(1, 3, 1, 1)
     return normals_to_gradients(torch.where(mask, normals, up))
 
