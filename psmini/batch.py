@@ -521,6 +521,7 @@ def _write(out_dir: Path, result: Reconstruction, sample, outputs: tuple[str, ..
     from psmini.geometry import depth_to_points
     from psmini.io import save_albedo_png, save_depth, save_normal_png, save_normal_std, save_ply, write_outputs
     from psmini.io._atomic import atomic_folder
+    from psmini.io.export import NORMALS_BIT_DEPTH
 
     pitch = sample.pixel_pitch_mm
     if outputs == OUTPUT_KINDS:
@@ -534,7 +535,7 @@ def _write(out_dir: Path, result: Reconstruction, sample, outputs: tuple[str, ..
             save_albedo_png(target / "albedo.png", albedo, mask)
             names.append("albedo.png")
         if "normals" in outputs:
-            save_normal_png(target / "normals.png", normals, mask)
+            save_normal_png(target / "normals.png", normals, mask, bit_depth=NORMALS_BIT_DEPTH)
             names.append("normals.png")
         if "depth" in outputs:
             units = "mm" if pitch is not None else "pixels"

@@ -146,6 +146,9 @@ class TestReconstructDataset:
         meta = json.loads((folder / "outputs.json").read_text())
         assert meta["files"] == ["normals.png", "depth.npy", "depth.png", "depth.json"]
         assert meta["metadata"]["batch"]["status"] == "done"
+        from psmini.io import read_image_raw
+
+        assert read_image_raw(folder / "normals.png")[1] == 16  # as write_outputs: describe reads the slopes back
 
     def test_near_light_normal_std_written_and_summarised(self, tree, tmp_path):
         """Near light's predicted normal errors reach the output folder (normal_std.npy/.png, their median in

@@ -151,8 +151,9 @@ def add_structure_columns(out: Path, summary: dict, config) -> dict:
     """``psmini batch --describe``: the :func:`psmini.fabric.structure_row` columns of every sample, added to the
     summary and to ``OUT/summary.csv`` and ``OUT/summary.json`` (each replaced through a temporary file).
 
-    A finished sample is measured on its written ``depth.npy``; a failed one, one without a pixel pitch (DiLiGenT)
-    or one whose output cannot be read gets empty cells and ``structure_found`` False with the reason.
+    A finished sample is measured on its written ``depth.npy`` and ``normals.png`` (:func:`load_for_description`); a
+    failed one, one without a pixel pitch (DiLiGenT) or one whose output cannot be read gets empty cells and
+    ``structure_found`` False with the reason.
     """
     from psmini.batch import SUMMARY_FIELDS, save_summary
     from psmini.fabric import structure_row

@@ -456,12 +456,18 @@ def save_normal_std(path: str | Path, normal_std: Any, mask: Any = None) -> dict
     return {"normal_std_median_deg": median, "normal_std_png_max_deg": NORMAL_STD_PNG_MAX_DEG}
 
 
+#: The bit depth of a reconstruction folder's ``normals.png``: ``psmini describe`` and ``batch --describe`` read the
+#: folder's slopes back from it, and 8 bits round a normal by up to 0.3°, enough to move the repeat of a weak
+#: interlacing (a fine plain weave's 1 µm).
+NORMALS_BIT_DEPTH = 16
+
+
 def write_outputs(
     out_dir: str | Path,
     reconstruction: Any,
     *,
     pixel_pitch_mm: float | None = None,
-    normal_bit_depth: int = 16,
+    normal_bit_depth: int = NORMALS_BIT_DEPTH,
     metadata: Mapping[str, Any] | None = None,
     overwrite: bool = False,
 ) -> list[Path]:
@@ -484,9 +490,7 @@ def write_outputs(
             albedo, mm) and optionally ``mask`` (like albedo, bool) and ``normal_std`` (like albedo, degrees); a
             batch of one or none.
         pixel_pitch_mm: size of a pixel, mm, for the point cloud's x and y; None gives pixel units.
-        normal_bit_depth: 8 or 16 for ``normals.png`` (16 by default: ``psmini describe`` and ``batch --describe``
-            read a folder's slopes back from it, and 8 bits round a normal by up to 0.3°, enough to move the repeat
-            of a weak interlacing, a fine plain weave's 1 µm).
+        normal_bit_depth: 8 or 16 for ``normals.png`` (:data:`NORMALS_BIT_DEPTH` by default).
         metadata: extra JSON-serialisable entries for ``outputs.json``.
         overwrite: replace an existing ``out_dir``.
 
