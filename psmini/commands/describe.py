@@ -130,8 +130,8 @@ def load_for_description(path: Path, config) -> SimpleNamespace:
 
 
 def _slopes(normals_png: Path, mask) -> tuple[Any, Any]:
-    """The slopes (p, q) of a reconstruction folder's ``normals.png`` (1, 1, H, W), flat outside ``mask``; (None,
-    None) without the file or when its size is not the depth's."""
+    """The slopes (p, q) of a reconstruction folder's ``normals.png`` (1, 1, H, W), 0 where it is black (outside its
+    writer's mask); (None, None) without the file or when its size is not the depth ``mask``'s."""
     import torch
 
     from psmini.io import read_normal_png
@@ -142,9 +142,8 @@ def _slopes(normals_png: Path, mask) -> tuple[Any, Any]:
     stored = read_normal_png(normals_png)  # a DataFormatError for an unreadable file
     if stored.shape[1:] != tuple(mask.shape[2:]):
         return None, None
-    normals = torch.from_numpy(np.nan_to_num(stored, nan=0.0))[None].to(mask.device)
-    up = torch.tensor([0.0, 0.0, 1.0], dtype=normals.dtype, device=normals.device).view(1, 3, 1, 1)
-    return normals_to_gradients(torch.where(mask, normals, up))
+    # outside the mask the file is black: a zero normal, whose slopes are 0
+    return normals_to_gradients(torch.from_numpy(np.nan_to_num(stored, nan=0.0))[None].to(mask.device))
 
 
 def add_structure_columns(out: Path, summary: dict, config) -> dict:

@@ -384,8 +384,8 @@ def describe_reconstruction(reconstruction: Any, pixel_pitch_mm: float, surface:
     """
     p, q, mask = getattr(reconstruction, "p", None), getattr(reconstruction, "q", None), reconstruction.mask
     structure_height = structure_surface(p, q, pixel_pitch_mm, mask) if p is not None and q is not None else None
-    return describe(reconstruction.depth, pixel_pitch_mm, reconstruction.mask, getattr(reconstruction, "albedo", None),
-                    surface, structure, structure_height)
+    return describe(reconstruction.depth, pixel_pitch_mm, mask, getattr(reconstruction, "albedo", None), surface,
+                    structure, structure_height)
 
 
 def _number(x: Tensor | float) -> float | None:

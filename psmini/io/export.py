@@ -190,13 +190,13 @@ def read_normal_png(path: str | Path) -> np.ndarray:
         >>> normals.shape  # doctest: +SKIP
         (3, 400, 400)
     """
-    from psmini.io.images import read_image_raw
+    from psmini.io.images import read_image
 
-    pixels, bits = read_image_raw(path)
-    if pixels.ndim != 3 or pixels.shape[2] != 3:
-        raise DataFormatError(f"{path}: normals must be an RGB image, got shape {pixels.shape}")
-    outside = ~pixels.any(axis=2)
-    values = pixels.transpose(2, 0, 1).astype(np.float32) * np.float32(2 / (2**bits - 1)) - 1
+    image, _ = read_image(path)  # in [0, 1] whatever the bit depth
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise DataFormatError(f"{path}: normals must be an RGB image, got shape {image.shape}")
+    outside = ~image.any(axis=2)
+    values = image.transpose(2, 0, 1) * np.float32(2) - np.float32(1)
     length = np.sqrt((values**2).sum(axis=0, keepdims=True))
     normals = values / np.maximum(length, np.float32(1e-6))
     normals[:, outside] = np.nan
