@@ -91,6 +91,19 @@ def test_folder_without_depth(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_reconstruction_with_corrupt_normals(tmp_path, capsys):
+    """A folder's normals.png is where describe reads the slopes: an unreadable one is an error, not a silent
+    fall-back to the depth."""
+    folder = tmp_path / "rec"
+    folder.mkdir()
+    np.save(folder / "depth.npy", np.zeros((32, 32), np.float32))
+    (folder / "outputs.json").write_text(json.dumps({"pixel_pitch_mm": 0.025}))
+    (folder / "normals.png").write_bytes(b"not a png")
+    assert main(["describe", str(folder), "--out", str(tmp_path / "o")]) == 1
+    assert "cannot decode" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
 def test_reconstruction_without_pitch_and_all_nan(tmp_path, capsys):
     folder = tmp_path / "rec"
     folder.mkdir()
