@@ -354,14 +354,15 @@ class TestSolveNearLight(BaseTester):
         torch.testing.assert_close(means, torch.tensor([[1.0, 0, 0, 0, 0, 0]]), atol=1e-6, rtol=0)
 
     def test_no_tilt_or_bend_from_noise(self):
-        """A smooth surface loses no step: on noisy captures the tilt and bend found stay within their noise (a few
-        µm/mm, a few µm over the field)."""
+        """A smooth surface loses no step: on noisy captures the tilt and bend that noise makes are shrunk away
+        (below 5e-4 /mm and /mm², a fraction of a µm over the field; the share q / (q + 3²) kept 1.4e-3 to 5.8e-3 of
+        them here)."""
         leds, height, normals, images, card = _capture(size=64, offset_mm=0.5, dtype=torch.float64)
-        for seed in range(3):
+        for seed in range(4):
             flat = _flat(_noisy(images, seed), card)
             result = solve_near_light(flat.images, leds, PITCH, 0.0, flat.valid)
-            assert float(result.tilt.abs().max()) < 0.005, seed
-            assert float(result.bend.abs().max()) < 0.005, seed
+            assert float(result.tilt.abs().max()) < 5e-4, seed
+            assert float(result.bend.abs().max()) < 5e-4, seed
 
     def test_predicted_errors_hold(self):
         """On noisy captures (Gaussian noise of 1% of the brightest reading) the normals' errors are as predicted:
