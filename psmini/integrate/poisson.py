@@ -154,10 +154,16 @@ class _Hierarchy:
         self.levels = [_Level.build(wu, wv, inside)]
         while min(self.levels[-1].active.shape[-2:]) > _COARSEST:
             self.levels.append(self.levels[-1].coarsen())
-        coarsest = self.levels[-1]
+        # the coarsest grid's dense inverse in float64 whatever the dtype, damped smoothly below float32's resolution
+        # (Tikhonov's λ / (λ² + τ²) on each eigenvalue, τ = n ε₃₂ λ_max): its null space (a constant per connected
+        # region) and the modes whose gain float32 cannot apply go to 0 without a cutoff to flip. float32's own
+        # pseudo-inverse rounded those modes, and the preconditioner with them, differently from float64's and from one
+        # thread count to another; a solve stopped at a loose tolerance then differed by micrometres (near light's
+        # normals by 0.007° on a purl, float32 against float64)
+        coarsest = _Level.build(self.levels[-1].wu.double(), self.levels[-1].wv.double(), self.levels[-1].inside)
         batch, _, height, width = coarsest.active.shape
         n = height * width
-        basis = torch.eye(n, device=wu.device, dtype=wu.dtype).view(1, n, 1, height, width)
+        basis = torch.eye(n, device=wu.device, dtype=torch.float64).view(1, n, 1, height, width)
         basis = basis.expand(batch, -1, -1, -1, -1)
         expand = lambda t: t.unsqueeze(1).expand(-1, n, -1, -1, -1).reshape(batch * n, *t.shape[1:])  # noqa: E731
         level = _Level(
@@ -165,7 +171,10 @@ class _Hierarchy:
             expand(coarsest.diag)
         )
         dense = level.apply(basis.reshape(batch * n, 1, height, width)).view(batch, n, n)
-        self.coarse_inverse = torch.linalg.pinv(dense, hermitian=True)
+        values, vectors = torch.linalg.eigh(dense)
+        damping = n * torch.finfo(torch.float32).eps * values.abs().amax(dim=-1, keepdim=True)
+        gains = values / (values.square() + damping.square())
+        self.coarse_inverse = ((vectors * gains.unsqueeze(-2)) @ vectors.transpose(-1, -2)).to(wu.dtype)
 
     @property
     def fine(self) -> _Level:
