@@ -97,8 +97,7 @@ _CG_TOLERANCE = 1e-2
 _MAX_STEP_MM, _HEIGHT_STEP_MM = 0.5, 0.01
 # The noise model is fitted on every _NOISE_STRIDE-th pixel in each direction (two parameters), the placement on
 # the stride that leaves about _PLACE_PIXELS of them (six parameters, on a sixteenth of the rig's 400² frame).
-_NOISE_STRIDE = 4
-_PLACE_PIXELS = 10_000
+_NOISE_STRIDE, _PLACE_PIXELS = 4, 10_000
 # Heights tried by a scan: at most this many, an eighth of a millimetre apart at least.
 _SCAN_POINTS = 13
 # Interval (mm) scanned around the coarse level's height by the first full-resolution alternation: pooling mixes a
@@ -106,11 +105,9 @@ _SCAN_POINTS = 13
 _FINE_SEARCH_MM = (-0.5, 0.5)
 # Images at least this large (and of even size) run this many alternations at half resolution first (a coarse level
 # of fewer than 32² pixels is too few to find the height on).
-_MIN_COARSE_SIZE = 64
-_COARSE_ITERATIONS = 2
+_MIN_COARSE_SIZE, _COARSE_ITERATIONS = 64, 2
 # A tilt (or a bend) is kept in the share r⁴ / (1 + r⁴), r = q / this², q its squared Mahalanobis length: a soft test
-# at 4 standard errors, not 3: the inverse Hessian leaves out the integrated surface's and the light model's errors
-# (smooth cloth's false tilts and bends stood 1.6 × further out than it says; q / (q + 3²) kept 2-5 µm of false dome).
+# at 4 standard errors, not 3 (smooth cloth's false tilts and bends stood 1.6 times further out than the Hessian says).
 _TILT_SIGMAS = 4.0
 
 
@@ -634,7 +631,16 @@ def _plane_basis(xy: Tensor, domain: Tensor) -> Tensor:
 def _energy(data: _Data, predicted: Tensor, penalty: _Penalty, domain: Tensor) -> Tensor:
     """The energy of each sample (B,) at the predicted readings (before their clamp at 0), over ``domain``."""
     residual_sq = (data.images - predicted.clamp_min(0)).square() / data.variance(predicted)
-    return (penalty.value(residual_sq) * data.reliability * domain).sum(dim=(1, 2, 3))
+    return (penalty.value(residual_sq) * data.reliability * domain).sum(dim=(1, 2, 3), dtype=torch.float64)
+
+
+def _line_minimum(energies: Tensor) -> Tensor:
+    """The step's fraction in [0, 1] at the minimum of the parabola through the energies (B, 3) at 0, 1/2 and 1 (Nocedal
+    and Wright 2006, 3.5; an end where they curve down): continuous, where the least of the three flipped as rounding
+    made them equal (a purl's height 0.4 µm, its normals 0.007° apart from one thread count to another)."""
+    first, half, full = energies.unbind(1)
+    curvature = (first - 2 * half + full).clamp_min(torch.finfo(energies.dtype).tiny)
+    return (0.25 * (3 * first - 4 * half + full) / curvature).clamp(0, 1)
 
 
 def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain: Tensor, theta: Tensor, free: Tensor,
@@ -643,11 +649,11 @@ def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain:
     ``field`` (a stride of the image); returns the new ``theta``. The normals are projected out (variable projection,
     Golub and Pereyra 1973): the derivative of each prediction in the height, :math:`g_k = m \cdot \partial L_k /
     \partial z`, loses its part that a change of :math:`m` would absorb, :math:`g - L A^{-1} \sum_k w_k L_k g_k`, so
-    the step follows the energy with the normals re-fitted at each height. The penalty is not convex: a step is the
-    better of the Gauss–Newton step and its half, or none (without ``line_search``, the step itself, for a start
-    already in its basin), in a trust region of :data:`_MAX_STEP_MM` at any pixel. The tilt and the bend are then each
-    kept in the share :math:`r^4 / (1 + r^4)`, :math:`r = q / 4^2`, that stands clear of its noise, :math:`q` its
-    squared length in standard errors (the inverse Hessian's block)."""
+    the step follows the energy with the normals re-fitted at each height. The penalty is not convex: a step goes as
+    far as the energies at its half and its end say (:func:`_line_minimum`; without ``line_search``, all of it, for a
+    start in its basin), no pixel moving more than :data:`_MAX_STEP_MM`. The tilt and the bend are then each kept in
+    the share :math:`r^4 / (1 + r^4)`, :math:`r = q / 4^2`, that stands clear of its noise, :math:`q` its squared
+    length in standard errors (the inverse Hessian's block)."""
     if not bool(free.any()):
         return theta
     chosen, basis = free.to(relative.dtype), _plane_basis(field.xy, domain)
@@ -659,8 +665,7 @@ def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain:
         fit = _robust_step(data, lights, m, m, penalty)  # the normals at this height, one step from the last
         m = fit.m
         along = _predict(m, (field(depth + _HEIGHT_STEP_MM) - lights) / _HEIGHT_STEP_MM)  # (B, K, h, w)
-        across = along - _predict(fit.solve([(fit.weights * along * lights[:, :, j]).sum(1) for j in range(3)]),
-                                  lights)
+        across = along - _predict(fit.solve([(fit.weights * along * lights[:, :, j]).sum(1) for j in range(3)]), lights)
         predicted = _predict(m, lights)
         residual = data.images - predicted.clamp_min(0)
         curvature = (fit.weights * across.square()).sum(1) * domain[:, 0]
@@ -673,17 +678,14 @@ def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain:
         # a trust region: no pixel moves by more than half a millimetre in one step
         largest = ((basis * step[:, :, None, None]).sum(1, keepdim=True).abs() * domain).amax(dim=(1, 2, 3))
         step = step * (_MAX_STEP_MM / largest.clamp_min(_MAX_STEP_MM)).unsqueeze(1)
-        if not line_search:
-            theta = theta + step
-            continue
-        energies = [_energy(data, predicted, penalty, domain)]
-        for fraction in (0.5, 1.0):
-            trial_lights = field(_placed(relative, basis, theta + fraction * step))
-            trial = _robust_step(data, trial_lights, m, m, penalty).m
-            energies.append(_energy(data, _predict(trial, trial_lights), penalty, domain))
-        best = torch.tensor([0.0, 0.5, 1.0], device=step.device, dtype=step.dtype)[
-            torch.stack(energies, dim=1).argmin(dim=1)]
-        theta = theta + best.unsqueeze(1) * step
+        if line_search:
+            energies = [_energy(data, predicted, penalty, domain)]
+            for fraction in (0.5, 1.0):
+                trial_lights = field(_placed(relative, basis, theta + fraction * step))
+                trial = _robust_step(data, trial_lights, m, m, penalty).m
+                energies.append(_energy(data, _predict(trial, trial_lights), penalty, domain))
+            step = step * _line_minimum(torch.stack(energies, dim=1)).to(step.dtype).unsqueeze(1)
+        theta = theta + step
     covariance = torch.linalg.inv(hessian)
     for block in (slice(1, 3), slice(3, 6)):
         if bool(free[block].all()):
@@ -982,11 +984,9 @@ def _finish(data: _Data, field: _LightField, state: _State, domain: Tensor, full
     assert state.m is not None and state.normal_std is not None and state.weights is not None
     assert state.predicted_std is not None
     albedo, normals = _split(state.m)
-    relative = _integrate(normals, state.normal_std, domain, pitch, options.integrator, state.relative,
-                          one_sided=True)
+    relative = _integrate(normals, state.normal_std, domain, pitch, options.integrator, state.relative, one_sided=True)
     if options.integrator == "masked" and full:
-        # the edge equations' trapezoidal rule flattens the finest relief (a silk's threads to a third): restored on
-        # the rectangle, where the integration ran
+        # the edges' trapezoidal rule flattens the finest relief (a silk's threads to a third): undone on the rectangle
         relative = _undo_edge_averaging(relative)
     theta = _place(data, field, relative, state.m, domain, state.theta, state.free, options.penalty_function(), 1,
                    line_search=False)
