@@ -635,12 +635,12 @@ def _energy(data: _Data, predicted: Tensor, penalty: _Penalty, domain: Tensor) -
 
 
 def _line_minimum(energies: Tensor) -> Tensor:
-    """The step's fraction in [0, 1] at the minimum of the parabola through the energies (B, 3) at 0, 1/2 and 1 (Nocedal
-    and Wright 2006, 3.5; an end where they curve down): continuous, where the least of the three flipped as rounding
-    made them equal (a purl's height 0.4 µm, its normals 0.007° apart from one thread count to another)."""
+    """The step's fraction in [0, 1] at the minimum of the parabola through the energies (B, 3) at 0, 1/2 and 1, the
+    lower end where they curve down (Nocedal and Wright 2006, 3.5): continuous, where the least of three flipped."""
     first, half, full = energies.unbind(1)
-    curvature = (first - 2 * half + full).clamp_min(torch.finfo(energies.dtype).tiny)
-    return (0.25 * (3 * first - 4 * half + full) / curvature).clamp(0, 1)
+    curvature = first - 2 * half + full
+    fraction = (0.25 * (3 * first - 4 * half + full) / curvature.clamp_min(torch.finfo(first.dtype).tiny)).clamp(0, 1)
+    return torch.where(curvature > 0, fraction, (full < first).to(fraction))
 
 
 def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain: Tensor, theta: Tensor, free: Tensor,
