@@ -27,9 +27,10 @@ against 16 single calls (seconds per sample).
 With ``--speed`` only that last measurement runs (at 400 px by default: the rig's resolution), recorded on its own.
 
 With ``--stability``, how far a rounding-sized change carries: each fabric's noisy 8-bit capture at 0.5 mm is solved,
-then solved again with the card scaled by 1 + 1e-7 (about one float32 ulp), in float64 instead of float32, and as
-the third item of a batch of four: the mean and the largest change of the normals, and the depth's RMS change, for
-each. Recorded on its own.
+then solved again with the card scaled by 1 + 1e-7 (about one float32 ulp), in float64 instead of float32, as the
+third item of a batch of four, and with another thread count (two, or one if more were asked: another order of
+summation): the mean and the largest change of the normals, and the depth's RMS change, for each. Recorded on its
+own.
 
 With ``--compile-diagnostic``, what ``torch.compile`` would buy: the solver's per-pixel fits and light field compiled
 against the eager solve on four captures, the compilation's time and the results' difference (psmini itself does
@@ -303,7 +304,9 @@ def stability_only(size: int, pitch: float, device: torch.device, args: argparse
     """How far a rounding-sized change carries through near light (see the module docstring)."""
     config = RigConfig(size=size, pixel_pitch_mm=pitch, noise=True, bit_depth=8, intensity_spread=0.05)
     card = render_card(config, CARD_ALBEDO, device=device)
-    rows, worst = [], {"card": 0.0, "float64": 0.0, "batch": 0.0}
+    rows, worst = [], {"card": 0.0, "float64": 0.0, "batch": 0.0, "threads": 0.0}
+    threads = torch.get_num_threads()
+    other_threads = 2 if threads == 1 else 1
     for name in FULL_FABRICS:
         capture = render_capture(make_fabric(name, size=size, pixel_pitch_mm=pitch, seed=0), config,
                                  height_offset_mm=0.5, device=device)
@@ -320,6 +323,11 @@ def stability_only(size: int, pitch: float, device: torch.device, args: argparse
                   "float64": solve(images, reference, torch.float64),
                   "batch": solve(torch.cat([images.roll(1, -1), images.roll(2, -1), images, images.roll(3, -1)]),
                                  reference).item(2)}
+        torch.set_num_threads(other_threads)  # another order of summation
+        try:
+            others["threads"] = solve(images, reference)
+        finally:
+            torch.set_num_threads(threads)
         row = [name]
         for key, other in others.items():
             moved = angular_error_deg(base.normals.double(), other.normals.double())
@@ -330,12 +338,13 @@ def stability_only(size: int, pitch: float, device: torch.device, args: argparse
         print(" | ".join(row), flush=True)
     report = table(["fabric", "card × (1 + 1e-7): normals mean / max (°)", "depth RMS (µm)",
                     "float64: normals mean / max (°)", "depth RMS (µm)", "batch of 4: normals mean / max (°)",
-                    "depth RMS (µm)"], rows)
+                    "depth RMS (µm)", f"{other_threads} thread(s): normals mean / max (°)", "depth RMS (µm)"], rows)
     note = (f"Noisy 8-bit captures, the cloth 0.5 mm above the card, 8 × {size} × {size} px at {pitch:.4f} mm/px, on "
             f"{device}, {torch.get_num_threads()} thread(s): near light (float32, alone) against the same capture with "
-            "the card scaled by 1 + 1e-7, solved in float64, and solved as the third item of a batch of four (the "
-            "others shifted copies). Largest mean change over the fabrics: card "
-            f"{worst['card']:.5f}°, float64 {worst['float64']:.5f}°, batch {worst['batch']:.5f}°.")
+            "the card scaled by 1 + 1e-7, solved in float64, solved as the third item of a batch of four (the "
+            f"others shifted copies) and solved with {other_threads} thread(s) (another order of summation). Largest "
+            f"mean change over the fabrics: card {worst['card']:.5f}°, float64 {worst['float64']:.5f}°, batch "
+            f"{worst['batch']:.5f}°, threads {worst['threads']:.5f}°.")
     print(report)
     print(note)
     if not args.no_record:
