@@ -425,8 +425,12 @@ def structure_row(reconstruction: Any, pixel_pitch_mm: float | None) -> dict[str
         row["structure_found"] = False
         row["structure_reason"] = "the pixel pitch is unknown: no lengths in mm"
         return row
-    first = SimpleNamespace(**{k: None if getattr(reconstruction, k, None) is None else getattr(reconstruction, k)[:1]
-                               for k in ("depth", "mask", "p", "q")})
+
+    def first_sample(name: str) -> Tensor | None:
+        value = getattr(reconstruction, name, None)
+        return None if value is None else value[:1]
+
+    first = SimpleNamespace(**{name: first_sample(name) for name in ("depth", "mask", "p", "q")})
     entry = describe_reconstruction(first, pixel_pitch_mm)[0]
     density = (entry["threads_per_cm"] or []) + [None, None]
     angles = (entry["thread_angles_deg"] or []) + [None, None]
