@@ -229,7 +229,7 @@ def main() -> int:
                     "mean shift of the LEDs x, y, z (mm)", "loss / loss at the true positions"], rows)
     note = (f"LEDs pushed {PUSH_MM} mm each; {len(CLOTHS)} captures at {SIZE}² (unless the row says otherwise) over "
             "10 mm (jute 0, twill 1, knit 0.5 mm above the card, mean heights known; rows naming cotton, twill, "
-            "taffeta: those at 0, 1 and 0.5 mm), 8-bit with noise, flat-fielded "
+            "taffeta: those at 0, 1 and 0.5 mm), 10-bit with noise (the rig's default), flat-fielded "
             "by a card at 0 mm smoothed by 3 px; a noise-free card or noise-free cloths are 16-bit renders. "
             "\"The ring's height fixed\": the LEDs' mean height set to the true one and held. Loss: the re-rendering "
             "error of each near-light reconstruction weighted by the solver's robust weights. One torch thread.")
