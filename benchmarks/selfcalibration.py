@@ -29,6 +29,7 @@ Run:  python benchmarks/selfcalibration.py [--steps 120] [--projection] [--no-re
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from pathlib import Path
 
@@ -46,10 +47,11 @@ PUSH_MM = 0.5
 
 
 def captures(size: int = SIZE, noisy_card: bool = True, noisy_cloths: bool = True, cloths=CLOTHS,
-             noise_seed: int = 0, **render_options) -> tuple[object, list[dict]]:
+             noise_seed: int = 0, truth: bool = False, **render_options) -> tuple[object, list[dict]]:
     """The true LEDs and flat-fielded captures (float64) of ``cloths`` (name, lift in mm) at ``size``² over the
-    10 mm field; a noise-free card or cloths are rendered at 16 bits. Each capture also keeps its true height
-    (``depth``, mm) and its noise-free flat-fielded images (``clean``); ``noise_seed`` offsets the cloths' noise."""
+    10 mm field; a noise-free card or cloths are rendered at 16 bits; ``noise_seed`` offsets the cloths' noise. With
+    ``truth``, each capture also keeps its true height (``depth``, mm), its noise-free flat-fielded images (``clean``,
+    a second render) and the sensor it was rendered with (``config``)."""
     import psmini
     from data_synth import CARD_ALBEDO, make_fabric
     from data_synth.rig import RigConfig, render_capture, render_card, rig_lights
@@ -57,19 +59,23 @@ def captures(size: int = SIZE, noisy_card: bool = True, noisy_cloths: bool = Tru
     config = RigConfig(size=size, pixel_pitch_mm=10.0 / size, **render_options)
     noise_free = config.replace(noise=False, bit_depth=16)
     card = render_card(config if noisy_card else noise_free, CARD_ALBEDO, seed=1)
+
+    def flatten(shot):
+        return psmini.flatfield(shot.images[None], card.images[None], shot.dark[None], card.dark[None], CARD_ALBEDO,
+                                saturation_level=1.0, card_smoothing_px=3.0)
+
     flat_cloths = []
     for index, (name, lift) in enumerate(cloths):
         fabric = make_fabric(name, size=size, pixel_pitch_mm=config.pixel_pitch_mm, seed=index)
         shot = render_capture(fabric, config if noisy_cloths else noise_free, seed=index + noise_seed,
                               height_offset_mm=lift)
-        clean = render_capture(fabric, noise_free, seed=index, height_offset_mm=lift)
-        flat, clean_flat = (psmini.flatfield(s.images[None], card.images[None], s.dark[None], card.dark[None],
-                                             CARD_ALBEDO, saturation_level=1.0, card_smoothing_px=3.0)
-                            for s in (shot, clean))
+        flat = flatten(shot)
         flat_cloths.append({"images": flat.images.double(), "valid": flat.valid, "gain": flat.gain.double(),
-                            "height": float(shot.depth_mm.mean()), "pitch": config.pixel_pitch_mm,
-                            "depth": shot.depth_mm[None].double(), "clean": clean_flat.images.double(),
-                            "config": config if noisy_cloths else noise_free})
+                            "height": float(shot.depth_mm.mean()), "pitch": config.pixel_pitch_mm})
+        if truth:
+            clean = render_capture(fabric, noise_free, seed=index, height_offset_mm=lift)
+            flat_cloths[-1] |= {"depth": shot.depth_mm[None].double(), "clean": flatten(clean).images.double(),
+                                "config": config if noisy_cloths else noise_free}
     return rig_lights(config), flat_cloths
 
 
@@ -115,22 +121,29 @@ def loss_of(model, cloths, curvature: bool = False):
     return total, hessian
 
 
+@contextlib.contextmanager
+def positions_swapped(model, flat: torch.Tensor):
+    """The model's learnable positions swapped for the plain tensor ``flat`` (3K,) inside the block (a forward-mode
+    Jacobian differentiates through it), put back after."""
+    positions = model.positions_mm
+    del model.positions_mm
+    model.positions_mm = flat.view(-1, 3)
+    try:
+        yield model
+    finally:
+        del model.positions_mm
+        model.positions_mm = positions
+
+
 def _curvature(model, result, vectors, weight):
     frozen = type(result)(*(t.detach() for t in (result.albedo, result.normals, result.p, result.q, result.depth,
                                                  result.mask)))
-    positions = model.positions_mm
 
     def readings(flat):
-        # the model's positions swapped for a plain tensor for the forward-mode Jacobian, then put back
-        del model.positions_mm
-        model.positions_mm = flat.view(-1, 3)
-        try:
+        with positions_swapped(model, flat):
             return shading(model, frozen)[0]
-        finally:
-            del model.positions_mm
-            model.positions_mm = positions
 
-    jacobian = torch.func.jacfwd(readings)(positions.detach().flatten())  # (B, K, H, W, 3K)
+    jacobian = torch.func.jacfwd(readings)(model.positions_mm.detach().flatten())  # (B, K, H, W, 3K)
     weighted = weight.unsqueeze(2) * vectors
     gram = torch.einsum("bkihw,bkjhw->bhwij", weighted, vectors) + 1e-12 * torch.eye(3, dtype=torch.float64)
     projection = torch.linalg.solve(gram, torch.einsum("bkihw,bkhwp->bhwip", weighted, jacobian))
@@ -229,10 +242,7 @@ def projection_fit(rig, cloths, seed: int, label: str, steps: int = 12) -> list[
 
     def whitened(flat):
         residuals = []
-        positions = model.positions_mm
-        del model.positions_mm
-        model.positions_mm = flat.view(-1, 3)  # a plain tensor for forward mode, put back below
-        try:
+        with positions_swapped(model, flat):
             for cloth in cloths:
                 lights = psmini.near_light_vectors(model, cloth["depth"], cloth["pitch"], card_height_mm=0.0)
                 weighted = cloth["weight"].unsqueeze(2) * lights
@@ -240,16 +250,13 @@ def projection_fit(rig, cloths, seed: int, label: str, steps: int = 12) -> list[
                 m = torch.linalg.solve(gram, torch.einsum("bkihw,bkhw->bhwi", weighted, cloth["images"]))
                 predicted = torch.einsum("bkihw,bhwi->bkhw", lights, m)
                 residuals.append((cloth["weight"].sqrt() * (cloth["images"] - predicted)).flatten())
-        finally:
-            del model.positions_mm
-            model.positions_mm = positions
         return torch.cat(residuals)
 
     x, damping = model.positions_mm.detach().flatten().clone(), 1e-3
+    basis = torch.eye(len(x), dtype=x.dtype)
     for _ in range(steps):
         with torch.no_grad():  # the model's other parameters are learnable: no graph is wanted here
             residual = whitened(x)
-        basis = torch.eye(len(x), dtype=x.dtype)
         # each column copied out: a forward-mode tangent left as returned holds on to the solve's dual buffers
         jacobian = torch.stack([torch.func.jvp(whitened, (x,), (basis[i],))[1].detach().clone()
                                 for i in range(len(x))], 1)
@@ -275,7 +282,7 @@ def projection_only(args: argparse.Namespace) -> int:
     for label, options in (("noise-free", {"noisy_card": False, "noisy_cloths": False}), ("noisy", {}),
                            ("noisy, another realisation", {"noise_seed": 100}),
                            ("noisy, a third realisation", {"noise_seed": 200})):
-        rig, cloths = captures(size=2 * SIZE, cloths=SMOOTH_CLOTHS, **options)
+        rig, cloths = captures(size=2 * SIZE, cloths=SMOOTH_CLOTHS, truth=True, **options)
         rows.append(projection_fit(rig, cloths, 6, f"{label}, {2 * SIZE}², {', '.join(n for n, _ in SMOOTH_CLOTHS)}"))
     report = table(["fit", "at the end: mean / largest (mm)", "mean shift of the LEDs x, y, z (mm)"], rows)
     note = (f"LEDs pushed {PUSH_MM} mm each (seed 6); cotton on the card, twill 1 mm and taffeta 0.5 mm above it, at "
