@@ -183,7 +183,7 @@ def precise_loss(model, cloths) -> float:
     """The loss as a number, its solves as precise as a differentiated loss's: the model's parameters require
     gradients (under ``no_grad`` the weighted integration stops at a relative residual of 1e-2, whose error would
     decide comparisons near the minimum)."""
-    return float(loss_of(model, cloths)[0])
+    return float(loss_of(model, cloths)[0].detach())
 
 
 def at_truth(model, rig, cloths) -> float:
