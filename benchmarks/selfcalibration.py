@@ -238,7 +238,7 @@ def gauss_newton(rig, cloths, seed: int, label: str, iterations: int = 8,
             step = -free @ torch.linalg.solve(hessian + damping * torch.diag(hessian.diagonal()), gradient)
             with torch.no_grad():
                 model.positions_mm.copy_(saved + step.view(-1, 3))
-            if precise_loss(model, cloths) < float(loss):
+            if precise_loss(model, cloths) < float(loss.detach()):
                 damping = max(damping / 3, 1e-6)
                 break
             with torch.no_grad():
