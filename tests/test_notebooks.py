@@ -16,6 +16,15 @@ ROOT = Path(__file__).resolve().parents[1]
 NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
 
 
+@pytest.fixture(autouse=True)
+def kernel_threads(monkeypatch):
+    """A notebook's kernel, a process of its own, takes this process's share of the cores (one per xdist worker on
+    two cores: conftest), not every core while the other workers use them."""
+    import torch
+
+    monkeypatch.setenv("OMP_NUM_THREADS", str(torch.get_num_threads()))
+
+
 def test_notebooks_are_stored_without_outputs():
     nbformat = pytest.importorskip("nbformat")
     assert len(NOTEBOOKS) >= 5
