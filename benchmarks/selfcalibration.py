@@ -244,6 +244,8 @@ def gauss_newton(rig, cloths, seed: int, label: str, iterations: int = 8,
             with torch.no_grad():
                 model.positions_mm.copy_(saved)
             damping *= 10
+        else:  # no step lowers the loss: at its minimum (later iterations would only evaluate it again)
+            break
     error = position_error(model, rig)
     shift = (model.positions_mm.detach() - rig.positions_mm.double()).mean(0)
     final = precise_loss(model, cloths)
