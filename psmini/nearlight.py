@@ -92,8 +92,7 @@ _WEIGHT_FLOOR = 1e-2
 _ONE_SIDED_K = 2.0
 # Relative residual at which the weighted integration stops (warm-started: within micrometres of converged).
 _CG_TOLERANCE = 1e-2
-# Most a placement's Gauss–Newton step may move any pixel, mm; the step (mm) of the light field's forward difference
-# in the height (it changes over millimetres).
+# Most a placement's Gauss–Newton step moves any pixel; the light field's forward difference in the height (mm).
 _MAX_STEP_MM, _HEIGHT_STEP_MM = 0.5, 0.01
 # The noise model is fitted on every _NOISE_STRIDE-th pixel in each direction (two parameters), the placement on
 # the stride that leaves about _PLACE_PIXELS of them (six parameters, on a sixteenth of the rig's 400² frame).
@@ -718,9 +717,8 @@ def _scan_offset(data: _Data, field: _LightField, relative: Tensor, domain: Tens
 def near_light_energy(intensities: Tensor, light_model: nn.Module, result: Reconstruction, pixel_pitch_mm: float,
                       card_height_mm: float | None, noise_std: Tensor, valid: Tensor | None = None,
                       options: NearLightOptions | None = None) -> Tensor:
-    r"""The energy near light minimises, per sample, at a reconstruction: :math:`\sum_k \lambda_k \psi(r_k)` over the
-    valid readings (the module's :math:`E`), the loss of a self-calibration, differentiable in every argument and in
-    the light model's parameters.
+    r"""The energy near light minimises, per sample, at a reconstruction (:math:`\sum_k \lambda_k \psi(r_k)` over the
+    valid readings): a self-calibration's loss, differentiable in every argument and the light model's parameters.
 
     Args:
         intensities: images :math:`(B, K, H, W)` (flat-fielded when ``card_height_mm`` is given).
@@ -729,7 +727,9 @@ def near_light_energy(intensities: Tensor, light_model: nn.Module, result: Recon
             :math:`(B, \cdot, H, W)` (a :class:`NearLightResult` or any :class:`~psmini.result.Reconstruction`).
         pixel_pitch_mm: pixel size on the cloth, mm.
         card_height_mm: see :func:`near_light_vectors`.
-        noise_std: the readings' noise levels :math:`\sigma_k`, broadcastable to :math:`(B, K, H, W)`.
+        noise_std: the readings' noise levels :math:`\sigma_k`, broadcastable to :math:`(B, K, H, W)`. Hold them
+            fixed while the lights change: re-fitted to each light model (``result.noise``), they grow with its
+            misfit, and the energy then falls as the lights leave the truth.
         valid: readings to count, :math:`(B, K, H, W)`; all when omitted.
         options: the :class:`NearLightOptions` whose penalty to use; defaults when omitted.
 
