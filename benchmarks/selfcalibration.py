@@ -48,6 +48,7 @@ SIZE = 64
 CLOTHS = (("jute", 0.0), ("twill", 1.0), ("knit", 0.5))
 # cloths of lower relief (no holes, no walls of a jute's or a knit's yarns), whose normals near light recovers unbiased
 SMOOTH_CLOTHS = (("cotton", 0.0), ("twill", 1.0), ("taffeta", 0.5))
+SMOOTH_NAMES = ", ".join(name for name, _ in SMOOTH_CLOTHS)
 PUSH_MM = 0.5
 # readings predicted within this many noise levels of zero stay out of the loss (as in near light's own reliability)
 LIT_SIGMAS = 3.0
@@ -320,7 +321,7 @@ def projection_only(args: argparse.Namespace) -> int:
                            ("means of 16 frames, another realisation", {"noise_seed": 100, **averaged(16)}),
                            ("means of 64 frames", averaged(64))):
         rig, cloths = captures(size=2 * SIZE, cloths=SMOOTH_CLOTHS, truth=True, **options)
-        rows.append(projection_fit(rig, cloths, 6, f"{label}, {2 * SIZE}², {', '.join(n for n, _ in SMOOTH_CLOTHS)}"))
+        rows.append(projection_fit(rig, cloths, 6, f"{label}, {2 * SIZE}², {SMOOTH_NAMES}"))
     report = table(["fit", "at the end: mean / largest (mm)", "mean shift of the LEDs x, y, z (mm)"], rows)
     note = (f"LEDs pushed {PUSH_MM} mm each (seed 6); cotton on the card, twill 1 mm and taffeta 0.5 mm above it, at "
             f"{2 * SIZE}² over 10 mm, 10-bit with noise (the card too), noise-free at 16 bits, or the means of 16 "
@@ -339,22 +340,21 @@ def projection_only(args: argparse.Namespace) -> int:
 def averaged_frames(args: argparse.Namespace) -> int:
     """``--frames``: Gauss–Newton through the reconstruction on the means of 16 and 64 frames of the cloths of lower
     relief, from three pushes and in two noise realisations."""
-    smooth = ", ".join(name for name, _ in SMOOTH_CLOTHS)
     rows = []
-    for frames, realisations, seeds in ((16, (0, 100), (5, 6, 7)), (64, (0, 100), (5, 6, 7))):
-        for realisation, noise_seed in enumerate(realisations, 1):
+    for frames in (16, 64):
+        for realisation, noise_seed in enumerate((0, 100), 1):
             rig, cloths = captures(size=2 * SIZE, cloths=SMOOTH_CLOTHS, noise_seed=noise_seed, **averaged(frames))
-            for seed in seeds:
+            for seed in (5, 6, 7):
                 row = gauss_newton(rig, cloths, seed, f"means of {frames} frames, realisation {realisation}, "
-                                                      f"{2 * SIZE}², {smooth}")
+                                                      f"{2 * SIZE}², {SMOOTH_NAMES}")
                 rows.append([row[0], *row[3:]])
     report = table(["fit", "at the end: mean / largest (mm)", "mean shift of the LEDs x, y, z (mm)",
                     "loss / loss at the true positions"], rows)
-    note = (f"LEDs pushed {PUSH_MM} mm each (the seed names the push); {smooth} at 0, 1 and 0.5 mm above the card, "
-            f"{2 * SIZE}² over 10 mm, mean heights known; every capture (the card's too) the mean of 16 or 64 frames "
-            "of the rig's default 10-bit sensor (1/N of its noise variance, 16 bits), two noise realisations; "
-            "flat-fielded by the card smoothed by 3 px. Gauss–Newton with Levenberg damping to the minimum of the "
-            "re-rendering loss through the near-light reconstruction (the readings predicted within "
+    note = (f"LEDs pushed {PUSH_MM} mm each (the seed names the push); {SMOOTH_NAMES} at 0, 1 and 0.5 mm above "
+            f"the card, {2 * SIZE}² over 10 mm, mean heights known; every capture (the card's too) the mean of 16 "
+            "or 64 frames of the rig's default 10-bit sensor (1/N of its noise variance, 16 bits), two noise "
+            "realisations; flat-fielded by the card smoothed by 3 px. Gauss–Newton with Levenberg damping to the "
+            "minimum of the re-rendering loss through the near-light reconstruction (the readings predicted within "
             f"{LIT_SIGMAS:g} noise levels of zero left out). One torch thread.")
     print(report)
     print(note)
@@ -393,12 +393,11 @@ def main() -> int:
     rows += [gauss_newton(rig, cloths, seed, f"noisy, {2 * SIZE}²") for seed in (5, 6)]
     rig, cloths = captures(size=2 * SIZE, noisy_card=False, noisy_cloths=False)
     rows.append(gauss_newton(rig, cloths, 6, f"noise-free, {2 * SIZE}²"))
-    smooth = ", ".join(name for name, _ in SMOOTH_CLOTHS)
     for label, noise in (("noise-free", {"noisy_card": False, "noisy_cloths": False}), ("noisy", {}),
                          ("the card's noise alone", {"noisy_cloths": False}),
                          ("the cloths' noise alone", {"noisy_card": False})):
         rig, cloths = captures(size=2 * SIZE, cloths=SMOOTH_CLOTHS, **noise)
-        rows.append(gauss_newton(rig, cloths, 6, f"{label}, {2 * SIZE}², {smooth}"))
+        rows.append(gauss_newton(rig, cloths, 6, f"{label}, {2 * SIZE}², {SMOOTH_NAMES}"))
     report = table(["fit", "after 30 steps: mean / largest (mm)", "after 60", f"after {args.steps} (or the end)",
                     "mean shift of the LEDs x, y, z (mm)", "loss / loss at the true positions"], rows)
     note = (f"LEDs pushed {PUSH_MM} mm each; {len(CLOTHS)} captures at {SIZE}² (unless the row says otherwise) over "
