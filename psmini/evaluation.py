@@ -11,7 +11,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from psmini._checks import check_shape
 from psmini.config import ReconstructionConfig
+from psmini.errors import InputError, ShapeError
 from psmini.metrics import angular_error_deg, depth_error, mean_angular_error, median_angular_error
 from psmini.pipeline import Reconstruction, reconstruct
 
@@ -24,6 +26,17 @@ def evaluation_mask(sample, device: torch.device | str = "cpu") -> Tensor:
     That is where the ground-truth normals are finite, within the ground truth's own mask (``gt_mask``: the cloth
     of a synthetic capture, without the gaps between yarns) and the sample's mask (DiLiGenT's object outline).
 
+    Args:
+        sample: a :class:`psmini.io.Sample` with ``normals_gt`` :math:`(3, H, W)`.
+        device: where to make the mask.
+
+    Returns:
+        the mask, :math:`(1, 1, H, W)` bool.
+
+    Raises:
+        InputError: when the sample has no ground-truth normals.
+        ShapeError: when ``normals_gt`` is not :math:`(3, H, W)` or a mask is not of its size.
+
     Example:
         >>> from psmini.io import Sample
         >>> from psmini.lights import DirectionalLights, ring_lights
@@ -33,9 +46,17 @@ def evaluation_mask(sample, device: torch.device | str = "cpu") -> Tensor:
         >>> int(evaluation_mask(sample).sum())
         15
     """
+    if getattr(sample, "normals_gt", None) is None:
+        raise InputError(f"sample {getattr(sample, 'name', sample)!r} has no ground-truth normals (normals_gt): "
+                         "there is nothing to score against")
+    sizes = check_shape(sample.normals_gt, ["3", "H", "W"], "normals_gt")
     mask = torch.isfinite(sample.normals_gt.to(device)).all(dim=0, keepdim=True)
-    for extra in (sample.gt_mask, sample.mask):
+    for name in ("gt_mask", "mask"):
+        extra = getattr(sample, name)
         if extra is not None:
+            if tuple(extra.shape) != (1, sizes["H"], sizes["W"]):
+                raise ShapeError(f"{name} must be (1, {sizes['H']}, {sizes['W']}) like normals_gt, got "
+                                 f"{tuple(extra.shape)}")
             mask = mask & extra.to(device).bool()
     return mask.unsqueeze(0)
 
@@ -60,6 +81,11 @@ def score_reconstruction(result: Reconstruction, sample) -> dict[str, float | in
         the sample has
         ground-truth depth, ``depth_rmse_mm`` and ``depth_mae_mm`` (after removing the mean offset).
 
+    Raises:
+        InputError: when ``result`` is no reconstruction, the sample has no ground-truth normals, or none of its
+            pixels has valid ground truth.
+        ShapeError: when ``result`` is not a batch of one of the sample's size.
+
     Example:
         >>> from psmini.io import Sample
         >>> from psmini.lights import DirectionalLights, ring_lights
@@ -70,8 +96,18 @@ def score_reconstruction(result: Reconstruction, sample) -> dict[str, float | in
         >>> round(score_reconstruction(reconstruct(sample), sample)["mean_angular_error_deg"], 3)
         0.0
     """
+    if not isinstance(result, Reconstruction):
+        raise InputError(f"score_reconstruction needs a psmini Reconstruction, got {type(result).__name__}")
+    mask = evaluation_mask(sample, result.normals.device)
+    height, width = mask.shape[-2:]
+    if tuple(result.normals.shape) != (1, 3, height, width):
+        raise ShapeError(f"score_reconstruction needs a reconstruction of one sample of {sample.name!r}'s size, "
+                         f"normals (1, 3, {height}, {width}); got {tuple(result.normals.shape)} (score each sample "
+                         "of a batch apart)")
+    if not bool(mask.any()):
+        raise InputError(f"sample {sample.name!r} has no pixel with valid ground truth (finite normals_gt inside its "
+                         "masks): there is nothing to score")
     device, dtype = result.normals.device, result.normals.dtype
-    mask = evaluation_mask(sample, device)
     normals_gt = torch.nan_to_num(sample.normals_gt.to(device=device, dtype=dtype).unsqueeze(0))
     pixels = int(mask.sum())
     unsolved = int((mask & ~result.mask.bool()).sum())
