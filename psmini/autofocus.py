@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from psmini.errors import InputError
+from psmini.errors import InputError, ShapeError
 from psmini.focus import FocusMeasure, Roi
 
 __all__ = ["AutofocusController", "AutofocusResult", "autofocus_sweep", "best_of_scores", "refine_peak",
@@ -223,23 +223,40 @@ class AutofocusController:
 
         Args:
             observation: a frame :math:`(H, W)`, :math:`(1, H, W)` or :math:`(1, 1, H, W)` scored with the
-                controller's measure, or a score.
+                controller's measure, or a score (a number, or a one-element tensor such as a measure's
+                :math:`(1,)` result).
 
         Returns:
             the next position, mm, or ``None`` when the sweep is over.
 
         Raises:
-            InputError: when called after the sweep is done, or with a non-finite score.
+            InputError: when called after the sweep is done, with a non-finite score, or with something that is
+                neither a frame tensor nor a number (a numpy frame: convert it with ``torch.from_numpy``).
+            ShapeError: a tensor that is not one gray frame (a colour frame :math:`(H, W, 3)`, a batch
+                :math:`(N, H, W)`), or a measure that does not return one score.
         """
         if self.done:
             raise InputError("the focus sweep is done; read result() instead of stepping again")
-        if isinstance(observation, Tensor):
-            frame = observation
-            while frame.ndim < 3:
-                frame = frame.unsqueeze(0)
-            score = float(self.measure(frame.reshape(1, *frame.shape[-2:])).reshape(-1)[0])
+        if isinstance(observation, Tensor) and observation.ndim < 2 and observation.numel() == 1:
+            score = float(observation)  # a score already, e.g. brenner(frame)'s (1,)
+        elif isinstance(observation, Tensor):
+            if observation.ndim < 2 or any(size != 1 for size in observation.shape[:-2]):
+                raise ShapeError(f"a frame must be one gray image (H, W), (1, H, W) or (1, 1, H, W), got shape "
+                                 f"{tuple(observation.shape)}; convert a colour frame to gray, step one frame at a "
+                                 "time")
+            scores = self.measure(observation.reshape(1, *observation.shape[-2:]))
+            if not isinstance(scores, Tensor) or scores.numel() != 1:
+                got = tuple(scores.shape) if isinstance(scores, Tensor) else type(scores).__name__
+                raise ShapeError(f"the focus measure must return one score (1,) for one frame, got {got}")
+            score = float(scores)
         else:
-            score = float(observation)
+            try:
+                score = float(observation)
+            except (TypeError, ValueError):
+                shape = getattr(observation, "shape", None)
+                raise InputError(f"observation must be a frame tensor or a score (a number), got "
+                                 f"{type(observation).__name__}{'' if shape is None else f' of shape {shape}'}"
+                                 "; convert a numpy frame with torch.from_numpy") from None
         if not math.isfinite(score):
             raise InputError(f"focus score at {self.positions[len(self.scores)]} mm is not finite: {score}")
         self.scores.append(score)
@@ -375,13 +392,22 @@ def best_of_scores(scores: Tensor | Sequence[float], positions: Sequence[float] 
         where the stop rule would have ended a live sweep.
 
     Raises:
-        InputError: empty or non-finite scores, or positions of another length or not monotonic.
+        InputError: empty or non-finite scores, scores that are not numbers, or positions of another length or
+            not monotonic.
+        ShapeError: scores of several sweeps (more than one dimension longer than 1, e.g. :math:`(2, N)`).
 
     Example:
         >>> best_of_scores([1.0, 3.0, 2.0], [0.0, 0.5, 1.0]).best_index
         1
     """
-    values = torch.as_tensor(scores, dtype=torch.float64).detach().cpu().reshape(-1).tolist()
+    try:
+        tensor = torch.as_tensor(scores, dtype=torch.float64).detach().cpu()
+    except (TypeError, ValueError, RuntimeError):
+        raise InputError(f"scores must be a sequence or a 1-D tensor of numbers, got {type(scores).__name__}") from None
+    if sum(size > 1 for size in tensor.shape) > 1:  # (N,), (N, 1) of stacked (1,) scores: one sweep
+        raise ShapeError(f"scores must be one sweep's (N,) scores, got shape {tuple(tensor.shape)}; find the best "
+                         "of each sweep apart")
+    values = tensor.reshape(-1).tolist()
     if positions is None:
         positions = [float(i) for i in range(len(values))]
     if len(positions) != len(values):

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from psmini._checks import check_mask, check_shape
+from psmini._checks import any_true, check_mask, check_shape
 from psmini._tensor import vector_length
 from psmini.errors import InputError, ShapeError
 
@@ -24,6 +24,22 @@ def _masked(values: Tensor, mask: Tensor | None) -> Tensor:
     if bool((keep.flatten(1).sum(1) == 0).any()):
         raise InputError("the mask selects no pixel with a finite value in at least one batch item")
     return keep
+
+
+def _check_scored_finite(estimate: Tensor, reference: Tensor, mask: Tensor | None, name: str,
+                         reference_name: str) -> None:
+    """Raise :class:`InputError` where ``estimate`` is NaN or infinite at a pixel that is scored: inside ``mask``
+    with a finite ``reference``. A non-finite reference marks a pixel as outside; a non-finite estimate at a scored
+    pixel was left out of the average just as silently, flattering the score (NaN on half its pixels: 0°)."""
+    if not estimate.numel() or bool(torch.isfinite(estimate.detach().sum())):  # one sum: the common, finite case
+        return
+    bad = ~torch.isfinite(estimate).all(dim=1, keepdim=True) & torch.isfinite(reference).all(dim=1, keepdim=True)
+    if mask is not None:
+        bad = bad & mask.bool()
+    if any_true(bad):
+        raise InputError(f"{name} is NaN or infinite at {int(bad.sum())} scored pixel(s) (inside the mask, where "
+                         f"{reference_name} is finite): they would be left out of the score; fill them, or leave "
+                         "them out of the mask")
 
 
 def angular_error_deg(normals: Tensor, normals_gt: Tensor) -> Tensor:
@@ -68,18 +84,28 @@ def mean_angular_error(normals: Tensor, normals_gt: Tensor, mask: Tensor | None 
     Returns:
         mean error :math:`(B,)`, degrees.
 
+    Raises:
+        ShapeError: when a tensor or the mask has another shape.
+        InputError: when ``normals`` is NaN or infinite at a scored pixel (inside the mask, with finite
+            ``normals_gt``: a non-finite ground truth counts as outside), or the mask selects no pixel.
+
     Example:
         >>> n = torch.nn.functional.normalize(torch.rand(2, 3, 8, 8), dim=1)
         >>> mean_angular_error(n, n).abs().max() < 1e-3
         tensor(True)
     """
     errors = angular_error_deg(normals, normals_gt)
-    keep = _masked(errors, check_mask(mask, *(errors.shape[0], errors.shape[2], errors.shape[3])))
+    mask = check_mask(mask, *(errors.shape[0], errors.shape[2], errors.shape[3]))
+    _check_scored_finite(normals, normals_gt, mask, "normals", "normals_gt")
+    keep = _masked(errors, mask)
     return torch.where(keep, errors, torch.zeros_like(errors)).flatten(1).sum(1) / keep.flatten(1).sum(1)
 
 
 def median_angular_error(normals: Tensor, normals_gt: Tensor, mask: Tensor | None = None) -> Tensor:
     """Median angular error over a mask, degrees; one value per batch item (see :func:`mean_angular_error`).
+
+    Raises:
+        ShapeError, InputError: as :func:`mean_angular_error` (NaN ``normals`` at a scored pixel included).
 
     Example:
         >>> n = torch.nn.functional.normalize(torch.rand(1, 3, 8, 8), dim=1)
@@ -87,13 +113,16 @@ def median_angular_error(normals: Tensor, normals_gt: Tensor, mask: Tensor | Non
         True
     """
     errors = angular_error_deg(normals, normals_gt)
-    keep = _masked(errors, check_mask(mask, *(errors.shape[0], errors.shape[2], errors.shape[3])))
+    mask = check_mask(mask, *(errors.shape[0], errors.shape[2], errors.shape[3]))
+    _check_scored_finite(normals, normals_gt, mask, "normals", "normals_gt")
+    keep = _masked(errors, mask)
     return torch.stack([e[k].median() for e, k in zip(errors, keep, strict=True)])
 
 
 def depth_error(depth: Tensor, depth_gt: Tensor, mask: Tensor | None = None,
                 align: str = "offset") -> dict[str, Tensor]:
-    """Depth error after alignment, over a mask; NaN in ``depth_gt`` counts as outside the mask.
+    """Depth error after alignment, over a mask; NaN in ``depth_gt`` counts as outside the mask (NaN in ``depth``
+    inside it, where ``depth_gt`` is finite, is refused rather than left out of the score).
 
     Args:
         depth: estimated depth or height, shape :math:`(B, 1, H, W)`, mm.
@@ -106,6 +135,11 @@ def depth_error(depth: Tensor, depth_gt: Tensor, mask: Tensor | None = None,
     Returns:
         dict of ``mae`` and ``rmse`` (each :math:`(B,)`, mm) and ``aligned`` depth :math:`(B, 1, H, W)`.
 
+    Raises:
+        ShapeError: when ``depth``, ``depth_gt`` or the mask has another shape.
+        InputError: when ``depth`` is NaN or infinite at a scored pixel (inside the mask, with finite
+            ``depth_gt``), the mask selects no pixel, or ``align`` is unknown.
+
     Example:
         >>> gt = torch.rand(1, 1, 8, 8)
         >>> float(depth_error(gt + 3.0, gt)["rmse"]) < 1e-6
@@ -115,7 +149,9 @@ def depth_error(depth: Tensor, depth_gt: Tensor, mask: Tensor | None = None,
     check_shape(depth_gt, ["B", "1", "H", "W"], "depth_gt")
     if depth_gt.shape != depth.shape:
         raise ShapeError(f"depth_gt {tuple(depth_gt.shape)} does not match depth {tuple(depth.shape)}")
-    keep = _masked(depth_gt + depth, check_mask(mask, sizes["B"], sizes["H"], sizes["W"]))
+    mask = check_mask(mask, sizes["B"], sizes["H"], sizes["W"])
+    _check_scored_finite(depth, depth_gt, mask, "depth", "depth_gt")
+    keep = _masked(depth_gt + depth, mask)
     count = keep.flatten(1).sum(1).view(-1, 1, 1, 1)
 
     def masked_mean(x: Tensor) -> Tensor:

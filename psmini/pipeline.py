@@ -303,7 +303,8 @@ def reconstruct(sample, config: ReconstructionConfig | None = None) -> Reconstru
         :class:`Reconstruction` with batch size 1, on the config's device.
 
     Raises:
-        InputError: a configuration that does not fit the sample (see :class:`PhotometricStereo`).
+        InputError: a configuration that does not fit the sample (see :class:`PhotometricStereo`); something
+            that is not a loaded sample (a tensor of images: those go to :class:`PhotometricStereo`).
 
     Example:
         >>> from psmini.io import Sample
@@ -313,6 +314,10 @@ def reconstruct(sample, config: ReconstructionConfig | None = None) -> Reconstru
         >>> reconstruct(sample).normals.shape
         torch.Size([1, 3, 16, 16])
     """
+    if isinstance(sample, Tensor) or getattr(sample, "images", None) is None:  # psmini.io is a layer above
+        raise InputError(f"reconstruct needs a loaded sample (psmini.io.Sample, e.g. from psmini.io.load_sample), "
+                         f"got {type(sample).__name__}; reconstruct image tensors with "
+                         "PhotometricStereo(lights, pixel_pitch_mm)(images)")
     check_tensor(sample.images, "sample.images")
     config = ReconstructionConfig() if config is None else config
     device, dtype = torch.device(config.device), config.torch_dtype

@@ -241,7 +241,9 @@ def render(
 
     Raises:
         ShapeError: when the shapes do not match.
-        InputError: when ``shadows`` is asked without a pitch, or weights/exponent are invalid.
+        InputError: when ``light_model`` is not a light model (an ``nn.Module``: a tensor of directions goes to
+            :func:`render_lambertian`, or wrapped in a :class:`~psmini.lights.DirectionalLights`), when ``shadows``
+            is asked without a pitch, or weights/exponent are invalid.
 
     Example:
         >>> from psmini.lights import PointLights
@@ -252,6 +254,7 @@ def render(
         >>> round(float(images[0, 0, 0, 0]), 4)                     # 1 / 10² at normal incidence
         0.01
     """
+    _check_light_model(light_model)
     sizes = check_shape(points, ["B", "3", "H", "W"], "points")
     check_shape(normals, ["B", "3", "H", "W"], "normals")
     if normals.shape != points.shape:
@@ -285,6 +288,15 @@ def _blinn_phong(directions: Tensor, normals: Tensor, cosine: Tensor, shininess:
     return lobe * (cosine > 0).to(lobe.dtype)
 
 
+def _check_light_model(light_model: object) -> None:
+    """Refuse what is not a light model: a tensor of directions failed as a bare "'Tensor' object is not callable"."""
+    if not isinstance(light_model, nn.Module):
+        hint = (" (a (K, 3) tensor of directions: render_lambertian takes it, or wrap it in DirectionalLights)"
+                if isinstance(light_model, Tensor) else "")
+        raise InputError(f"light_model must be a light model of psmini.lights (an nn.Module), got "
+                         f"{type(light_model).__name__}{hint}")
+
+
 def _check_map(x: Tensor, sizes: dict[str, int], name: str) -> None:
     """A (B, 1, H, W) map matching the batch (or 1) and the image size."""
     check_tensor(x, name)
@@ -302,6 +314,10 @@ class Renderer(nn.Module):
         shadows: compute cast shadows (needs ``pixel_pitch_mm``).
         pixel_pitch_mm: pixel size on the surface, mm.
 
+    Raises:
+        InputError: when ``light_model`` is not a light model (see :func:`render`), or ``shadows`` is asked
+            without a pitch.
+
     Example:
         >>> from psmini.lights import DirectionalLights, ring_lights
         >>> renderer = Renderer(DirectionalLights(ring_lights(8, 55.0)))
@@ -318,6 +334,7 @@ class Renderer(nn.Module):
         pixel_pitch_mm: float | None = None,
     ) -> None:
         super().__init__()
+        _check_light_model(light_model)
         if shadows and pixel_pitch_mm is None:
             raise InputError("Renderer(shadows=True) needs pixel_pitch_mm")
         self.light_model = light_model

@@ -16,7 +16,7 @@ from psmini.autofocus import (
     refine_peak,
     sweep_positions,
 )
-from psmini.errors import InputError
+from psmini.errors import InputError, ShapeError
 
 
 def blurred_stage(true_z: float, noise: float = 0.0, size: int = 64, seed: int = 0):
@@ -174,6 +174,25 @@ class TestController:
         ctl.step(torch.ones(1, 1, 5, 6))
         assert seen == [(1, 5, 6)] * 3 and ctl.done
 
+    def test_frame_misuse_raise(self):
+        ctl = AutofocusController([0.0, 1.0, 2.0])
+        # a colour frame or a batch failed deep inside with a bare RuntimeError of reshape
+        with pytest.raises(ShapeError, match="one gray image .* got shape \\(8, 8, 3\\)"):
+            ctl.step(torch.rand(8, 8, 3))
+        with pytest.raises(ShapeError, match="got shape \\(2, 8, 8\\)"):
+            ctl.step(torch.rand(2, 8, 8))
+        with pytest.raises(InputError, match="frame tensor or a score .* ndarray of shape \\(8, 8\\)"):
+            ctl.step(np.zeros((8, 8)))  # was a bare TypeError
+        with pytest.raises(InputError, match="frame tensor or a score .* NoneType"):
+            ctl.step(None)
+        assert ctl.scores == []
+        ctl.step(torch.tensor([0.5]))  # a measure's (1,) result is a score, not a 1 x 1 frame
+        assert ctl.scores == [0.5]
+        # a measure that scores more than the one frame: its first value was taken silently
+        two = AutofocusController([0.0, 1.0], measure=lambda frames: torch.ones(2))
+        with pytest.raises(ShapeError, match="one score \\(1,\\) for one frame, got \\(2,\\)"):
+            two.step(torch.rand(8, 8))
+
     def test_errors(self):
         with pytest.raises(InputError, match="positions, or all of start"):
             AutofocusController()
@@ -238,6 +257,14 @@ class TestBestOfScores:
             best_of_scores([1.0, 2.0], [0.0])
         with pytest.raises(InputError, match="non-empty"):
             best_of_scores([])
+
+    def test_batch_of_sweeps_raise(self):
+        # two sweeps (2, N) were flattened into one sweep of 2N frames
+        with pytest.raises(ShapeError, match="one sweep's \\(N,\\) scores, got shape \\(2, 5\\)"):
+            best_of_scores(torch.rand(2, 5))
+        assert best_of_scores(torch.tensor([[1.0], [3.0], [2.0]])).best_index == 1  # stacked (1,) scores: one sweep
+        with pytest.raises(InputError, match="scores must be a sequence"):
+            best_of_scores(None)
 
 
 def test_docstring_examples():

@@ -26,6 +26,7 @@ from psmini.fabric import (
     scale_limited_surface,
     structure_row,
     structure_surface,
+    valid_pixels,
 )
 from tests.conftest import BaseTester
 
@@ -256,6 +257,19 @@ class TestErrors:
             gaussian_filter(torch.zeros(1, 1, 16, 16), -1.0, PITCH)
         with pytest.raises(InputError, match="degree"):
             remove_form(torch.zeros(1, 1, 8, 8), degree=3)
+
+    def test_mask_of_another_size_raise(self):
+        from psmini.fabric import albedo_periodicity
+
+        # remove_form, valid_pixels and albedo_periodicity failed with a bare RuntimeError of broadcasting
+        height = torch.zeros(1, 1, 16, 16)
+        with pytest.raises(ShapeError, match="height's shape \\(1, 1, 16, 16\\) .* got \\(1, 1, 16, 15\\)"):
+            remove_form(height, torch.ones(1, 1, 16, 15, dtype=torch.bool))
+        with pytest.raises(ShapeError, match="got \\(2, 1, 16, 16\\)"):  # was two results for one height
+            valid_pixels(height, torch.ones(2, 1, 16, 16, dtype=torch.bool))
+        with pytest.raises(ShapeError, match="mask must have the height's shape"):
+            albedo_periodicity(torch.ones(1, 1, 16, 16), PITCH, torch.ones(1, 1, 15, 16, dtype=torch.bool))
+        assert valid_pixels(height.expand(2, 1, 16, 16), torch.ones(1, 1, 16, 16)).shape == (2, 1, 16, 16)  # batch 1
 
     def test_options(self):
         with pytest.raises(InputError, match="shorter"):

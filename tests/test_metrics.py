@@ -44,6 +44,20 @@ class TestAngular(BaseTester):
         with pytest.raises(ShapeError, match="does not match"):
             angular_error_deg(_tilted(1), _tilted(0, shape=(1, 3, 4, 5)))
 
+    def test_nan_estimate_raise(self):
+        # NaN estimates on half the pixels were left out of the average: the 45° half alone scored 0°
+        normals, reference = _tilted(0), _tilted(0)
+        reference[..., :2, :] = _tilted(45)[..., :2, :]
+        normals[..., :2, :] = float("nan")
+        for score in (mean_angular_error, median_angular_error):
+            with pytest.raises(InputError, match="normals is NaN or infinite at 8 scored pixel"):
+                score(normals, reference)
+        outside = torch.ones(1, 1, 4, 4, dtype=torch.bool)
+        outside[..., :2, :] = False
+        assert float(mean_angular_error(normals, reference, outside)) < 1e-3  # NaN outside the mask: not scored
+        reference[..., :2, :] = float("nan")
+        assert float(mean_angular_error(normals, reference)) < 1e-3  # nor where the ground truth is NaN
+
 
 class TestDepthError(BaseTester):
     def test_offset_and_scale(self, device, dtype):
@@ -56,6 +70,15 @@ class TestDepthError(BaseTester):
         self.assert_close(result["rmse"], expected_rmse, rtol=1e-3, atol=1e-4)
         scaled = depth_error(gt * 3.0, gt, align="scale")
         self.assert_close(scaled["mae"], torch.zeros(2, device=device, dtype=dtype), rtol=0, atol=1e-5)
+
+    def test_nan_estimate_raise(self):
+        gt = torch.rand(1, 1, 4, 4)
+        depth = gt + torch.randn(1, 1, 4, 4)
+        depth[..., 0, :] = float("nan")
+        with pytest.raises(InputError, match="depth is NaN or infinite at 4 scored pixel"):
+            depth_error(depth, gt)
+        gt[..., 0, :] = float("nan")
+        assert torch.isfinite(depth_error(depth, gt)["rmse"]).all()  # where the ground truth is NaN too: outside
 
     def test_bad_align_raise(self):
         with pytest.raises(InputError, match="align"):

@@ -8,7 +8,7 @@ from psmini.config import ReconstructionConfig
 from psmini.flatfield import flatfield
 from psmini.integrate import frankot_chellappa, masked_least_squares
 from psmini.normals import albedo_normals, normals_to_gradients
-from psmini.pipeline import NORMAL_ESTIMATORS, PhotometricStereo, distant_light_matrix
+from psmini.pipeline import NORMAL_ESTIMATORS, PhotometricStereo, distant_light_matrix, reconstruct
 from tests._analytic import analytic_sphere, render
 from tests.conftest import BaseTester
 
@@ -91,6 +91,11 @@ class TestPhotometricStereo(BaseTester):
     def test_bad_lights_raise(self):
         with pytest.raises(InputError, match="light model"):
             PhotometricStereo("ring", None)
+
+    def test_reconstruct_tensor_raise(self):
+        # a tensor of images for a sample failed as a bare AttributeError ('Tensor' has no attribute 'images')
+        with pytest.raises(InputError, match="needs a loaded sample .* got Tensor; .*PhotometricStereo"):
+            reconstruct(torch.rand(8, 8, 8))
 
     def test_solver_choice(self):
         ring = ring_lights(8, 58.0)

@@ -208,6 +208,15 @@ class TestRender(BaseTester):
         with pytest.raises(InputError, match="pixel_pitch_mm"):
             Renderer(lights, shadows=True)
 
+    def test_tensor_lights_raise(self):
+        # a tensor of directions (what render_lambertian takes) failed as "'Tensor' object is not callable"
+        points, normals = torch.zeros(1, 3, 4, 4), _flat_normals(4, "cpu", torch.float32)
+        albedo = torch.ones(1, 1, 4, 4)
+        with pytest.raises(InputError, match="light_model must be a light model .* got Tensor .*render_lambertian"):
+            render(points, normals, albedo, ring_lights(8, 55.0))
+        with pytest.raises(InputError, match="light_model must be a light model .* got NoneType"):
+            Renderer(None)  # was accepted, to fail at the first call
+
 
 class TestCastShadows(BaseTester):
     @pytest.mark.parametrize("elevation_deg", [30.0, 45.0, 60.0])

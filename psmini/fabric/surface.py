@@ -159,10 +159,14 @@ def valid_pixels(height: Tensor, mask: Tensor | None = None) -> Tensor:
 
     Args:
         height: :math:`(B, 1, H, W)`.
-        mask: optional :math:`(B, 1, H, W)`, bool or 0/1.
+        mask: optional :math:`(B, 1, H, W)`, bool or 0/1 (or a shape that broadcasts to the height's, e.g. batch 1).
 
     Returns:
         :math:`(B, 1, H, W)` bool.
+
+    Raises:
+        ShapeError: a mask that is not a tensor, or does not broadcast to the height's shape (another H or W, a
+            larger batch).
 
     Example:
         >>> valid_pixels(torch.tensor([[[[0.0, float("nan")]]]])).tolist()
@@ -170,6 +174,13 @@ def valid_pixels(height: Tensor, mask: Tensor | None = None) -> Tensor:
     """
     valid = torch.isfinite(height)
     if mask is not None:
+        try:
+            fits = isinstance(mask, Tensor) and torch.broadcast_shapes(mask.shape, height.shape) == height.shape
+        except RuntimeError:  # sizes that do not broadcast at all
+            fits = False
+        if not fits:
+            got = tuple(mask.shape) if isinstance(mask, Tensor) else type(mask).__name__
+            raise ShapeError(f"mask must have the height's shape {tuple(height.shape)} (or batch 1), got {got}")
         valid = valid & mask.bool()
     return valid
 
@@ -196,6 +207,7 @@ def remove_form(height: Tensor, mask: Tensor | None = None, degree: int = 1) -> 
 
     Raises:
         InputError: for another degree, or a sample without valid pixels.
+        ShapeError: a height not :math:`(B, 1, H, W)`, or a mask of another size (see :func:`valid_pixels`).
 
     Example:
         >>> y, x = torch.meshgrid(torch.arange(4.0), torch.arange(5.0), indexing="ij")
