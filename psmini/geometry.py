@@ -7,10 +7,13 @@ optical axis, at the centre of the image, x right, y up, z toward the camera.
 
 from __future__ import annotations
 
+import operator
+
 import torch
 from torch import Tensor
 
 from psmini._checks import check_positive, check_shape
+from psmini.errors import InputError
 
 __all__ = ["pixel_grid_mm", "depth_to_points", "point_cloud"]
 
@@ -37,11 +40,17 @@ def pixel_grid_mm(
     Returns:
         x and y, each :math:`(H, W)`, mm.
 
+    Raises:
+        InputError: for a size that is not a positive integer, or a pitch that is not positive.
+
     Example:
         >>> x, y = pixel_grid_mm(3, 3, 0.5)
         >>> x[0].tolist(), y[:, 0].tolist()
         ([-0.5, 0.0, 0.5], [0.5, 0.0, -0.5])
     """
+    for name, size in (("height", height), ("width", width)):
+        if isinstance(size, bool) or not hasattr(size, "__index__") or operator.index(size) < 1:
+            raise InputError(f"pixel_grid_mm's {name} must be a positive integer (pixels), got {size!r}")
     pitch = check_positive(pixel_pitch_mm, "pixel_pitch_mm")
     dtype = dtype or torch.get_default_dtype()
     cols = (torch.arange(width, device=device, dtype=dtype) - (width - 1) / 2) * pitch

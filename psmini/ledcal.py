@@ -320,10 +320,11 @@ def _stack_dark(dark: Tensor | Sequence[Tensor | None] | None, like: Tensor) -> 
 
 
 def _per_height(values: float | Sequence[float] | Tensor, count: int, name: str, positive: bool) -> Tensor:
-    """A float or one value per card height, as a float64 (N,) tensor on the CPU."""
-    tensor = torch.as_tensor(values, dtype=torch.float64).detach().cpu().flatten()
-    if tensor.numel() == 1:
-        tensor = tensor.expand(count)
+    """A float (the same for every card height) or one value per card height, as a float64 (N,) tensor on the CPU. A
+    sequence of one value for several heights is refused, not stretched: a list of captures with one height too few
+    would otherwise fit every card at the first one's height."""
+    tensor = torch.as_tensor(values, dtype=torch.float64).detach().cpu()
+    tensor = tensor.expand(count) if tensor.dim() == 0 else tensor.flatten()
     if tensor.numel() != count:
         raise ShapeError(f"{name} must hold one value per card height ({count}), got {tensor.numel()}")
     if not bool(torch.isfinite(tensor).all()) or (positive and bool((tensor <= 0).any())):

@@ -21,6 +21,7 @@ from __future__ import annotations
 import importlib
 import importlib.metadata
 import math
+import operator
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -73,12 +74,26 @@ def ring_lights(
     Returns:
         unit directions, shape :math:`(K, 3)`, camera frame (x right, y up, z toward the camera).
 
+    Raises:
+        InputError: for a count that is not an integer, or an angle that is not a finite number.
+        CalibrationError: for a count below 1.
+
     Example:
         >>> ring_lights(8, zenith_deg=55.0).shape
         torch.Size([8, 3])
     """
+    if isinstance(count, bool) or not hasattr(count, "__index__"):
+        raise InputError(f"ring_lights' count must be an integer (lights), got {count!r}")
+    count = operator.index(count)
     if count < 1:
         raise CalibrationError(f"a ring needs at least one light, got count={count}")
+    for name, angle in (("zenith_deg", zenith_deg), ("azimuth_offset_deg", azimuth_offset_deg)):
+        try:
+            finite = not isinstance(angle, bool) and math.isfinite(float(angle))
+        except (TypeError, ValueError):
+            finite = False
+        if not finite:
+            raise InputError(f"ring_lights' {name} must be a finite number of degrees, got {angle!r}")
     dtype = dtype or torch.get_default_dtype()
     azimuth = torch.arange(count, device=device, dtype=dtype) * (2 * math.pi / count) + math.radians(azimuth_offset_deg)
     zenith = torch.tensor(math.radians(zenith_deg), device=device, dtype=dtype)

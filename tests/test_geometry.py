@@ -1,3 +1,4 @@
+import numpy as np
 import pytest
 import torch
 
@@ -26,6 +27,15 @@ class TestGeometry(BaseTester):
     def test_bad_pitch_raise(self):
         with pytest.raises(InputError, match="pixel_pitch_mm"):
             depth_to_points(torch.zeros(1, 1, 2, 2), -1.0)
+
+    def test_bad_grid_size_raise(self):
+        # a negative size failed as torch's RuntimeError of arange; 6.5 rows silently made 7
+        with pytest.raises(InputError, match="height must be a positive integer .* got -1"):
+            pixel_grid_mm(-1, 3, 0.5)
+        with pytest.raises(InputError, match="width must be a positive integer .* got 6.5"):
+            pixel_grid_mm(3, 6.5, 0.5)
+        x, _ = pixel_grid_mm(np.int64(2), np.int64(3), 0.5)  # integers of numpy are sizes too
+        assert x[0].tolist() == [-0.5, 0.0, 0.5]
 
     def test_bad_shape_raise(self):
         with pytest.raises(ShapeError, match="depth"):

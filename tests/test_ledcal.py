@@ -183,6 +183,9 @@ class TestErrors:
     def test_heights_do_not_match(self):
         with pytest.raises(ShapeError, match="one value per card height"):
             fit_leds(self.images, [0.0, 1.0, 2.0], 1.0)
+        # one height in a list for several cards was stretched to all of them; a plain number still is
+        with pytest.raises(ShapeError, match=r"one value per card height \(2\), got 1"):
+            fit_leds(self.images, [0.0], 1.0)
 
     def test_black_card_image(self):
         images = self.images.clone()

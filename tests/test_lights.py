@@ -7,6 +7,7 @@ import textwrap
 from importlib.metadata import EntryPoint, EntryPoints
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -45,6 +46,16 @@ class TestRingLights(BaseTester):
     def test_count_zero_raises(self):
         with pytest.raises(CalibrationError, match="at least one"):
             ring_lights(0, 55.0)
+
+    def test_count_and_angles_raise(self):
+        # 2.5 lights silently made 3 at the wrong spacing; a NaN zenith, NaN directions
+        with pytest.raises(InputError, match="count must be an integer .* got 2.5"):
+            ring_lights(2.5, 55.0)
+        with pytest.raises(InputError, match="zenith_deg must be a finite number .* got nan"):
+            ring_lights(8, float("nan"))
+        with pytest.raises(InputError, match="azimuth_offset_deg must be a finite number .* got None"):
+            ring_lights(8, 55.0, None)
+        assert ring_lights(np.int64(4), np.float32(55.0)).shape == (4, 3)
 
 
 class TestSpans3d:
