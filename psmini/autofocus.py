@@ -21,6 +21,7 @@ from __future__ import annotations
 import itertools
 import logging
 import math
+import operator
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -119,7 +120,8 @@ def refine_peak(positions: Sequence[float], scores: Sequence[float], index: int,
         ``(position, accepted)``: the refined position, mm, and whether the fit was accepted.
 
     Raises:
-        InputError: an unknown method, mismatched lengths, or an index outside the samples.
+        InputError: an unknown method, mismatched lengths, or an index that is not an integer or lies outside the
+            samples.
 
     Example:
         >>> refine_peak([0.0, 1.0, 2.0], [3.0, 4.0, 1.0], 1)  # s = -2z² + 3z + 3 → vertex 0.75
@@ -129,6 +131,13 @@ def refine_peak(positions: Sequence[float], scores: Sequence[float], index: int,
         raise InputError(f"refine must be one of {', '.join(_REFINE)}, got {method!r}")
     if len(positions) != len(scores):
         raise InputError(f"positions ({len(positions)}) and scores ({len(scores)}) must have the same length")
+    try:  # 1.5 failed as a bare TypeError of list indexing; numpy and 0-d integer tensors are indices
+        peak = None if isinstance(index, bool) else operator.index(index)
+    except TypeError:
+        peak = None
+    if peak is None:
+        raise InputError(f"peak index must be an integer (the peak sample's index), got {index!r}")
+    index = peak
     if not 0 <= index < len(scores):
         raise InputError(f"peak index {index} is outside the {len(scores)} samples")
     sampled = float(positions[index])

@@ -70,12 +70,18 @@ def distant_light_matrix(lights: nn.Module, flatfielded: bool, reference: Tensor
     Returns:
         light matrix :math:`(K, 3)`.
 
+    Raises:
+        InputError: ``lights`` that is not a light model (a :math:`(K, 3)` tensor of directions: wrap it in a
+            :class:`~psmini.lights.DirectionalLights`), a ``reference`` that is not a tensor, or a light below the
+            card plane when ``flatfielded``.
+
     Example:
         >>> from psmini.lights import ring_lights
         >>> matrix = distant_light_matrix(DirectionalLights(ring_lights(8, 60.0)), True, torch.zeros(1))
         >>> round(float(matrix[0, 2]), 6)
         1.0
     """
+    _check_matrix_arguments(lights, reference)
     centre = torch.zeros(1, 3, 1, 1, device=reference.device, dtype=reference.dtype)
     directions, irradiance = lights(centre)
     directions, irradiance = directions[0, :, :, 0, 0], irradiance[0, :, :, 0, 0]
@@ -85,6 +91,18 @@ def distant_light_matrix(lights: nn.Module, flatfielded: bool, reference: Tensor
     if bool((facing <= 0).any()):
         raise InputError("flat-fielding needs every light above the card plane (positive z)")
     return directions / facing
+
+
+def _check_matrix_arguments(lights: object, reference: object) -> None:
+    """Guards of :func:`distant_light_matrix`: a tensor of directions failed as "'Tensor' object is not callable"."""
+    if not isinstance(lights, nn.Module):
+        hint = (f" of shape {tuple(lights.shape)}; wrap a (K, 3) tensor of directions in DirectionalLights"
+                if isinstance(lights, Tensor) else "")
+        raise InputError(f"lights must be a light model of psmini.lights (an nn.Module), got "
+                         f"{type(lights).__name__}{hint}")
+    if not isinstance(reference, Tensor):
+        raise InputError(f"reference must be a tensor (the result takes its device and dtype), got "
+                         f"{type(reference).__name__}")
 
 
 def _as_light_model(lights: LightModel | Tensor) -> LightModel:

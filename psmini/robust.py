@@ -211,16 +211,22 @@ def rank_trim_weights(
         kept observations, bool :math:`(B, K, H, W)`.
 
     Raises:
-        ShapeError: when ``intensities`` is not 4-D or ``weights`` does not match it.
-        InputError: for fractions outside [0, 1) or summing to 1 or more.
+        ShapeError: when ``intensities`` is not 4-D, has fewer than 3 observations (K < 3: a normal has three
+            unknowns), or ``weights`` does not match it.
+        InputError: for NaN or infinite ``intensities`` (as :func:`robust_normals`: they would take a rank), or
+            fractions outside [0, 1) or summing to 1 or more.
 
     Example:
         >>> images = torch.arange(10.0).view(1, 10, 1, 1)
         >>> rank_trim_weights(images, 0.2, 0.1)[0, :, 0, 0].tolist()
         [False, False, True, True, True, True, True, True, True, False]
     """
-    check_shape(intensities, ["B", "K", "H", "W"], "intensities")
+    sizes = check_shape(intensities, ["B", "K", "H", "W"], "intensities")
+    if sizes["K"] < 3:
+        raise ShapeError(f"rank trimming needs at least 3 observations per pixel (K >= 3: a normal has three "
+                         f"unknowns), got intensities of shape {tuple(intensities.shape)}")
     _check_fractions(low, high)
+    check_finite(intensities, "intensities")
     checked = _check_weights(weights, intensities.shape)
     return _trim_keep(intensities, low, high, None if checked is None else checked > 0, dim=1)
 
@@ -278,7 +284,9 @@ def threshold_weights(
 
     Raises:
         ShapeError: when ``intensities`` is not 4-D or ``weights`` does not match it.
-        InputError: for ``shadow`` outside [0, 1) or a non-positive ``saturation``.
+        InputError: for NaN or infinite ``intensities`` (as :func:`robust_normals`: a NaN reading made its pixel's
+            brightest reading NaN and dropped every observation there), ``shadow`` outside [0, 1) or a
+            non-positive ``saturation``.
 
     Example:
         >>> images = torch.tensor([0.0, 0.01, 0.5, 1.0]).view(1, 4, 1, 1)
@@ -290,6 +298,7 @@ def threshold_weights(
         raise InputError(f"shadow must lie in [0, 1) (a fraction of the brightest reading), got {shadow}")
     if saturation is not None and not saturation > 0:
         raise InputError(f"saturation must be positive, got {saturation}")
+    check_finite(intensities, "intensities")
     checked = _check_weights(weights, intensities.shape)
     return _threshold_keep(intensities, shadow, saturation, None if checked is None else checked > 0, dim=1)
 

@@ -91,8 +91,8 @@ def depth_from_focus(stack: Tensor, positions: Sequence[float] | Tensor, measure
 
     Raises:
         ShapeError: a stack of the wrong shape or fewer than 3 frames.
-        InputError: positions of another length, not finite or not strictly monotonic; a bad option; any error
-            of :func:`psmini.focus.focus_volume`.
+        InputError: positions that are not numbers (``None``, strings), of another length, not finite or not
+            strictly monotonic; a bad option; any error of :func:`psmini.focus.focus_volume`.
 
     Example:
         >>> from data_synth.focus_stacks import focus_stack_of
@@ -114,7 +114,11 @@ def depth_from_focus(stack: Tensor, positions: Sequence[float] | Tensor, measure
         stack = stack[:, 0]
     if stack.ndim != 3 or stack.shape[0] < 3:
         raise ShapeError(f"stack must have shape (N, H, W) or (N, 1, H, W) with N ≥ 3 frames, got {tuple(stack.shape)}")
-    z = torch.as_tensor(positions, dtype=torch.float64).detach().cpu().flatten()
+    try:
+        z = torch.as_tensor(positions, dtype=torch.float64).detach().cpu().flatten()
+    except (TypeError, ValueError, RuntimeError):  # None failed as a bare TypeError of torch
+        raise InputError(f"positions must be a sequence or a 1-D tensor of the {stack.shape[0]} frames' positions "
+                         f"(numbers), got {type(positions).__name__}") from None
     if z.numel() != stack.shape[0]:
         raise InputError(f"positions ({z.numel()}) and frames ({stack.shape[0]}) must have the same length")
     steps = z[1:] - z[:-1]

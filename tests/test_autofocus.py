@@ -91,6 +91,16 @@ class TestRefinePeak:
         with pytest.raises(InputError, match="outside"):
             refine_peak([0, 1, 2], [1, 2, 1], 3)
 
+    def test_index_not_an_integer_raise(self):
+        # 1.5 failed as a bare TypeError of list indexing
+        with pytest.raises(InputError, match="peak index must be an integer .* got 1.5"):
+            refine_peak([0.0, 1.0, 2.0], [3.0, 4.0, 1.0], 1.5)
+        with pytest.raises(InputError, match="peak index must be an integer .* got True"):
+            refine_peak([0.0, 1.0, 2.0], [3.0, 4.0, 1.0], True)
+        # integers of numpy and torch (an argmax) are indices, as before
+        assert refine_peak([0.0, 1.0, 2.0], [3.0, 4.0, 1.0], np.int64(1)) == (0.75, True)
+        assert refine_peak([0.0, 1.0, 2.0], [3.0, 4.0, 1.0], torch.tensor([3.0, 4.0, 1.0]).argmax()) == (0.75, True)
+
 
 class TestStopRule:
     def feed(self, controller, scores):

@@ -271,6 +271,51 @@ class TestErrors:
             albedo_periodicity(torch.ones(1, 1, 16, 16), PITCH, torch.ones(1, 1, 15, 16, dtype=torch.bool))
         assert valid_pixels(height.expand(2, 1, 16, 16), torch.ones(1, 1, 16, 16)).shape == (2, 1, 16, 16)  # batch 1
 
+    def test_valid_map_misuse_raise(self):
+        from psmini.fabric import height_parameters, hybrid_parameters, spatial_parameters
+
+        surface = torch.randn(1, 1, 16, 16, dtype=torch.float64)
+        calls = {"height_parameters": lambda valid: height_parameters(surface, valid),
+                 "hybrid_parameters": lambda valid: hybrid_parameters(surface, valid, PITCH),
+                 "spatial_parameters": lambda valid: spatial_parameters(surface, valid, PITCH),
+                 "autocorrelation": lambda valid: autocorrelation(surface, valid)}
+        for call in calls.values():
+            # another W: a bare RuntimeError of broadcasting
+            with pytest.raises(ShapeError, match="valid must have the surface's shape \\(1, 1, 16, 16\\) .* got "
+                                                 "\\(1, 1, 16, 15\\)"):
+                call(torch.ones(1, 1, 16, 15, dtype=torch.bool))
+            # a batch of 2 maps for one surface: two results, silently
+            with pytest.raises(ShapeError, match="got \\(2, 1, 16, 16\\)"):
+                call(torch.ones(2, 1, 16, 16, dtype=torch.bool))
+            with pytest.raises(ShapeError, match="got \\(16, 16\\)"):  # broadcasts, but not a (B, 1, H, W) map
+                call(torch.ones(16, 16, dtype=torch.bool))
+            with pytest.raises(ShapeError, match="got list"):
+                call([[True]])
+            # a float map: a bare RuntimeError in height_parameters, weights elsewhere
+            with pytest.raises(InputError, match="valid must be a bool map .* got torch.float64"):
+                call(torch.ones(1, 1, 16, 16, dtype=torch.float64))
+        with pytest.raises(ShapeError, match="surface must have shape"):
+            height_parameters(surface[0], torch.ones(1, 16, 16, dtype=torch.bool))
+        # a batch-1 map serves every surface of a batch, as before
+        two = surface.expand(2, 1, 16, 16)
+        out = height_parameters(two, torch.ones(1, 1, 16, 16, dtype=torch.bool))
+        assert out["Sq"].shape == (2,) and torch.equal(out["Sq"][0], out["Sq"][1])
+        assert autocorrelation(two, torch.ones(1, 1, 16, 16, dtype=torch.bool))[0].shape == (2, 1, 31, 31)
+
+    def test_wrong_argument_types_raise(self):
+        # a height tensor failed as a bare AttributeError ('Tensor' object has no attribute 'mask')
+        with pytest.raises(InputError, match="reconstruction must have depth and mask .* got Tensor without depth "
+                                             "or mask; .*describe\\(height"):
+            describe_reconstruction(torch.zeros(1, 1, 16, 16), PITCH)
+        with pytest.raises(InputError, match="got SimpleNamespace without mask"):
+            describe_reconstruction(SimpleNamespace(depth=torch.zeros(1, 1, 16, 16)), PITCH)
+        # an empty dict failed as a bare KeyError 'iso25178'; a list of entries likewise with a TypeError
+        with pytest.raises(InputError, match="one describe\\(\\) entry, a dict with an iso25178 dict, got a dict "
+                                             "without an iso25178 dict"):
+            descriptor_vector({})
+        with pytest.raises(InputError, match="got list; pass the list's entries one by one"):
+            descriptor_vector([{"iso25178": {}}])
+
     def test_options(self):
         with pytest.raises(InputError, match="shorter"):
             SurfaceOptions(s_cutoff_mm=1.0, l_cutoff_mm=0.5)

@@ -92,6 +92,14 @@ class TestPhotometricStereo(BaseTester):
         with pytest.raises(InputError, match="light model"):
             PhotometricStereo("ring", None)
 
+    def test_distant_light_matrix_of_a_tensor_raise(self):
+        # a tensor of directions failed as a bare TypeError ("'Tensor' object is not callable")
+        with pytest.raises(InputError, match="lights must be a light model .* got Tensor of shape \\(8, 3\\); wrap "
+                                             ".* DirectionalLights"):
+            distant_light_matrix(ring_lights(8, 55.0), True, torch.zeros(1))
+        with pytest.raises(InputError, match="reference must be a tensor .* got float"):
+            distant_light_matrix(DirectionalLights(ring_lights(8, 55.0)), True, 0.0)
+
     def test_reconstruct_tensor_raise(self):
         # a tensor of images for a sample failed as a bare AttributeError ('Tensor' has no attribute 'images')
         with pytest.raises(InputError, match="needs a loaded sample .* got Tensor; .*PhotometricStereo"):

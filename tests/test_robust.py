@@ -118,6 +118,22 @@ class TestWeights(BaseTester):
         with pytest.raises(ShapeError):
             rank_trim_weights(images, weights=torch.ones(1, 7, 2, 2))
 
+    def test_nan_and_too_few_observations_raise(self):
+        images = torch.rand(1, 8, 2, 2)
+        images[0, 3, 1, 1] = float("nan")
+        # threshold_weights dropped every observation of the NaN pixel, rank_trim_weights ranked the NaN: silently
+        with pytest.raises(InputError, match="intensities must be finite, got 1 NaN"):
+            threshold_weights(images)
+        with pytest.raises(InputError, match="intensities must be finite, got 1 NaN"):
+            rank_trim_weights(images)
+        with pytest.raises(InputError, match="intensities must be finite"):  # as robust_normals, weights or not
+            threshold_weights(images, weights=torch.rand(1, 8, 2, 2) > 0.5)
+        # two observations were trimmed without a word, though no normal follows from them
+        with pytest.raises(ShapeError, match="at least 3 observations per pixel .* got intensities of shape "
+                                             "\\(1, 2, 2, 2\\)"):
+            rank_trim_weights(torch.rand(1, 2, 2, 2))
+        assert rank_trim_weights(torch.rand(1, 3, 2, 2)).shape == (1, 3, 2, 2)
+
 
 class TestRobustNormals(BaseTester):
     @pytest.mark.parametrize("method", PER_PIXEL)

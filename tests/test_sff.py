@@ -96,6 +96,15 @@ class TestErrors:
         with pytest.raises(InputError, match="unknown focus measure"):
             depth_from_focus(frames, range(5), "sharpness")
 
+    def test_positions_not_numbers_raise(self):
+        frames = torch.rand(5, 16, 16)
+        # None failed as a bare TypeError of torch ("must be real number, not NoneType")
+        with pytest.raises(InputError, match="positions must be a sequence or a 1-D tensor of the 5 frames' positions "
+                                             "\\(numbers\\), got NoneType"):
+            depth_from_focus(frames, None)
+        with pytest.raises(InputError, match="got list"):
+            depth_from_focus(frames, ["0", "a", "2", "3", "4"])
+
     def test_stack_errors(self):
         with pytest.raises(InputError, match="shape must be one of"):
             shape_height("torus", 8)

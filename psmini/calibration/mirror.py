@@ -148,11 +148,14 @@ def triangulate_leds(placements: Sequence[SphereCalibration]) -> tuple[Tensor, T
         :math:`(K,)` mm.
 
     Raises:
+        InputError: ``placements`` that is not a sequence of :class:`SphereCalibration` (a tensor of directions or
+            points: pass the calibrations themselves).
         CalibrationError: fewer than 2 placements, orthographic ones, different LED counts, parallel rays.
 
     Example:
         >>> positions, residuals = triangulate_leds([first, second])  # doctest: +SKIP
     """
+    _check_placements(placements)
     if len(placements) < 2:
         raise CalibrationError(f"LED positions need at least 2 sphere placements, got {len(placements)}")
     points = [p.points_mm for p in placements if p.points_mm is not None]
@@ -164,6 +167,17 @@ def triangulate_leds(placements: Sequence[SphereCalibration]) -> tuple[Tensor, T
     origins = torch.stack(points, dim=1)
     directions = torch.stack([p.directions for p in placements], dim=1)
     return triangulate_rays(origins, directions)
+
+
+def _check_placements(placements: object) -> None:
+    """A sequence of :class:`SphereCalibration` (a list of tensors failed as a bare AttributeError on points_mm)."""
+    if not isinstance(placements, Sequence):
+        raise InputError(f"placements must be a sequence of SphereCalibration (calibrate_sphere's results), got "
+                         f"{type(placements).__name__}")
+    wrong = [i for i, p in enumerate(placements) if not isinstance(p, SphereCalibration)]
+    if wrong:
+        raise InputError(f"placements must be SphereCalibration s (calibrate_sphere's results), got "
+                         f"{type(placements[wrong[0]]).__name__} at index {wrong[0]}")
 
 
 def card_distance_from_spheres(placements: Sequence[SphereCalibration]) -> float:

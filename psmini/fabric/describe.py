@@ -371,7 +371,8 @@ def describe_reconstruction(reconstruction: Any, pixel_pitch_mm: float, surface:
         one :func:`describe` dict per sample.
 
     Raises:
-        InputError, ShapeError: as :func:`describe`.
+        InputError, ShapeError: as :func:`describe`; an InputError for something that is not a reconstruction (no
+            ``depth`` or ``mask``: a height tensor goes to :func:`describe`).
 
     Example:
         >>> from psmini.result import Reconstruction
@@ -382,6 +383,11 @@ def describe_reconstruction(reconstruction: Any, pixel_pitch_mm: float, surface:
         >>> round(describe_reconstruction(rec, 0.025)[0]["threads_per_cm"][0], 2)
         40.0
     """
+    missing = [name for name in ("depth", "mask") if not hasattr(reconstruction, name)]
+    if missing:  # a height tensor failed as a bare AttributeError
+        raise InputError(f"reconstruction must have depth and mask (a psmini.pipeline.Reconstruction), got "
+                         f"{type(reconstruction).__name__} without {' or '.join(missing)}; describe a height map "
+                         "with describe(height, pixel_pitch_mm, mask)")
     p, q, mask = getattr(reconstruction, "p", None), getattr(reconstruction, "q", None), reconstruction.mask
     structure_height = structure_surface(p, q, pixel_pitch_mm, mask) if p is not None and q is not None else None
     return describe(reconstruction.depth, pixel_pitch_mm, mask, getattr(reconstruction, "albedo", None), surface,
@@ -468,12 +474,16 @@ def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
     repeat and one of regularity a linear model must learn their conjunction; strongly regularised, it leaned on
     amplitudes instead (baskets read as 3/1 twills under shift). ``repeat_min_is_k`` are the smaller repeat's.
 
+    Raises:
+        InputError: an entry that is not a dict with an ``iso25178`` dict (one :func:`describe` entry, not the list
+            of them).
+
     Example:
         >>> entry = {"iso25178": dict.fromkeys(ISO_PARAMETERS, 1.0), "structure_found": False}
         >>> descriptor_vector(entry).shape
         (47,)
     """
-    iso = entry["iso25178"]
+    iso = _iso_of_entry(entry)
 
     def num(x: Any) -> float:
         return float(x) if x is not None and math.isfinite(float(x)) else 0.0
@@ -502,6 +512,17 @@ def descriptor_vector(entry: dict[str, Any]) -> np.ndarray:
     values += [regular * v for v in largest_is] + [(1.0 - regular) * v for v in largest_is]
     values += [float(min(smallest, _REPEAT_CATEGORIES) == k) for k in range(1, _REPEAT_CATEGORIES + 1)]
     return np.asarray(values, dtype=np.float64)
+
+
+def _iso_of_entry(entry: object) -> dict[str, Any]:
+    """The ``iso25178`` dict of one :func:`describe` entry (``{}`` failed as a bare KeyError)."""
+    iso = entry.get("iso25178") if isinstance(entry, dict) else None
+    if not isinstance(iso, dict):
+        got = (f"a dict without an iso25178 dict (keys: {list(entry)[:6]})" if isinstance(entry, dict)
+               else type(entry).__name__)
+        raise InputError(f"entry must be one describe() entry, a dict with an iso25178 dict, got {got}"
+                         + ("; pass the list's entries one by one" if isinstance(entry, list) else ""))
+    return iso
 
 
 @dataclass(frozen=True)

@@ -174,15 +174,33 @@ def valid_pixels(height: Tensor, mask: Tensor | None = None) -> Tensor:
     """
     valid = torch.isfinite(height)
     if mask is not None:
-        try:
-            fits = isinstance(mask, Tensor) and torch.broadcast_shapes(mask.shape, height.shape) == height.shape
-        except RuntimeError:  # sizes that do not broadcast at all
-            fits = False
-        if not fits:
-            got = tuple(mask.shape) if isinstance(mask, Tensor) else type(mask).__name__
-            raise ShapeError(f"mask must have the height's shape {tuple(height.shape)} (or batch 1), got {got}")
+        _check_fits(mask, height, "mask", "height")
         valid = valid & mask.bool()
     return valid
+
+
+def _check_fits(x: object, like: Tensor, name: str, like_name: str, same_ndim: bool = False) -> None:
+    """Raise :class:`ShapeError` unless ``x`` is a tensor that broadcasts to ``like``'s shape without enlarging it
+    (another H or W failed as a bare RuntimeError of broadcasting; a larger batch gave more results than heights);
+    ``same_ndim``: with as many dimensions too (a batch of 1 stays a batch of 1: ``(1, 1, H, W)``)."""
+    try:
+        fits = (isinstance(x, Tensor) and (not same_ndim or x.ndim == like.ndim)
+                and torch.broadcast_shapes(x.shape, like.shape) == like.shape)
+    except RuntimeError:  # sizes that do not broadcast at all
+        fits = False
+    if not fits:
+        got = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+        raise ShapeError(f"{name} must have the {like_name}'s shape {tuple(like.shape)} (or batch 1), got {got}")
+
+
+def _check_valid(surface: Tensor, valid: Tensor) -> None:
+    """Guards of the functions that take a precomputed valid-pixel map: a :math:`(B, 1, H, W)` surface and a bool
+    map of its shape (or batch 1)."""
+    check_shape(surface, ["B", "1", "H", "W"], "surface")
+    _check_fits(valid, surface, "valid", "surface", same_ndim=True)
+    if valid.dtype != torch.bool:
+        raise InputError(f"valid must be a bool map (the valid pixels scale_limited_surface or valid_pixels return), "
+                         f"got {valid.dtype}; turn a 0/1 map into one with valid > 0")
 
 
 def _masked_mean(x: Tensor, weight: Tensor) -> Tensor:
@@ -349,16 +367,22 @@ def height_parameters(surface: Tensor, valid: Tensor) -> dict[str, Tensor]:
 
     Args:
         surface: scale-limited surface :math:`(B, 1, H, W)` (:func:`scale_limited_surface`).
-        valid: :math:`(B, 1, H, W)` bool.
+        valid: :math:`(B, 1, H, W)` bool (or :math:`(1, 1, H, W)`: the same pixels for every surface).
 
     Returns:
         ``{"Sq", "Ssk", "Sku", "Sp", "Sv", "Sz", "Sa"}``, each :math:`(B,)`.
+
+    Raises:
+        ShapeError: a surface that is not :math:`(B, 1, H, W)`, or a ``valid`` map of another shape (another H or W,
+            a larger batch; batch 1 applies to every surface).
+        InputError: a ``valid`` map that is not bool.
 
     Example:
         >>> z = torch.tensor([1.0, -1.0, 1.0, -1.0]).view(1, 1, 2, 2)
         >>> {k: float(v) for k, v in height_parameters(z, z != 0).items()}["Sku"]
         1.0
     """
+    _check_valid(surface, valid)
     weight = valid.to(surface.dtype)
     mean = _masked_mean(surface, weight).view(-1, 1, 1, 1)
     z = (surface - mean) * weight
@@ -402,20 +426,24 @@ def hybrid_parameters(surface: Tensor, valid: Tensor, pixel_pitch_mm: float) -> 
 
     Args:
         surface: :math:`(B, 1, H, W)`, mm.
-        valid: :math:`(B, 1, H, W)` bool.
+        valid: :math:`(B, 1, H, W)` bool (or :math:`(1, 1, H, W)`: the same pixels for every surface).
         pixel_pitch_mm: pixel size, mm.
 
     Returns:
         ``{"Sdq", "Sdr"}``, each :math:`(B,)`.
 
     Raises:
-        InputError: when a sample has no pixel with a full stencil (thinner than 5 pixels, or too few valid).
+        InputError: when a sample has no pixel with a full stencil (thinner than 5 pixels, or too few valid), or
+            the ``valid`` map is not bool.
+        ShapeError: a surface that is not :math:`(B, 1, H, W)`, or a ``valid`` map of another shape (another H or W,
+            a larger batch).
 
     Example:
         >>> ramp = (torch.arange(16.0) * 0.5).view(1, 1, 1, 16).expand(1, 1, 16, 16)
         >>> round(float(hybrid_parameters(ramp, ramp >= 0, 1.0)["Sdq"]), 6)
         0.5
     """
+    _check_valid(surface, valid)
     zx, zy, inside = _gradients(surface, valid, pixel_pitch_mm)
     if bool((~inside.flatten(1).any(1)).any()):
         raise InputError("no pixel has the 5x5 neighbourhood of valid pixels that the gradients need")
@@ -436,17 +464,23 @@ def autocorrelation(surface: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
 
     Args:
         surface: :math:`(B, 1, H, W)`, zero-mean over ``valid``.
-        valid: :math:`(B, 1, H, W)` bool.
+        valid: :math:`(B, 1, H, W)` bool (or :math:`(1, 1, H, W)`: the same pixels for every surface).
 
     Returns:
         the ACF :math:`(B, 1, 2H-1, 2W-1)` with lag (0, 0) at index (H-1, W-1) (row lag grows downward), and the
         overlap counts of the same shape.
+
+    Raises:
+        ShapeError: a surface that is not :math:`(B, 1, H, W)`, or a ``valid`` map of another shape (another H or W,
+            a larger batch; batch 1 applies to every surface).
+        InputError: a ``valid`` map that is not bool.
 
     Example:
         >>> acf, _ = autocorrelation(torch.randn(1, 1, 8, 8), torch.ones(1, 1, 8, 8, dtype=torch.bool))
         >>> acf.shape, round(float(acf[0, 0, 7, 7]), 6)
         (torch.Size([1, 1, 15, 15]), 1.0)
     """
+    _check_valid(surface, valid)
     b, _, h, w = surface.shape
     weight = valid.to(surface.dtype)
     size = (2 * h, 2 * w)
@@ -511,7 +545,7 @@ def spatial_parameters(surface: Tensor, valid: Tensor, pixel_pitch_mm: float, th
 
     Args:
         surface: :math:`(B, 1, H, W)`, mm, zero-mean over ``valid``.
-        valid: :math:`(B, 1, H, W)` bool.
+        valid: :math:`(B, 1, H, W)` bool (or :math:`(1, 1, H, W)`: the same pixels for every surface).
         pixel_pitch_mm: pixel size, mm.
         threshold: the ACF level ``s`` (0 < s < 1).
         directions: rays over 180°.
@@ -519,6 +553,11 @@ def spatial_parameters(surface: Tensor, valid: Tensor, pixel_pitch_mm: float, th
     Returns:
         ``{"Sal", "Str", "Std"}``, each :math:`(B,)`; ``Sal`` is infinite when the ACF never decays to ``s``
         within half the field.
+
+    Raises:
+        InputError: a ``threshold`` outside (0, 1), or a ``valid`` map that is not bool.
+        ShapeError: a surface that is not :math:`(B, 1, H, W)`, or a ``valid`` map of another shape (another H or W,
+            a larger batch).
 
     Example:
         >>> x = torch.arange(64.0)
@@ -529,6 +568,7 @@ def spatial_parameters(surface: Tensor, valid: Tensor, pixel_pitch_mm: float, th
     """
     if not 0 < threshold < 1:
         raise InputError(f"threshold must lie in (0, 1), got {threshold!r}")
+    _check_valid(surface, valid)
     b, _, h, w = surface.shape
     acf, _ = autocorrelation(surface, valid)
     lengths = _decay_lengths(acf, threshold, directions, h, w) * pixel_pitch_mm  # (B, A)

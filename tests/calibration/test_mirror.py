@@ -73,3 +73,13 @@ def test_bad_input(placements):
     images[2] = render.dark[0]  # LED 2 did not light
     with pytest.raises(CalibrationError, match="LED 2.*no highlight"):
         calibrate_sphere(images, dark=render.dark, mask=render.mask)
+
+
+def test_triangulate_leds_wrong_types_raise():
+    # a list of tensors (the directions or points) failed as a bare AttributeError ('Tensor' has no 'points_mm')
+    with pytest.raises(InputError, match="SphereCalibration s .* got Tensor at index 0"):
+        triangulate_leds([torch.zeros(8, 3), torch.zeros(8, 3)])
+    with pytest.raises(InputError, match="sequence of SphereCalibration .* got Tensor"):
+        triangulate_leds(torch.zeros(2, 8, 3))
+    with pytest.raises(InputError, match="sequence of SphereCalibration .* got NoneType"):
+        triangulate_leds(None)
