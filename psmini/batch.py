@@ -458,6 +458,22 @@ def _check_arguments(root: str | Path, batch_size: int, workers: int, config: Re
     return root, device
 
 
+def _check_out(out: Path) -> Path:
+    """``out`` when it can become the output folder, checked before any work (it is created only when samples are
+    written): a file at ``out`` or at a folder above it, or a read-only folder above it, would fail the run only
+    after every sample was solved."""
+    if out.exists() and not out.is_dir():
+        raise DataFormatError(f"the output folder {out} exists and is not a folder")
+    above = out
+    while not above.exists() and above != above.parent:
+        above = above.parent
+    if not above.is_dir():
+        raise DataFormatError(f"cannot create the output folder {out}: {above} is a file, not a folder")
+    if not os.access(above, os.W_OK | os.X_OK):
+        raise DataFormatError(f"cannot create the output folder {out}: {above} is not writable")
+    return out
+
+
 def _samples_under(root: Path) -> tuple[list[Path], dict[str, str]]:
     """The sample folders under ``root`` (links followed) and the links that could not be followed, by the path
     relative to ``root`` (each becomes a failed sample of the summary: the other samples go on)."""
@@ -683,7 +699,8 @@ def reconstruct_dataset(
             ``config``, CUDA asked for and absent (here; on Dask workers the samples fail instead), both
             ``scheduler`` and ``client``, a bad ``local:N``, a scheduler that cannot be reached or has no worker,
             dask.distributed not installed.
-        DataFormatError: ``out`` cannot be written.
+        DataFormatError: ``out`` cannot be written: a file at it or above it, a read-only folder above it (checked
+            before any work).
 
     Example:
         >>> summary = reconstruct_dataset("captures", "reconstructions", batch_size=4, workers=2)  # doctest: +SKIP
@@ -701,7 +718,7 @@ def reconstruct_dataset(
         from psmini._dask import parse_scheduler
 
         parse_scheduler(scheduler)  # a malformed local:N fails before any work
-    out = Path(out)
+    out = _check_out(Path(out))
     folders, problems = _samples_under(root)
     records: dict[str, BatchRecord] = {}
     for rel, message in problems.items():  # dangling links and cycles: failed, the others go on

@@ -88,11 +88,15 @@ def load_for_description(path: Path, config) -> SimpleNamespace:
         depth_file, outputs = path / "depth.npy", path / "outputs.json"
         if not depth_file.is_file():
             raise DataFormatError(f"{path} has outputs.json but no depth.npy: nothing to describe")
+        from psmini.io._npy import read_npy
+
+        depth = read_npy(depth_file, "depth")  # empty or cut short: a DataFormatError naming it
         try:
-            depth = np.load(depth_file)
             meta = json.loads(outputs.read_text(encoding="utf-8")) if outputs.is_file() else {}
         except (OSError, ValueError) as error:
             raise DataFormatError(f"cannot read the reconstruction in {path}: {error}") from error
+        if not isinstance(meta, dict):
+            raise DataFormatError(f"{outputs} must hold a JSON object, got {type(meta).__name__}")
         if depth.ndim != 2:
             raise DataFormatError(f"{depth_file} must hold an (H, W) array, got shape {depth.shape}")
         pitch = meta.get("pixel_pitch_mm")

@@ -43,10 +43,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _read_normals(path: Path) -> np.ndarray:
     """Normals ``(H, W, 3)`` float32 from ``.npy`` or a PNG (DiLiGenT_depth encoding)."""
     if path.suffix.lower() == ".npy":
-        try:
-            array = np.load(path)
-        except (OSError, ValueError) as error:
-            raise DataFormatError(f"cannot read normals {path}: {error}") from error
+        from psmini.io._npy import read_npy
+
+        array = read_npy(path, "normals")
         if array.ndim == 3 and array.shape[0] == 3 and array.shape[-1] != 3:
             array = np.moveaxis(array, 0, -1)
         if array.ndim != 3 or array.shape[-1] != 3:
@@ -62,14 +61,18 @@ def _read_normals(path: Path) -> np.ndarray:
 
 def _read_mask(path: Path, height: int, width: int) -> np.ndarray:
     if path.suffix.lower() == ".npy":
-        mask = np.load(path)
+        from psmini.io._npy import read_npy
+
+        mask = read_npy(path, "mask")
     else:
         from psmini.io.images import read_image_raw
 
         mask, _ = read_image_raw(path)
-    mask = mask.any(axis=-1) if mask.ndim == 3 else mask
+    if mask.ndim == 3:
+        mask = np.asarray(mask.any(axis=-1))
     if mask.shape != (height, width):
-        raise DataFormatError(f"mask {path} is {mask.shape[1]}x{mask.shape[0]}, the normals {width}x{height}")
+        got = f"{mask.shape[1]}x{mask.shape[0]}" if mask.ndim == 2 else f"of shape {mask.shape}"
+        raise DataFormatError(f"mask {path} is {got}, the normals {width}x{height}")
     return mask != 0
 
 
@@ -107,8 +110,9 @@ def run(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - start
     out = depth[0, 0].cpu().numpy().astype(np.float32)
     out[~mask] = np.nan
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    np.save(args.out, out)
+    from psmini.io._npy import save_npy
+
+    save_npy(args.out, out)  # atomically: an interrupted run leaves no half-written depth
     what = "depth along the optical axis (up to scale)" if k is not None else "height (mm, up to an offset)"
     print(f"{args.normals} -> {args.out}: {what}, {width}x{height}, method {args.method}, {elapsed:.2f} s")
     if args.json:

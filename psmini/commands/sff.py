@@ -61,9 +61,9 @@ def _load(stack: Path):
     from psmini.errors import DataFormatError
 
     if stack.suffix == ".npy":
-        if not stack.is_file():
-            raise DataFormatError(f"{stack} does not exist")
-        array = np.load(stack)
+        from psmini.io._npy import read_npy
+
+        array = read_npy(stack, "focus stack")
         if array.ndim != 3:
             raise DataFormatError(f"{stack} must hold an (N, H, W) array, got shape {array.shape}")
         if array.dtype not in (np.uint8, np.uint16):
@@ -76,6 +76,7 @@ def _load(stack: Path):
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from psmini.io._npy import save_npy
     from psmini.sff import SFFConfig, depth_from_focus
 
     device = resolve_device(args.device)
@@ -89,11 +90,10 @@ def run(args: argparse.Namespace) -> int:
                               SFFConfig(interpolation=args.interpolation, aggregation=args.median))
     depth = result.depth if args.focal_plane is None else result.surface_height(args.focal_plane)
     out = depth.cpu().numpy()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    np.save(args.out, out)
     reliability = result.reliability.cpu().numpy()
+    save_npy(args.out, out)  # atomically: an interrupted run leaves no half-written file
     if args.reliability is not None:
-        np.save(args.reliability, reliability)
+        save_npy(args.reliability, reliability)
     kind = "height" if args.focal_plane is not None else "position of best focus"
     print(f"{args.out}: {kind}, {out.shape[0]}×{out.shape[1]}, {frames.shape[0]} frames, {args.metric} window "
           f"{args.window}; range {out.min():.4g} .. {out.max():.4g} {unit}; reliability median "

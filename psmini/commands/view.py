@@ -31,9 +31,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _read(out: Path):
     """Depth, albedo (or None), pitch and depth units of a reconstruction folder."""
-    import numpy as np
-
     from psmini.errors import DataFormatError, InputError
+    from psmini.io._npy import read_npy
     from psmini.io.images import read_image
 
     if not out.is_dir():
@@ -41,19 +40,19 @@ def _read(out: Path):
     depth_file = out / "depth.npy"
     if not depth_file.is_file():
         raise DataFormatError(f"{out} holds no depth.npy: not a reconstruction folder (psmini reconstruct --out)")
-    try:
-        depth = np.load(depth_file)
-    except (OSError, ValueError) as error:
-        raise DataFormatError(f"cannot read {depth_file}: {error}") from error
+    depth = read_npy(depth_file, "depth")  # empty or cut short: a DataFormatError naming it
     if depth.ndim != 2:
         raise DataFormatError(f"{depth_file} must hold an (H, W) array, got shape {depth.shape}")
     pitch = None
     summary_file = out / "outputs.json"
     if summary_file.is_file():
         try:
-            pitch = json.loads(summary_file.read_text(encoding="utf-8")).get("pixel_pitch_mm")
+            summary = json.loads(summary_file.read_text(encoding="utf-8"))
         except (OSError, ValueError) as error:
             raise DataFormatError(f"cannot read {summary_file}: {error}") from error
+        if not isinstance(summary, dict):
+            raise DataFormatError(f"{summary_file} must hold a JSON object, got {type(summary).__name__}")
+        pitch = summary.get("pixel_pitch_mm")
     albedo = read_image(out / "albedo.png")[0] if (out / "albedo.png").is_file() else None
     if albedo is not None and albedo.ndim == 3:
         albedo = albedo.mean(axis=2)

@@ -25,6 +25,7 @@ from torch import Tensor
 
 from psmini.errors import DataFormatError, InputError, PsminiError
 from psmini.io._atomic import atomic_folder
+from psmini.io._npy import read_npy
 from psmini.io.images import read_gray, read_image_stack, rgb_to_gray, write_image
 from psmini.lights import LightModel, lights_from_dict, lights_to_dict
 
@@ -281,9 +282,9 @@ def _read_gt(folder: Path, entries: dict[str, Any], height: int, width: int) -> 
             continue
         path = _existing(folder, value, f"ground truth {key}")
         try:
-            array = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as error:
-            raise _fail(folder, f"cannot read ground truth {value!r}: {error}") from error
+            array = read_npy(path, "ground truth")  # empty, cut short or foreign: a DataFormatError
+        except DataFormatError as error:
+            raise _fail(folder, str(error)) from error
         expected = (3, height, width) if key == "normals" else (height, width)
         if array.shape != expected:
             raise _fail(folder, f"ground truth {value!r} must have shape {expected}, got {array.shape}")

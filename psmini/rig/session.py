@@ -362,9 +362,12 @@ def write_with_card(folder: str | Path, session: CaptureSession, sample: Acquisi
     folder = Path(folder)
     if folder.exists() and not overwrite:
         raise DataFormatError(f"{folder} already exists; pass overwrite=True (--overwrite) to replace it")
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    staging = folder.parent / f".{folder.name}.staging-{secrets.token_hex(4)}"
-    staging.mkdir()
+    try:
+        folder.parent.mkdir(parents=True, exist_ok=True)
+        staging = folder.parent / f".{folder.name}.staging-{secrets.token_hex(4)}"
+        staging.mkdir()
+    except OSError as error:  # a file where a folder of the path should be, a read-only folder
+        raise DataFormatError(f"cannot create a folder beside {folder}: {error}") from error
     try:
         staged = staging / folder.name
         session.write(staged, sample, flatfield={"path": "card", "albedo": card_albedo}, gt=gt, metadata=metadata)

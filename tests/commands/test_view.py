@@ -50,6 +50,19 @@ def test_errors(tmp_path, capsys):
     assert "no depth.npy" in capsys.readouterr().err
 
 
+def test_corrupt_reconstruction_files(out, tmp_path, capsys):
+    """An empty depth.npy raised numpy's EOFError and an outputs.json holding a list an AttributeError: tracebacks."""
+    (out / "outputs.json").write_text("[1, 2]")
+    assert main(["view", str(out), "--html", str(tmp_path / "x.html")]) == 1
+    err = capsys.readouterr().err
+    assert "outputs.json must hold a JSON object, got list" in err and "Traceback" not in err
+    (out / "depth.npy").write_bytes(b"")
+    assert main(["view", str(out), "--html", str(tmp_path / "x.html")]) == 1
+    err = capsys.readouterr().err
+    assert "cannot read depth" in err and "depth.npy: the file is empty" in err and "Traceback" not in err
+    assert not (tmp_path / "x.html").exists()
+
+
 def _chromium() -> str | None:
     return shutil.which("chromium") or shutil.which("chromium-browser")
 

@@ -371,6 +371,16 @@ class TestReadErrors:
         with pytest.raises(DataFormatError, match="cannot read ground truth"):
             read_capture(tmp_path / "s")
 
+    def test_empty_ground_truth_file_names_it(self, tmp_path):
+        """A zero-byte .npy (a copy cut off) made numpy raise EOFError, which is no psmini error: a traceback from
+        the CLI, and a batch run that ended at that sample."""
+        write_capture(tmp_path / "s", codes(16), directional(), pixel_pitch_mm=0.025, gt={"depth": np.zeros((H, W))})
+        (tmp_path / "s" / "gt" / "depth.npy").write_bytes(b"")
+        with pytest.raises(DataFormatError, match=r"capture\.json: cannot read ground truth .*depth\.npy: the file is "
+                           "empty or cut short"):
+            read_capture(tmp_path / "s")
+        assert read_capture(tmp_path / "s", ground_truth=False).gt == {}
+
     def test_flatfield_reference_missing(self, sample_folder):
         _edit(sample_folder, flatfield={"path": "../card"})
         with pytest.raises(DataFormatError, match="flatfield reference '../card' is not a readable capture"):

@@ -26,6 +26,14 @@ def test_round_trip(tmp_path):
         write_lights_file(path, PointLights(positions))
 
 
+def test_write_under_a_file_is_a_data_format_error(tmp_path):
+    """A path whose folder is a file raised FileExistsError from mkdir (a traceback from psmini calibrate)."""
+    (tmp_path / "calibration").write_text("not a folder")
+    with pytest.raises(DataFormatError, match=r"cannot write .*lights\.json: cannot create a file in"):
+        write_lights_file(tmp_path / "calibration" / "lights.json", DirectionalLights(ring_lights(8, 55.0)))
+    assert [p.name for p in tmp_path.iterdir()] == ["calibration"]
+
+
 def test_bad_files(tmp_path):
     path = tmp_path / "lights.json"
     with pytest.raises(DataFormatError, match="does not exist"):

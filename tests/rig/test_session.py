@@ -164,3 +164,15 @@ def test_session_guards():
                 CaptureSession(leds, camera, rig.lights).acquire("focus")
     with pytest.raises(RigError, match="at least 3 LEDs"):
         nominal_ring_lights(2)
+
+
+def test_write_with_card_under_a_file_is_a_data_format_error(tmp_path):
+    """A folder path under a file raised FileExistsError from mkdir: a traceback from psmini capture, after the
+    whole acquisition."""
+    from types import SimpleNamespace
+
+    (tmp_path / "captures").write_text("not a folder")
+    with pytest.raises(DataFormatError, match=r"cannot create a folder beside .*captures/jute"):
+        write_with_card(tmp_path / "captures" / "jute", None, SimpleNamespace(kind="sample"),  # type: ignore[arg-type]
+                        SimpleNamespace(kind="flatfield"), card_albedo=CARD_ALBEDO)  # type: ignore[arg-type]
+    assert [p.name for p in tmp_path.iterdir()] == ["captures"]
