@@ -619,11 +619,17 @@ def write_synthetic_capture(
     sample_dir = out_dir / fabric_name
     if sample_dir.exists() and not overwrite:  # before anything is rendered or written
         raise DataFormatError(f"{sample_dir} already exists; pass overwrite=True (--overwrite) to replace it")
+    existing = next(folder for folder in (out_dir, *out_dir.parents) if folder.exists())
+    if not existing.is_dir():  # a file where a folder of the path should be: found before rendering, not after
+        raise DataFormatError(f"cannot write into {out_dir}: {existing} is a file, not a folder")
     # as the manifest will hold it (JSON: tuples come back as lists), to compare with a card already there
     rig = json.loads(json.dumps({"light_model": light_model, "rig": dataclasses.asdict(config)}))
     card_dir, card_seed = out_dir / "card", _reusable_card_seed(out_dir / "card", rig, overwrite)
     capture = render_capture(fabric, config, seed, height_offset_mm, lights=lights)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as error:  # a folder that cannot be written
+        raise DataFormatError(f"cannot create the folder {out_dir}: {error}") from error
     camera = {"model": "orthographic", "simulated": True, "bit_depth": config.bit_depth,
               "exposure": config.exposure, "vignetting": config.vignetting}
     if card_seed is None:

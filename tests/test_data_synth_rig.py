@@ -194,6 +194,16 @@ def test_synthetic_captures_share_one_card(tmp_path):
     assert load_sample(tmp_path / "silk").reference.shape[-1] == 48
 
 
+def test_output_under_a_file(tmp_path):
+    """`psmini synth jute --out afile/x` failed with a FileExistsError traceback after rendering; now a
+    DataFormatError naming the file, before any rendering, and nothing written."""
+    (tmp_path / "afile").write_text("not a folder")
+    for out in (tmp_path / "afile", tmp_path / "afile" / "x"):
+        with pytest.raises(DataFormatError, match="afile is a file, not a folder"):
+            write_synthetic_capture(out, "jute", size=32)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+
+
 def test_errors():
     with pytest.raises(InputError, match="led_count"):
         RigConfig(led_count=2)
