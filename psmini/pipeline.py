@@ -135,7 +135,7 @@ class PhotometricStereo(nn.Module):
 
     Raises:
         InputError: a configuration that does not fit the lights (near light without positions), near light
-            without a pixel pitch.
+            without a pixel pitch; on a call, a batch item where the distant solver solves no pixel (dark images).
 
     Example:
         >>> from psmini.lights import LEDLights, ring_lights
@@ -218,6 +218,7 @@ class PhotometricStereo(nn.Module):
         # least squares' albedo is a length (finite, >= 0): its cast to bool is the test > 0, in 0.22 ms where the
         # comparison took 0.76 ms on a batch of 8 x 400^2 (one thread); other estimators' fitted albedo is compared
         solved = albedo.bool() if self.estimator == "lstsq" else albedo > 0
+        _check_some_solved(solved, mask is not None)
         integrator = config.integrator_for(self.solver, mask is not None)
         depth = integrate(p, q, integrator, self.pixel_pitch_mm or 1.0, solved, **config.integrator_options)
         return Reconstruction(albedo, normals, p, q, depth, solved)
@@ -271,6 +272,17 @@ class PhotometricStereo(nn.Module):
                 return _solve_with_pinv(flat.images, pinv, None if mask is None else mask.bool(), out=into)
             return albedo_normals(flat.images, matrix, mask, weights, out=into)
         return NORMAL_ESTIMATORS[self.estimator](flat.images, matrix, mask, weights, config.estimator_options)
+
+
+def _check_some_solved(solved: Tensor, masked: bool) -> None:
+    """Refuse a batch item without any solved pixel: it failed in the integrator as "mask must select at least one
+    pixel ..., got an empty mask", a mask the caller had not given (all-zero images)."""
+    empty = ~solved.flatten(1).any(dim=1)
+    if bool(empty.any()):
+        where = " inside the mask" if masked else ""
+        raise InputError(f"no pixel could be solved{where} in batch item(s) {empty.nonzero().flatten().tolist()}: "
+                         "every pixel there has albedo 0 (dark images, readings all 0, or fewer than three usable "
+                         "lights), so there is nothing to integrate")
 
 
 def _assemble(parts: list[slice], solve: Callable[[slice, tuple[Tensor, Tensor] | None], tuple[Tensor, Tensor]]

@@ -501,6 +501,14 @@ def _low_rank(values: Tensor, observed: Tensor, iterations: int, weight: float |
     weight = weight or 1.0 / max(values.shape) ** 0.5
     # ||D||_2 from the largest eigenvalue of D D^T
     spectral = torch.linalg.eigvalsh((values @ values.T).to(torch.float64))[-1].clamp_min(0).sqrt().to(values.dtype)
+    if not bool(spectral > torch.finfo(values.dtype).tiny ** 0.5):
+        # all zero, or so faint that D D^T underflows and the penalty 1.25 / ||D||_2 overflows within the iterations
+        # (inf * 0 = NaN, then a bare LinAlgError of eigh): the iteration is equivariant to the scale of D, so run it
+        # on D / max |D|; a zero matrix is its own low-rank part
+        scale = values.abs().amax()
+        if not bool(scale > 0):
+            return values
+        return _low_rank(values / scale, observed, iterations, weight) * scale
     spectral = spectral + torch.finfo(values.dtype).tiny
     multiplier = values / torch.maximum(spectral, values.abs().amax() / weight)  # dual start of Lin et al.
     penalty = 1.25 / spectral

@@ -21,10 +21,13 @@ from psmini.fabric import (
     descriptor_vector,
     fabric_structure,
     gaussian_filter,
+    height_parameters,
     iso25178,
     remove_form,
     scale_limited_surface,
+    spatial_parameters,
     structure_row,
+    structure_spectrum,
     structure_surface,
     valid_pixels,
 )
@@ -227,6 +230,31 @@ class TestPreparation(BaseTester):
         assert acf.shape == (2, 1, 17, 13)
         torch.testing.assert_close(acf[:, 0, 8, 6], torch.ones(2, device=device))
         assert float(count[0, 0, 8, 6]) == 63
+
+    def test_gradcheck_filters(self):
+        gen = torch.Generator().manual_seed(0)
+        z = (torch.rand(1, 1, 10, 10, generator=gen, dtype=torch.float64) * 0.01).requires_grad_()
+        mask = torch.ones(1, 1, 10, 10, dtype=torch.bool)
+        mask[..., :2, :3] = False
+        self.gradcheck(lambda h: remove_form(h, mask, degree=2), (z,))
+        self.gradcheck(lambda h: gaussian_filter(h, 0.1, 0.02, mask), (z,))
+        options = SurfaceOptions(form_degree=1, s_cutoff_mm=0.05, l_cutoff_mm=0.15)  # F, S and L operators
+        self.gradcheck(lambda h: scale_limited_surface(h, 0.02, mask, options)[0], (z,))
+
+    def test_gradcheck_parameters(self):
+        # seeded: Sp and Sv are a max and a min, Sal the first crossing along rays: one draw keeps every kink away
+        gen = torch.Generator().manual_seed(0)
+        z = (torch.rand(1, 1, 10, 10, generator=gen, dtype=torch.float64) * 0.01).requires_grad_()
+        valid = torch.ones(1, 1, 10, 10, dtype=torch.bool)
+        self.gradcheck(lambda h: torch.stack([height_parameters(h, valid)[k] for k in ("Sp", "Sv", "Sz")]), (z,))
+        self.gradcheck(lambda h: autocorrelation(h - h.mean(), valid)[0], (z,))
+        # Sal: documented differentiable in iso25178 (Str and Std are a ratio of first crossings and an argmax)
+        self.gradcheck(lambda h: spatial_parameters(h - h.mean(), valid, 0.02, directions=16)["Sal"], (z,))
+        self.gradcheck(lambda h: iso25178(h, 0.02, options=SurfaceOptions(directions=16))["Sal"], (z,))
+
+    def test_gradcheck_structure_spectrum(self):
+        z = (torch.rand(1, 1, 4, 4, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 0.01)
+        self.gradcheck(lambda h: structure_spectrum(h, 0.02)[0], (z.requires_grad_(),))
 
     def test_cuda_matches_cpu(self, cuda_device):
         x, y = grid(128)

@@ -121,6 +121,12 @@ class TestFlatField(BaseTester):
         reference = (torch.rand(3, 3, 3, dtype=torch.float64) + 0.5).requires_grad_()
         self.gradcheck(lambda i, r: flatfield(i, r, card_albedo=0.8).images, (images, reference))
 
+    def test_gradcheck_module(self):
+        module = FlatField(torch.rand(3, 3, 3, dtype=torch.float64) + 0.5, card_albedo=0.8)
+        images = torch.rand(1, 3, 3, 3, dtype=torch.float64, requires_grad=True)
+        dark = torch.full((1, 1, 3, 3), 0.01, dtype=torch.float64, requires_grad=True)
+        self.gradcheck(lambda i, d: module(i, d).images, (images, dark))
+
     def test_saturated_card_unsaturated_images(self, device, dtype):
         # no image reaches the level (the one-read shortcut), but the card does at one pixel: only the card decides
         images = torch.rand(2, 4, 5, 6, device=device, dtype=dtype) * 0.9

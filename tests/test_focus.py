@@ -222,6 +222,10 @@ class TestBehaviour(BaseTester):
         self.assert_close(module(frames), gaussian_derivative(frames[:, 2:22, 2:22], sigma=1.2))
         assert "gaussian" in repr(module)
 
+    def test_gradcheck_module(self):
+        frames = (torch.rand(2, 9, 10, dtype=torch.float64) * 0.8 + 0.1).requires_grad_()
+        self.gradcheck(FocusMeasure("gaussian", roi=(1, 1, 8, 7), sigma=0.6), (frames,))
+
     def test_vollath_blur_lowers_score_of_band_limited_texture(self, device):
         # Vollath's F4 is lag-1 minus lag-2 autocorrelation: on white noise both are ~0 and a little blur raises
         # the lag-1 term first; on a texture with a finite correlation length (any real image) blur lowers it.

@@ -221,6 +221,10 @@ class TestLocal(BaseTester):
         torch.testing.assert_close(FocusVolume("LAPD", window=5)(frames), focus_volume(frames, "LAPD", 5))
         assert "LAPD" in repr(FocusVolume("LAPD", window=5))
 
+    def test_gradcheck_module(self):
+        frames = (torch.rand(1, 9, 10, dtype=torch.float64) * 0.8 + 0.1).requires_grad_()
+        self.gradcheck(FocusVolume("LAPD", window=3), (frames,))
+
 
 class TestGradients(BaseTester):
     @pytest.mark.parametrize("code", [c for c in CODES if c != "HISE"])

@@ -429,6 +429,12 @@ class TestIntegrateNormals(BaseTester):
         normals = (normals + 0.05 * torch.rand_like(normals)).requires_grad_()
         self.gradcheck(lambda n: integrate_normals(n, "dct", intrinsics=k), (normals,))
 
+    def test_gradcheck_orthographic_and_log_gradients(self):
+        k, normals, _ = perspective_plane(4, 5, "cpu", torch.float64)
+        normals = (normals + 0.05 * torch.rand_like(normals)).requires_grad_()
+        self.gradcheck(lambda n: perspective_log_gradients(n, k), (normals,))
+        self.gradcheck(lambda n: integrate_normals(n, "fc", pixel_pitch_mm=0.3), (normals,))
+
     def test_errors(self):
         n = torch.zeros(1, 3, 8, 8)
         n[:, 2] = 1
@@ -440,6 +446,22 @@ class TestIntegrateNormals(BaseTester):
             integrate_normals(n, intrinsics=torch.diag(torch.tensor([0.0, 1.0, 1.0])))
         with pytest.raises(InputError, match="masked"):
             integrate_normals(n, method="nope")
+
+
+class TestDispatchAndModules(BaseTester):
+    @pytest.mark.parametrize("method", ["fc", "dct", "masked"])
+    def test_gradcheck_integrate(self, method):
+        generator = torch.Generator().manual_seed(0)
+        p, q = (torch.rand(2, 1, 1, 4, 5, generator=generator, dtype=torch.float64) - 0.5).requires_grad_()
+        mask = torch.ones(1, 1, 4, 5, dtype=torch.bool)
+        mask[..., 0, :2] = False
+        self.gradcheck(lambda a, b: integrate(a, b, method, 0.3, mask), (p, q))
+
+    @pytest.mark.parametrize("module", [FrankotChellappa(0.3), DCTPoisson(0.3), MaskedLeastSquares(0.3)], ids=repr)
+    def test_gradcheck_module(self, module):
+        generator = torch.Generator().manual_seed(0)
+        p, q = (torch.rand(2, 1, 1, 4, 5, generator=generator, dtype=torch.float64) - 0.5).requires_grad_()
+        self.gradcheck(module, (p, q))
 
 
 def test_package_is_callable():

@@ -21,6 +21,7 @@ from psmini import (
     LightModel,
     PointLights,
     ShapeError,
+    as_batched_lights,
     check_spans_3d,
     light_model_class,
     lights_from_dict,
@@ -76,6 +77,15 @@ class TestSpans3d:
     def test_bad_shape_raise(self):
         with pytest.raises(ShapeError, match=r"\(K, 3\)"):
             check_spans_3d(torch.rand(4, 2))
+
+
+class TestAsBatchedLights(BaseTester):
+    def test_gradcheck(self):
+        lights = ring_lights(4, 45.0, dtype=torch.float64).requires_grad_()
+        reference = torch.zeros(1, dtype=torch.float64)
+        self.gradcheck(lambda lit: as_batched_lights(lit, 2, reference), (lights,))
+        batched = torch.rand(2, 4, 3, dtype=torch.float64, requires_grad=True)
+        self.gradcheck(lambda lit: as_batched_lights(lit, 2, reference), (batched,))
 
 
 class TestPointAndLED(BaseTester):
@@ -135,6 +145,12 @@ class TestPointAndLED(BaseTester):
 
         self.gradcheck(irradiance, (positions, points))
 
+    def test_gradcheck_point_lights(self):
+        positions = (ring_lights(3, 50.0, dtype=torch.float64) * 10).requires_grad_()
+        intensities = torch.tensor([1.0, 1.5, 2.0], dtype=torch.float64, requires_grad=True)
+        points = torch.rand(1, 3, 2, 2, dtype=torch.float64, requires_grad=True)
+        self.gradcheck(lambda pos, i, pts: PointLights(pos, i)(pts), (positions, intensities, points))
+
     def test_learnable_parameters(self):
         leds = LEDLights(torch.rand(3, 3), torch.rand(3, 3) - torch.tensor([0, 0, 2.0]), learnable=True)
         names = {name for name, _ in leds.named_parameters()}
@@ -158,6 +174,13 @@ class TestDirectional(BaseTester):
     def test_bad_points_raise(self):
         with pytest.raises(ShapeError, match="points"):
             DirectionalLights(ring_lights(4, 45.0))(torch.zeros(1, 2, 4, 4))
+
+    def test_gradcheck(self):
+        directions = (ring_lights(4, 45.0, dtype=torch.float64) * 1.5).requires_grad_()  # normalised on the way
+        intensities = torch.linspace(0.5, 2.0, 4, dtype=torch.float64).requires_grad_()
+        points = torch.rand(1, 3, 2, 2, dtype=torch.float64, requires_grad=True)
+        self.gradcheck(lambda d, i, pts: DirectionalLights(d, i)(pts), (directions, intensities, points))
+        self.gradcheck(lambda d, i: DirectionalLights(d, i).scaled_directions(), (directions, intensities))
 
 
 class TestLightModel:

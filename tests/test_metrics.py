@@ -59,6 +59,19 @@ class TestAngular(BaseTester):
         assert float(mean_angular_error(normals, reference)) < 1e-3  # nor where the ground truth is NaN
 
 
+    def test_gradcheck(self):
+        # seeded: distinct angles (the median picks one of them) and no pair of equal normals (|a x b| has a kink at 0)
+        gen = torch.Generator().manual_seed(0)
+        up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).view(1, 3, 1, 1)
+        a = (torch.rand(1, 3, 2, 3, generator=gen, dtype=torch.float64) - 0.5 + up).requires_grad_()
+        b = (torch.rand(1, 3, 2, 3, generator=gen, dtype=torch.float64) - 0.5 + up).requires_grad_()
+        mask = torch.ones(1, 1, 2, 3, dtype=torch.bool)
+        mask[..., 0, 0] = False
+        self.gradcheck(angular_error_deg, (a, b))
+        self.gradcheck(lambda x, y: mean_angular_error(x, y, mask), (a, b))
+        self.gradcheck(lambda x, y: median_angular_error(x, y, mask), (a, b))
+
+
 class TestDepthError(BaseTester):
     def test_offset_and_scale(self, device, dtype):
         gt = torch.rand(2, 1, 8, 8, device=device, dtype=dtype) + 1.0
@@ -79,6 +92,15 @@ class TestDepthError(BaseTester):
             depth_error(depth, gt)
         gt[..., 0, :] = float("nan")
         assert torch.isfinite(depth_error(depth, gt)["rmse"]).all()  # where the ground truth is NaN too: outside
+
+    @pytest.mark.parametrize("align", ["offset", "scale", "none"])
+    def test_gradcheck(self, align):
+        gen = torch.Generator().manual_seed(0)  # distinct ratios: the median of "scale" picks one of them
+        depth = (torch.rand(1, 1, 3, 3, generator=gen, dtype=torch.float64) + 1.0).requires_grad_()
+        gt = (torch.rand(1, 1, 3, 3, generator=gen, dtype=torch.float64) + 1.0).requires_grad_()
+        mask = torch.ones(1, 1, 3, 3, dtype=torch.bool)
+        mask[..., 1, 1] = False
+        self.gradcheck(lambda d, g: tuple(depth_error(d, g, mask, align).values()), (depth, gt))
 
     def test_bad_align_raise(self):
         with pytest.raises(InputError, match="align"):

@@ -504,6 +504,30 @@ class TestSolveNearLight(BaseTester):
         with pytest.raises(ShapeError, match="normals"):
             near_light_energy(flat.images, leds, wrong, PITCH, 0.0, noise)
 
+    def test_energy_gradcheck(self):
+        """The energy is differentiable in the readings, the reconstruction, the noise and every LED parameter."""
+        from psmini.result import Reconstruction
+
+        gen = torch.Generator().manual_seed(0)
+        leds = _rig(dtype=torch.float64)
+        count = leds.count
+
+        def rand(*shape):
+            return torch.rand(*shape, generator=gen, dtype=torch.float64)
+
+        up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).view(1, 3, 1, 1)
+        normals = torch.nn.functional.normalize(up + 0.2 * (rand(1, 3, 3, 3) - 0.5), dim=1)
+        images, depth, albedo = rand(1, count, 3, 3) * 0.4 + 0.2, rand(1, 1, 3, 3) * 0.2, rand(1, 1, 3, 3) + 0.3
+
+        def energy(i, d, a, n, noise, *parameters):
+            result = Reconstruction(a, n, torch.zeros_like(d), torch.zeros_like(d), d, d > -1)
+            return near_light_energy(i, LEDLights(*parameters), result, PITCH, 0.0, noise)
+
+        parameters = (leds.positions_mm, leds.principal_directions, leds.intensities, torch.full((count,), 1.3,
+                                                                                                   dtype=torch.float64))
+        inputs = (images, depth, albedo, normals, torch.tensor(0.05, dtype=torch.float64), *parameters)
+        self.gradcheck(energy, tuple(t.clone().requires_grad_() for t in inputs))
+
     def test_module_equals_stage(self):
         leds, _, _, images, card = _capture(size=24)
         config = ReconstructionConfig(card_smoothing_px=None)

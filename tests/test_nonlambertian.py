@@ -168,6 +168,22 @@ class TestFit(BaseTester):
         (normals_fit[:, 0] * scored).sum().backward()
         assert torch.isfinite(images.grad).all() and images.grad.abs().sum() > 0
 
+    def test_gradcheck(self):
+        """Every map of the fit, at glossy pixels whose lobe passes the test (specular > 0 there)."""
+        generator = torch.Generator().manual_seed(0)
+        normals = torch.tensor([0.1, -0.2, 1.0], dtype=torch.float64).view(1, 3, 1, 1) + 0.1 * torch.rand(
+            1, 3, 2, 2, generator=generator, dtype=torch.float64)
+        normals = normals / normals.norm(dim=1, keepdim=True)
+        ones = torch.ones(1, 1, 2, 2, dtype=torch.float64)
+        lights = ring_lights(8, 40.0, dtype=torch.float64)
+        images = blinn_phong_images(normals, 0.6 * ones, 0.8 * ones, 20 * ones, lights)
+        images = images * (1 + 0.01 * torch.rand(images.shape, generator=generator, dtype=torch.float64))
+        options = NonLambertianOptions(iterations=3)
+        assert bool((fit_blinn_phong(images, lights, options=options).specular > 0).all())
+        self.gradcheck(lambda x: tuple(fit_blinn_phong(x, lights, options=options)), (images.requires_grad_(),))
+        solver = NonLambertianNormals(lights, options)
+        self.gradcheck(solver, (images[..., :1, :].detach().requires_grad_(),))
+
     def test_errors(self):
         images, lights = torch.rand(1, 8, 4, 4) + 0.1, ring_lights(8, 55.0)
         for options, match in (({"iterations": -1}, "iterations"), ({"iterations": 2.5}, "iterations"),

@@ -173,6 +173,11 @@ class TestAlbedoNormals(BaseTester):
         images = torch.rand(1, 8, 2, 2, dtype=torch.float64) + 0.5
         self.gradcheck(lambda light: albedo_normals(images, light), (lights,))
 
+    def test_gradcheck_module(self):
+        solver = LeastSquaresNormals(ring_lights(8, 55.0, dtype=torch.float64))
+        images = (torch.rand(1, 8, 2, 3, dtype=torch.float64) + 0.5).requires_grad_()
+        self.gradcheck(solver, (images,))
+
 
 class TestGradients(BaseTester):
     def test_plane(self, device, dtype):

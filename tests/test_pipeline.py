@@ -82,6 +82,20 @@ class TestPhotometricStereo(BaseTester):
         with pytest.raises(CalibrationError, match="coplanar"):
             PhotometricStereo(ring_lights(8, 90.0), None)(torch.rand(1, 8, 8, 8))
 
+    @pytest.mark.parametrize("estimator", ["lstsq", "rpca"])
+    def test_dark_images_raise(self, estimator):
+        # all-zero images failed in the integrator as "mask must select at least one pixel ..., got an empty mask"
+        model = PhotometricStereo(ring_lights(8, 55.0), 0.1, ReconstructionConfig(estimator=estimator))
+        images = torch.rand(2, 8, 4, 4) + 0.1
+        images[1] = 0
+        with pytest.raises(InputError, match=r"no pixel could be solved in batch item\(s\) \[1\]: .*dark"):
+            model(images)
+        mask = torch.zeros(2, 1, 4, 4, dtype=torch.bool)
+        mask[..., :2] = True
+        images[0, :, :, :2] = 0
+        with pytest.raises(InputError, match=r"no pixel could be solved inside the mask in batch item\(s\) \[0, 1\]"):
+            model(images, mask=mask)
+
     def test_nan_raise(self):
         images = torch.rand(1, 8, 8, 8)
         images[0, 0, 0, 0] = math.nan
@@ -224,6 +238,31 @@ class TestPhotometricStereo(BaseTester):
 
         images = (torch.rand(1, 8, 4, 4, dtype=torch.float64) * 0.5 + 0.5).requires_grad_()
         self.gradcheck(run, (images, reference.requires_grad_()))
+
+    @pytest.mark.parametrize("flatfielded", [False, True])
+    def test_gradcheck_distant_light_matrix(self, flatfielded):
+        """Gradients reach every parameter of the light model through the matrix seen from the field centre."""
+        reference = torch.zeros(1, dtype=torch.float64)
+        ring = ring_lights(4, 50.0, dtype=torch.float64)
+        directions, intensities = ring.clone().requires_grad_(), torch.linspace(0.5, 2, 4, dtype=torch.float64)
+        self.gradcheck(lambda d, i: distant_light_matrix(DirectionalLights(d, i), flatfielded, reference),
+                       (directions, intensities.requires_grad_()))
+        ones = torch.ones(4, dtype=torch.float64)
+        leds = (ring * 18.6, -ring, 1.2 * ones, 1.5 * ones)
+        self.gradcheck(lambda *t: distant_light_matrix(LEDLights(*t), flatfielded, reference),
+                       tuple(t.clone().requires_grad_() for t in leds))
+
+    def test_gradcheck_reconstruct(self):
+        from psmini.io import Sample
+
+        lights = DirectionalLights(ring_lights(8, 45.0, dtype=torch.float64))
+        config = ReconstructionConfig(dtype="float64")
+
+        def run(images):
+            result = reconstruct(Sample(name="grad", images=images, lights=lights, pixel_pitch_mm=0.1), config)
+            return result.normals, result.depth
+
+        self.gradcheck(run, ((torch.rand(8, 3, 4, dtype=torch.float64) * 0.5 + 0.5).requires_grad_(),))
 
 
 def test_card_smoothing_lowers_the_noise_of_near_light_normals():

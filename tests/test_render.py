@@ -190,6 +190,20 @@ class TestRender(BaseTester):
 
         self.gradcheck(func, (height, albedo, specular))
 
+    def test_gradcheck_renderer(self):
+        """The module passes gradients to the surface and to its light model's parameters."""
+        generator = torch.Generator().manual_seed(0)
+        height = (torch.rand(1, 1, 3, 3, generator=generator, dtype=torch.float64) * 0.2).requires_grad_()
+        albedo = (torch.rand(1, 1, 3, 3, generator=generator, dtype=torch.float64) + 0.5).requires_grad_()
+        directions = ring_lights(4, 40.0, dtype=torch.float64).requires_grad_()
+        intensities = torch.linspace(0.5, 2.0, 4, dtype=torch.float64).requires_grad_()
+
+        def func(h, a, d, i):
+            renderer = Renderer(DirectionalLights(d, i), shininess=5.0)
+            return renderer(depth_to_points(h, 0.5), normals_from_height(h, 0.5), a, 0.3 * a)
+
+        self.gradcheck(func, (height, albedo, directions, intensities))
+
     def test_errors(self):
         lights = DirectionalLights(ring_lights(8, 55.0))
         points, normals, albedo = (

@@ -226,6 +226,19 @@ class TestRobustNormals(BaseTester):
         lights = ring_lights(10, 50.0, dtype=torch.float64)
         self.gradcheck(lambda x: robust_normals(x, lights, "trimmed"), (images,))
 
+    def test_gradcheck_threshold(self):
+        generator = torch.Generator().manual_seed(0)  # readings far from the shadow threshold on every run
+        images = torch.rand(1, 8, 2, 2, generator=generator, dtype=torch.float64) + 0.2
+        images[0, 0, 0, 0] = 0.01  # a shadow, dropped: below 0.05 of the pixel's brightest reading
+        lights = ring_lights(8, 45.0, dtype=torch.float64)
+        self.gradcheck(lambda x: robust_normals(x, lights, "threshold"), (images.requires_grad_(),))
+
+    def test_gradcheck_module(self):
+        generator = torch.Generator().manual_seed(0)
+        images = (torch.rand(1, 8, 2, 2, generator=generator, dtype=torch.float64) + 0.2).requires_grad_()
+        solver = RobustNormals(ring_lights(8, 45.0, dtype=torch.float64), "trimmed")
+        self.gradcheck(solver, (images,))
+
     def test_errors(self):
         images, lights = torch.rand(1, 8, 2, 2), ring_lights(8, 55.0)
         with pytest.raises(InputError, match="method"):
@@ -304,6 +317,29 @@ class TestRpca(BaseTester):
         lights = ring_lights(6, 40.0, dtype=torch.float64)
         options = RobustOptions(rpca_iterations=5)
         self.gradcheck(lambda x: robust_normals(x, lights, "rpca", options=options)[1], (images.requires_grad_(),))
+
+    def test_dark_images_give_unsolved_pixels(self, device, dtype):
+        """All-zero (and vanishingly faint) images: no pixel solved, as for the other methods. The penalty
+        1.25 / ||D||_2 overflowed on them (inf * 0 = NaN), and eigh failed as a bare LinAlgError."""
+        lights = ring_lights(8, 45.0, device=device, dtype=dtype)
+        for scale in (0.0, 1e-30):
+            images = torch.rand(1, 8, 4, 4, device=device, dtype=dtype) * scale
+            albedo, normals = robust_normals(images, lights, "rpca")
+            assert bool(torch.isfinite(albedo).all()) and bool((albedo == 0).all())
+            self.assert_close(normals, torch.tensor([0.0, 0.0, 1.0], device=device, dtype=dtype).view(1, 3, 1, 1)
+                              .expand(1, 3, 4, 4))
+
+    def test_low_rank_is_scale_equivariant_on_faint_values(self):
+        """Values too faint for D D^T in float32 are solved at unit scale: the same low-rank part, scaled."""
+        from psmini.robust import _low_rank
+
+        values = torch.rand(6, 20, generator=torch.Generator().manual_seed(0), dtype=torch.float64) + 0.1
+        observed = values > 0.2
+        expected = _low_rank(values, observed, 10, None)
+        faint = _low_rank((values * 1e-25).float(), observed, 10, None).double() / 1e-25
+        self.assert_close(faint, expected, rtol=1e-4, atol=1e-5)
+        zero = torch.zeros(6, 20)
+        assert bool((_low_rank(zero, observed, 10, None) == 0).all())
 
     @pytest.mark.slow
     def test_diligent_ball(self):

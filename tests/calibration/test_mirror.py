@@ -5,6 +5,7 @@ import torch
 
 from data_synth.rig import RigConfig, render_sphere
 from psmini.calibration import calibrate_sphere, card_distance_from_spheres, triangulate_leds
+from psmini.calibration.mirror import SphereCalibration
 from psmini.errors import CalibrationError, InputError
 from tests.calibration._helpers import angle_deg, rig_intrinsics, specular_points
 
@@ -83,3 +84,19 @@ def test_triangulate_leds_wrong_types_raise():
         triangulate_leds(torch.zeros(2, 8, 3))
     with pytest.raises(InputError, match="sequence of SphereCalibration .* got NoneType"):
         triangulate_leds(None)
+
+
+def test_triangulate_leds_gradcheck():
+    """Gradients reach each placement's reflection points and directions (through :func:`triangulate_rays`)."""
+    gen = torch.Generator().manual_seed(0)
+    down = torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64)
+    points = [torch.randn(3, 3, generator=gen, dtype=torch.float64).requires_grad_() for _ in range(2)]
+    directions = [(torch.randn(3, 3, generator=gen, dtype=torch.float64) + down).requires_grad_() for _ in range(2)]
+
+    def positions(p0, p1, d0, d1):
+        # only directions and points_mm enter the triangulation; the highlights and silhouette are not read
+        placements = [SphereCalibration(d, None, None, "perspective", points_mm=p)  # type: ignore[arg-type]
+                      for p, d in ((p0, d0), (p1, d1))]
+        return triangulate_leds(placements)
+
+    assert torch.autograd.gradcheck(positions, (*points, *directions))

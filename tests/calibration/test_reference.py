@@ -52,6 +52,16 @@ def test_polynomial_recovers_a_polynomial():
     assert torch.allclose(polynomial_surface(noisy, weights, 3), surface, atol=1e-9)
 
 
+@pytest.mark.parametrize("method", ["polynomial", "gaussian", "mean"])
+def test_gradcheck(method):
+    """The reference is differentiable in the frames and the dark frame (the trusted pixels are a fixed choice)."""
+    gen = torch.Generator().manual_seed(0)
+    frames = (torch.rand(2, 3, 6, 6, generator=gen, dtype=torch.float64) * 0.3 + 0.3).requires_grad_()
+    dark = torch.full((6, 6), 0.01, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(
+        lambda f, d: card_reference(f, d, method=method, degree=2, sigma_px=1.5).reference, (frames, dark))
+
+
 def test_dark_pixels_are_not_trusted():
     frames = torch.full((2, 3, 20, 20), 0.5)
     frames[:, 1, :, :5] = 0.001

@@ -65,6 +65,14 @@ class TestBilateral(BaseTester):
             (p, q, weights),
         )
 
+    def test_gradcheck_module_default_weights(self):
+        """The module and the default normal-form weights 1 / (1 + p² + q²), which depend on p and q too."""
+        generator = torch.Generator().manual_seed(0)
+        p, q = (torch.rand(2, 1, 1, 5, 5, generator=generator, dtype=torch.float64) - 0.5).requires_grad_()
+        # cg_tol small: the output is the energy's fixed point, whose derivative the backward computes
+        module = BilateralIntegration(0.5, k=1.0, max_iterations=300, tol=0.0, cg_tol=1e-12)
+        self.gradcheck(module, (p, q))
+
     def test_errors(self):
         p = torch.zeros(1, 1, 8, 8)
         with pytest.raises(ShapeError, match="same shape"):
