@@ -650,9 +650,8 @@ def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain:
     \partial z`, loses its part that a change of :math:`m` would absorb, :math:`g - L A^{-1} \sum_k w_k L_k g_k`, so
     the step follows the energy with the normals re-fitted at each height. The penalty is not convex: a step goes as
     far as the energies at its half and its end say (:func:`_line_minimum`; without ``line_search``, all of it, for a
-    start in its basin), no pixel moving more than :data:`_MAX_STEP_MM`. The tilt and the bend are then each kept in
-    the share :math:`r^4 / (1 + r^4)`, :math:`r = q / 4^2`, that stands clear of its noise, :math:`q` its squared
-    length in standard errors (the inverse Hessian's block)."""
+    start in its basin), no pixel moving more than :data:`_MAX_STEP_MM`. The tilt and the bend then pass
+    :data:`_TILT_SIGMAS`' soft test, their squared lengths in standard errors from the inverse Hessian's block."""
     if not bool(free.any()):
         return theta
     chosen, basis = free.to(relative.dtype), _plane_basis(field.xy, domain)
@@ -809,8 +808,8 @@ def solve_near_light(intensities: Tensor, light_model: nn.Module, pixel_pitch_mm
 
     Raises:
         ShapeError: when the shapes do not match (K of the images vs the light model, mask, valid, gain).
-        InputError: for NaN input, a negative gain, a model that is no :class:`~psmini.lights.LightModel`, bad
-            options or a light below the card.
+        InputError: for NaN input, a sample without light, a negative gain, a model that is no
+            :class:`~psmini.lights.LightModel`, bad options or a light below the card.
 
     Example:
         >>> from psmini.lights import LEDLights, ring_lights
@@ -834,10 +833,11 @@ def solve_near_light(intensities: Tensor, light_model: nn.Module, pixel_pitch_mm
         got = tuple(valid.shape) if isinstance(valid, Tensor) else type(valid).__name__
         raise ShapeError(f"valid must have the images' shape {tuple(intensities.shape)}, got {got}")
     valid = torch.ones_like(intensities, dtype=torch.bool) if valid is None else valid.bool()
+    if not bool(((intensities > 0) & valid).flatten(1).any(1).all()):  # a noise model of 0 made NaN of everything
+        raise InputError("a sample's readings are all <= 0 or not valid: no light to solve for (an all-dark capture?)")
     gain = _check_frame(gain, sizes["B"], sizes["K"], sizes["H"], sizes["W"], "gain")
     if gain is not None and bool((gain < 0).any()):
-        raise InputError(f"gain must be >= 0 (the flat-field's factor per reading), got a minimum of "
-                         f"{float(gain.min()):.3g}")
+        raise InputError(f"gain must be >= 0 (the flat-field's factor per reading), got one of {float(gain.min()):.3g}")
     options = _check_options(options)
     parts = [_solve(intensities[part], valid[part], batch_part(mask, intensities, part, "mask"), light_model,
                     pixel_pitch_mm, card_height_mm, options, batch_part(gain, intensities, part, "gain"))

@@ -573,6 +573,9 @@ class TestSolveNearLight(BaseTester):
             solve_near_light(images, _rig(), PITCH, float("inf"))
         with pytest.raises(InputError, match="gain must be >= 0"):
             solve_near_light(images, _rig(), PITCH, 0.0, gain=-torch.ones(1, 8, 8, 8))
+        # an all-dark sample beside a lit one: its noise model of 0 made NaN of everything ("p must be finite")
+        with pytest.raises(InputError, match="all <= 0 or not valid: no light to solve for"):
+            solve_near_light(torch.cat([images, torch.zeros_like(images)]), _rig(), PITCH, 0.0)
         with pytest.raises(ShapeError, match="gain"):
             solve_near_light(images, _rig(), PITCH, 0.0, gain=torch.ones(1, 8, 4, 4))
         assert isinstance(_rig(), LightModel)
