@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import argparse
+import contextlib
 import importlib
 import inspect
+import io
 import pkgutil
 import re
+import shlex
 import sys
 from pathlib import Path
 
@@ -95,6 +99,108 @@ def test_pages_hold_no_dated_figures(page):
     """Figures tied to a run (UTC times, commits) live in benchmarks/results.md, not in the guides."""
     text = page.read_text(encoding="utf-8")
     assert not re.search(r"\d\d:\d\d UTC|commit `[0-9a-f]{7}", text), page
+
+
+_SHELL_BLOCK = re.compile(r"^(?P<indent> *)```(?:bash|sh|shell|console)[^\n]*\n(?P<body>.*?)^(?P=indent)```",
+                          re.S | re.M)
+_SEPARATORS = {"&&", "||", ";", "&", "|"}
+
+
+def _shell_commands(line: str) -> list[list[str]]:
+    """The simple commands of one shell line, as argument lists, with a synopsis read as one example: optional
+    groups (``[--device cuda]``) taken, the first of each set of alternatives (``distant|near``, ``[A | B]``),
+    ``<PLACEHOLDER>`` replaced by a dummy word; ``NAME=value`` before a command and redirections dropped."""
+    commands: list[list[str]] = [[]]
+    depth = skip_to = 0
+    words = shlex.split(line, comments=True)
+    tokens = iter([part for word in words for part in ([word[:-1], ";"] if word[1:].endswith(";") else [word])])
+    for token in tokens:
+        opened = depth
+        depth += token.count("[") - token.count("]")
+        if skip_to:  # the alternatives after the first: skipped to the group's end
+            skip_to = 0 if depth < skip_to else skip_to
+            continue
+        token = re.sub(r"<[A-Za-z][^<>\s]*>", "placeholder", token)
+        if token == "|" and opened > 0:
+            skip_to = opened
+        elif token in _SEPARATORS:
+            commands.append([])
+        elif re.match(r"\d*(>>?|<)", token):
+            if re.fullmatch(r"\d*(>>?|<)", token):
+                next(tokens, None)  # the redirection's target
+        elif not commands[-1] and re.match(r"\w+=", token):
+            continue  # an assignment before the command
+        else:
+            if opened > 0 or token.startswith("["):
+                token = token.lstrip("[").split("|")[0]
+                while token.count("]") > token.count("["):
+                    token = token[:-1]
+            if token:
+                commands[-1].append(token)
+    return [command for command in commands if command]
+
+
+def _documented_psmini_commands() -> list[tuple[str, list[str]]]:
+    """Every ``psmini ...`` command in the fenced shell blocks of README.md and docs/ (console blocks: the lines
+    after a ``$`` prompt), as (``page:line``, arguments after ``psmini``); a line ending in ``\\`` goes on."""
+    found = []
+    for page in [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]:
+        text = page.read_text(encoding="utf-8")
+        for block in _SHELL_BLOCK.finditer(text):
+            number = text.count("\n", 0, block.start("body"))
+            console = block.group(0).lstrip().startswith("```console")
+            pending, start = "", 0
+            for line in block["body"].splitlines():
+                number += 1
+                if console and not pending:
+                    if not line.startswith("$ "):
+                        continue
+                    line = line[2:]
+                start = start if pending else number
+                if line.rstrip().endswith("\\"):
+                    pending += line.rstrip()[:-1] + " "
+                    continue
+                for command in _shell_commands(pending + line):
+                    if command[0] == "psmini":
+                        found.append((f"{page.relative_to(REPO).as_posix()}:{start}", command[1:]))
+                pending = ""
+    return found
+
+
+def test_shell_reader_reads_a_synopsis_as_its_first_example():
+    line = ("PYTHONPATH=x psmini batch <ROOT> --out o [--light-model distant|near] [--json] "
+            "[--scheduler tcp://H:8786 | --scheduler local[:N]] 2>&1 && dask worker | head > log  # comment")
+    assert _shell_commands(line) == [
+        ["psmini", "batch", "placeholder", "--out", "o", "--light-model", "distant", "--json", "--scheduler",
+         "tcp://H:8786"],
+        ["dask", "worker"], ["head"]]
+
+
+def test_documented_command_lines_parse():
+    """Each ``psmini`` line of the README's and the site's shell blocks is accepted by the command's parser as
+    written (parsed only, nothing runs): no renamed or removed command, flag or choice, no missing argument."""
+    from psmini.cli import build_parser
+
+    commands = _documented_psmini_commands()
+    assert len(commands) >= 20, commands  # the reader still finds the pages' commands
+    parser = build_parser()
+    pending = [parser]
+    while pending:  # a flag as written, not a prefix of one (a renamed --pixel-pitch-mm would take --pixel-pitch)
+        each = pending.pop()
+        each.allow_abbrev = False
+        pending += [sub for action in each._actions if isinstance(action, argparse._SubParsersAction)
+                    for sub in action.choices.values()]
+    failures = []
+    for where, argv in commands:
+        errors = io.StringIO()
+        try:
+            with contextlib.redirect_stderr(errors), contextlib.redirect_stdout(io.StringIO()):
+                parser.parse_args(argv)
+        except SystemExit as exit_:
+            if exit_.code:  # --help exits 0
+                message = errors.getvalue().strip().splitlines()[-1:] or [f"exit status {exit_.code}"]
+                failures.append(f"{where}: psmini {shlex.join(argv)}\n    {message[0]}")
+    assert not failures, "documented command lines the parser rejects:\n" + "\n".join(failures)
 
 
 def _readme_python_blocks() -> list[str]:
