@@ -90,10 +90,12 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from psmini.integrate import integrate_normals
+    from psmini.io._npy import check_npy_target
 
     device = resolve_device(args.device)
     if args.out.suffix.lower() != ".npy":
         raise InputError(f"--out must name a .npy file, got {args.out}")
+    check_npy_target(args.out)  # before the integration, not after it
     normals = _read_normals(args.normals)
     height, width = normals.shape[:2]
     norm = np.linalg.norm(normals, axis=-1, keepdims=True)

@@ -76,9 +76,12 @@ def _load(stack: Path):
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from psmini.io._npy import save_npy
+    from psmini.io._npy import check_npy_target, save_npy
     from psmini.sff import SFFConfig, depth_from_focus
 
+    for target in (args.out, args.reliability):  # both before any work: not the depth written, then a failure
+        if target is not None:
+            check_npy_target(target)
     device = resolve_device(args.device)
     frames, positions = _load(args.stack)
     given = _positions(args.positions, frames.shape[0])

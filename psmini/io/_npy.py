@@ -46,10 +46,31 @@ def save_npy(path: str | Path, array: np.ndarray) -> Path:
         DataFormatError: ``path`` is a folder, or it (or its folder) cannot be written; nothing is left at
             ``path`` then (an earlier file there is kept).
     """
-    path = Path(path)
-    if not path.name.endswith(".npy"):
-        path = path.with_name(path.name + ".npy")
+    path = npy_path(path)
     # a file object, not the temporary's name: np.save would append .npy to it
     with atomic_file(path) as temporary, temporary.open("wb") as stream:
         np.save(stream, array)
+    return path
+
+
+def npy_path(path: str | Path) -> Path:
+    """The path :func:`save_npy` writes for ``path``: ``.npy`` appended to a name without it, as numpy does."""
+    path = Path(path)
+    return path if path.name.endswith(".npy") else path.with_name(path.name + ".npy")
+
+
+def check_npy_target(path: str | Path) -> Path:
+    """Refuse, before any work, a ``.npy`` output that :func:`save_npy` could not write: a folder at its path, or a
+    file where one of its folders should be (a command writing two maps left the first written when the second
+    failed). Nothing is created.
+
+    Raises:
+        DataFormatError: naming the path and what stands in its way.
+    """
+    path = npy_path(path)
+    if path.is_dir():
+        raise DataFormatError(f"{path} is a folder; expected the path of a file to write")
+    existing = next(folder for folder in path.parents if folder.exists())
+    if not existing.is_dir():
+        raise DataFormatError(f"cannot write {path}: {existing} is a file, not a folder")
     return path

@@ -48,3 +48,11 @@ def test_writes_as_numpy_would(tmp_path, stack):
                  "--reliability", str(tmp_path / "r.npy")]) == 0
     assert np.load(tmp_path / "depth.npy").shape == (16, 16) and np.load(tmp_path / "r.npy").shape == (16, 16)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["depth.npy", "r.npy", "stack.npy"]
+
+
+def test_unwritable_reliability_leaves_no_depth(tmp_path, capsys, stack):
+    # the depth map was written whole, then the run failed on the reliability map's path
+    (tmp_path / "r.npy").mkdir()
+    _fails(capsys, ["sff", str(stack), "--window", "3", "--out", str(tmp_path / "d.npy"), "--reliability",
+                    str(tmp_path / "r.npy")], "r.npy is a folder")
+    assert not (tmp_path / "d.npy").exists()
