@@ -285,8 +285,8 @@ def threshold_weights(
     Raises:
         ShapeError: when ``intensities`` is not 4-D or ``weights`` does not match it.
         InputError: for NaN or infinite ``intensities`` (as :func:`robust_normals`: a NaN reading made its pixel's
-            brightest reading NaN and dropped every observation there), ``shadow`` outside [0, 1) or a
-            non-positive ``saturation``.
+            brightest reading NaN and dropped every observation there), ``shadow`` outside [0, 1), a
+            non-positive ``saturation`` or one at or below every reading (raw counts against a fraction?).
 
     Example:
         >>> images = torch.tensor([0.0, 0.01, 0.5, 1.0]).view(1, 4, 1, 1)
@@ -299,8 +299,17 @@ def threshold_weights(
     if saturation is not None and not saturation > 0:
         raise InputError(f"saturation must be positive, got {saturation}")
     check_finite(intensities, "intensities")
+    _check_saturation_level(intensities, saturation)
     checked = _check_weights(weights, intensities.shape)
     return _threshold_keep(intensities, shadow, saturation, None if checked is None else checked > 0, dim=1)
+
+
+def _check_saturation_level(intensities: Tensor, saturation: float | None) -> None:
+    """Refuse a saturation level at or below every reading: all of them dropped, every pixel unsolved without a word
+    (a fraction of full scale given for images in raw counts)."""
+    if saturation is not None and intensities.numel() and not bool((intensities < saturation).any()):
+        raise InputError(f"every reading is at or above the saturation level {saturation:g} (the smallest is "
+                         f"{float(intensities.min()):.4g}): is the level in the images' units?")
 
 
 def _threshold_keep(values: Tensor, shadow: float, saturation: float | None, usable: Tensor | None, dim: int) -> Tensor:
@@ -765,7 +774,8 @@ def robust_normals(
         three usable lights get albedo 0 and normal (0, 0, 1).
 
     Raises:
-        InputError: for an unknown method, options that are not a :class:`RobustOptions`, or NaN input.
+        InputError: for an unknown method, options that are not a :class:`RobustOptions`, NaN input, or a
+            saturation level at or above every reading.
         ShapeError: when shapes do not fit (per-pixel lights are not supported here).
         CalibrationError: when the lights do not span 3D.
 
@@ -791,6 +801,7 @@ def robust_normals(
     options = RobustOptions() if options is None else options
     if not isinstance(options, RobustOptions):
         raise InputError(f"options must be a RobustOptions, got {type(options).__name__}")
+    _check_saturation_level(intensities, options.saturation)
     checked = _check_weights(weights, intensities.shape)
     base = None if checked is None else checked.to(intensities.dtype)
     options = replace(options, tuning=options.tuning or _TUNING.get(method, 1.0))  # the method's own constant

@@ -115,6 +115,12 @@ class TestWeights(BaseTester):
             threshold_weights(images, 1.5)
         with pytest.raises(InputError, match="saturation"):
             threshold_weights(images, 0.1, saturation=0.0)
+        # a fraction of full scale for images in raw counts dropped every reading without a word
+        counts = images * 200 + 20
+        with pytest.raises(InputError, match="every reading is at or above the saturation level 0.9 .* units"):
+            threshold_weights(counts, 0.1, saturation=0.9)
+        with pytest.raises(InputError, match="saturation level 0.9"):
+            robust_normals(counts, ring_lights(8, 55.0), "trimmed", options=RobustOptions(saturation=0.9))
         with pytest.raises(ShapeError):
             rank_trim_weights(images, weights=torch.ones(1, 7, 2, 2))
 
