@@ -726,17 +726,16 @@ def write_html(figure: Any, path: str | Path) -> Path:
         the path written.
 
     Raises:
-        DataFormatError: the file cannot be written.
+        DataFormatError: the file cannot be written (nothing is left at ``path`` then; an earlier file is kept).
 
     Example:
         >>> write_html(surface_figure(np.zeros((8, 8))), "surface.html")  # doctest: +SKIP
         PosixPath('surface.html')
     """
-    from psmini.errors import DataFormatError
+    from psmini.io._atomic import atomic_file
 
     path = Path(path)
-    try:
-        figure.write_html(str(path), include_plotlyjs=True, full_html=True, auto_open=False)
-    except OSError as error:
-        raise DataFormatError(f"cannot write {path}: {error}") from error
+    # beside it first, renamed when complete: an interrupted write leaves no page that looks whole
+    with atomic_file(path) as temporary:
+        figure.write_html(str(temporary), include_plotlyjs=True, full_html=True, auto_open=False)
     return path

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 from psmini import viz
-from psmini.errors import InputError, ShapeError
+from psmini.errors import DataFormatError, InputError, ShapeError
 from psmini.result import Reconstruction
 
 
@@ -204,6 +205,18 @@ class TestSurface:
         assert len(fig.data[0].x) == 36 and "mm" in fig.layout.title.text
         with pytest.raises(InputError, match="outside the batch"):
             rec.show(index=2)
+
+    def test_write_html_interrupted_leaves_nothing(self, tmp_path):
+        class Interrupted:  # a write that fails half-way (a full disk): the page was left looking complete
+            def write_html(self, path, **_):
+                Path(path).write_text("<html><body>half")
+                raise OSError("No space left on device")
+
+        (tmp_path / "s.html").write_text("the earlier page")
+        with pytest.raises(DataFormatError, match="cannot write .*s.html: No space left"):
+            viz.write_html(Interrupted(), tmp_path / "s.html")
+        assert [p.name for p in tmp_path.iterdir()] == ["s.html"]
+        assert (tmp_path / "s.html").read_text() == "the earlier page"
 
     def test_write_html_is_offline(self, tmp_path):
         path = viz.write_html(viz.surface_figure(np.zeros((4, 4))), tmp_path / "s.html")

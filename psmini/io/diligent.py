@@ -11,6 +11,7 @@ intensity, clamped at 0, then converted to gray with MATLAB's ``rgb2gray`` weigh
 from __future__ import annotations
 
 import logging
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -38,9 +39,13 @@ def is_diligent_folder(folder: str | Path) -> bool:
 def _read_table(path: Path) -> np.ndarray:
     """A K×3 table of numbers from a text file."""
     try:
-        table = np.loadtxt(path, dtype=np.float64, ndmin=2)
+        with warnings.catch_warnings():  # numpy's "Empty input file" warning: the error below says it in one line
+            warnings.simplefilter("ignore", UserWarning)
+            table = np.loadtxt(path, dtype=np.float64, ndmin=2)
     except ValueError as error:
         raise DataFormatError(f"cannot parse {path} as rows of 3 numbers: {error}") from error
+    if table.size == 0:
+        raise DataFormatError(f"{path} is empty; expected one row of 3 numbers per light")
     if table.shape[1] != 3:
         raise DataFormatError(f"{path} must have 3 numbers per row, got {table.shape[1]} (shape {table.shape})")
     if not np.isfinite(table).all():

@@ -136,6 +136,13 @@ class TestErrors:
         with pytest.raises(DataFormatError, match="cannot parse"):
             read_diligent(folder)
 
+    def test_empty_table(self, tmp_path, recwarn):
+        folder = _fake_folder(tmp_path / "obj")
+        (folder / "light_intensities.txt").write_text("")
+        with pytest.raises(DataFormatError, match="light_intensities.txt is empty; expected one row of 3 numbers"):
+            read_diligent(folder)
+        assert not [w for w in recwarn if "Empty input" in str(w.message)]  # numpy's warning: not a second line
+
     def test_non_positive_intensity(self, tmp_path):
         folder = _fake_folder(tmp_path / "obj")
         np.savetxt(folder / "light_intensities.txt", np.zeros((4, 3)))
