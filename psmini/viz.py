@@ -732,7 +732,7 @@ def write_html(figure: Any, path: str | Path) -> Path:
         >>> write_html(surface_figure(np.zeros((8, 8))), "surface.html")  # doctest: +SKIP
         PosixPath('surface.html')
     """
-    from psmini.io._atomic import atomic_file
+    from psmini._files import atomic_file
 
     path = Path(path)
     # beside it first, renamed when complete: an interrupted write leaves no page that looks whole

@@ -1,4 +1,5 @@
-"""Write a folder or a file atomically: into a temporary sibling, renamed into place only when complete. Internal."""
+"""Write a folder atomically: into a temporary sibling, renamed into place only when complete (a file:
+:mod:`psmini._files`). Internal."""
 
 from __future__ import annotations
 
@@ -49,48 +50,6 @@ def atomic_folder(destination: str | Path, overwrite: bool = False) -> Iterator[
         shutil.rmtree(temporary, ignore_errors=True)
         raise
     logger.debug("wrote folder %s", destination)
-
-
-@contextmanager
-def atomic_file(destination: str | Path) -> Iterator[Path]:
-    """Yield a fresh, empty temporary file beside ``destination``; on success rename it to ``destination``.
-
-    The temporary file is named ``.NAME.tmp-XXXXXXXX`` in the destination's folder (created when missing), with
-    the permissions a plain ``open`` gives (the umask's). On any exception it is removed and the exception
-    propagates (an ``OSError`` as a DataFormatError naming the destination): an earlier file at ``destination``
-    is kept, and no half-written one is left there.
-
-    Raises:
-        DataFormatError: the destination is a folder, its folder cannot be created (a file stands on the path),
-            or the file cannot be written.
-    """
-    destination = Path(destination)
-    if destination.is_dir():
-        raise DataFormatError(f"{destination} is a folder; expected the path of a file to write")
-    try:
-        destination.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as error:  # a file where a folder of the path should be
-        raise DataFormatError(f"cannot write {destination}: cannot create its folder {destination.parent} "
-                              f"({error})") from error
-    try:
-        while True:
-            temporary = destination.parent / f".{destination.name}.tmp-{secrets.token_hex(4)}"
-            try:
-                os.close(os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
-                break
-            except FileExistsError:
-                continue
-    except OSError as error:
-        raise DataFormatError(f"cannot write {destination}: {error}") from error
-    try:
-        yield temporary
-        os.replace(temporary, destination)
-    except BaseException as error:
-        temporary.unlink(missing_ok=True)
-        if isinstance(error, OSError) and not isinstance(error, DataFormatError):
-            raise DataFormatError(f"cannot write {destination}: {error}") from error
-        raise
-    logger.debug("wrote file %s", destination)
 
 
 def _fresh_sibling(destination: Path, tag: str) -> Path:

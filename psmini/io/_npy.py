@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from psmini._files import atomic_file
 from psmini.errors import DataFormatError
-from psmini.io._atomic import atomic_file
 
 
 def read_npy(path: str | Path, what: str = "array") -> np.ndarray:
