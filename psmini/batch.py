@@ -474,6 +474,16 @@ def _check_out(out: Path) -> Path:
     return out
 
 
+def _check_out_spares_samples(root: Path, out: Path, folders: Sequence[Path]) -> None:
+    """Refuse an ``out`` where a sample's output folder ``out/<rel>`` would be a sample folder or hold one: the
+    atomic writer replaces the whole output folder, so the capture would be deleted (``out`` = ``root``)."""
+    for folder in folders:
+        sample, target = folder.resolve(), (out / _relative(root, folder)).resolve()
+        if target == sample or target in sample.parents:
+            raise InputError(f"out {out} would write the outputs of sample {folder} over the sample itself "
+                             f"(output folder {target}); choose an output folder apart from ROOT {root}")
+
+
 def _samples_under(root: Path) -> tuple[list[Path], dict[str, str]]:
     """The sample folders under ``root`` (links followed) and the links that could not be followed, by the path
     relative to ``root`` (each becomes a failed sample of the summary: the other samples go on)."""
@@ -698,7 +708,8 @@ def reconstruct_dataset(
         InputError: ``root`` missing, no samples under it, bad ``outputs``, ``batch_size``, ``workers`` or
             ``config``, CUDA asked for and absent (here; on Dask workers the samples fail instead), both
             ``scheduler`` and ``client``, a bad ``local:N``, a scheduler that cannot be reached or has no worker,
-            dask.distributed not installed.
+            dask.distributed not installed; an ``out`` where a sample's output folder would replace the sample
+            (``out`` equal to ``root``), checked before any work.
         DataFormatError: ``out`` cannot be written: a file at it or above it, a read-only folder above it (checked
             before any work).
 
@@ -720,6 +731,7 @@ def reconstruct_dataset(
         parse_scheduler(scheduler)  # a malformed local:N fails before any work
     out = _check_out(Path(out))
     folders, problems = _samples_under(root)
+    _check_out_spares_samples(root, out, folders)
     records: dict[str, BatchRecord] = {}
     for rel, message in problems.items():  # dangling links and cycles: failed, the others go on
         records[rel] = BatchRecord(rel, "failed", error=f"DataFormatError: {message}")

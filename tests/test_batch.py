@@ -195,6 +195,16 @@ class TestReconstructDataset:
             reconstruct_dataset(tree, tmp_path / "out", {"solver": "far"})
         assert not (tmp_path / "out").exists()
 
+    def test_out_over_the_samples_is_refused_before_any_work(self, tree, tmp_path):
+        """out = root replaced each capture folder by its outputs: the raw captures were deleted."""
+        root = _fresh(tree, tmp_path)
+        before = sorted(p.relative_to(root).as_posix() for p in root.rglob("*"))
+        with pytest.raises(InputError, match=r"over the sample itself .*apart from ROOT"):
+            reconstruct_dataset(root / "lotB", root / "lotB", DISTANT)
+        with pytest.raises(InputError, match="over the sample itself"):
+            reconstruct_dataset(root / "lotA" / "jute", root / "lotA", DISTANT)  # one sample: out/jute is it
+        assert sorted(p.relative_to(root).as_posix() for p in root.rglob("*")) == before
+
 
 class TestIterReconstructions:
     def test_yields_each_readable_sample(self, tree):

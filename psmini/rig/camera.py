@@ -68,6 +68,9 @@ class CameraSettings:
         white_balance: ``CAP_PROP_WB_TEMPERATURE``, kelvin (automatic white balance is switched off).
         focus: ``CAP_PROP_FOCUS`` (autofocus is switched off when given).
         buffer_size: ``CAP_PROP_BUFFERSIZE``: frames the driver queues (1 keeps them fresh where honoured).
+
+    Raises:
+        RigError: a control that is not a finite number (NaN, infinite, text), or a buffer size below 1.
     """
 
     exposure: float | None = None
@@ -75,6 +78,19 @@ class CameraSettings:
     white_balance: float | None = None
     focus: float | None = None
     buffer_size: int | None = 1
+
+    def __post_init__(self) -> None:
+        # checked here, not at the first frame: a NaN set on the camera reached the manifest, and the capture
+        # failed to write only after the whole acquisition
+        for name in ("exposure", "gain", "white_balance", "focus"):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                      or not math.isfinite(value)):
+                raise RigError(f"camera {name} must be a finite number (negative is valid: DirectShow's exposure is "
+                               f"log2 s) or None, got {value!r}")
+        if self.buffer_size is not None and (isinstance(self.buffer_size, bool) or not isinstance(self.buffer_size, int)
+                                             or self.buffer_size < 1):
+            raise RigError(f"camera buffer_size must be an integer >= 1 or None, got {self.buffer_size!r}")
 
 
 class FrameCheck:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import logging
+import math
 import time
 from types import TracebackType
 from typing import Any, Protocol
@@ -112,7 +113,8 @@ class LEDController:
         watchdog_ms: set the firmware's watchdog to this timeout after the handshake (None: keep its own).
 
     Raises:
-        RigError: for bad arguments.
+        RigError: for bad arguments: a port that is neither a name nor a port object, timeouts that are not
+            positive and finite, negative retries, a watchdog out of range.
 
     Example:
         >>> from data_synth.simulated_rig import SimulatedDevice, serve_url
@@ -132,9 +134,13 @@ class LEDController:
         retries: int = 1,
         watchdog_ms: int | None = None,
     ) -> None:
+        if not isinstance(port, str) and not all(hasattr(port, name) for name in ("read", "write", "close")):
+            raise RigError(f"port must be a port name or URL (a str such as '/dev/ttyUSB0', 'COM3') or an open "
+                           f"pyserial port, got {port!r}")
         for name, value in (("handshake_timeout_s", handshake_timeout_s), ("command_timeout_s", command_timeout_s)):
-            if not (isinstance(value, (int, float)) and value > 0):
-                raise RigError(f"{name} must be a positive number of seconds, got {value!r}")
+            # finite: an infinite deadline waits forever on a silent device instead of naming the timeout
+            if not (isinstance(value, (int, float)) and 0 < value < math.inf):
+                raise RigError(f"{name} must be a positive, finite number of seconds, got {value!r}")
         if not isinstance(retries, int) or retries < 0:
             raise RigError(f"retries must be an integer >= 0, got {retries!r}")
         low, high = WATCHDOG_RANGE_MS

@@ -111,6 +111,19 @@ def test_dshow_manual_exposure_value():
         assert camera.report["requested"]["auto_exposure"] == 0.25
 
 
+@pytest.mark.parametrize("settings, match", [
+    ({"exposure": math.nan}, "exposure must be a finite number"),
+    ({"gain": math.inf}, "gain must be a finite number"),
+    ({"white_balance": "4500"}, "white_balance must be a finite number"),
+    ({"buffer_size": 0}, "buffer_size must be an integer >= 1"),
+])
+def test_settings_that_cannot_be_recorded_are_refused_before_the_camera_opens(settings, match):
+    """A NaN exposure was set on the camera and recorded, and the capture failed to write only after the whole
+    acquisition (the manifest is strict JSON)."""
+    with pytest.raises(RigError, match=match):
+        CameraSettings(**settings)
+
+
 def test_open_failures():
     with pytest.raises(RigError, match="cannot open camera 5"):
         RigCamera(5, backend="v4l2", open_capture=opener(FakeCapture([coded_frame()], opened=False))).open()

@@ -234,6 +234,22 @@ def test_bad_arguments(kwargs):
         LEDController("loop://", **kwargs)
 
 
+@pytest.mark.parametrize("kwargs, match", [
+    ({"command_timeout_s": float("inf")}, "command_timeout_s must be a positive, finite number of seconds, got inf"),
+    ({"handshake_timeout_s": float("nan")}, "handshake_timeout_s must be a positive, finite number"),
+])
+def test_timeouts_that_never_fire_are_refused(kwargs, match):
+    """An infinite command timeout was taken: a silent device then hung the host instead of raising."""
+    with pytest.raises(RigError, match=match):
+        LEDController("loop://", **kwargs)
+
+
+def test_a_port_number_is_refused_at_construction():
+    """LEDController(3) (COM3's number) failed at open() with AttributeError: 'int' object has no attribute 'read'."""
+    with pytest.raises(RigError, match=r"port must be a port name or URL .* got 3"):
+        LEDController(3)  # type: ignore[arg-type]
+
+
 def test_commands_need_an_open_controller():
     with pytest.raises(RigError, match="not open"):
         LEDController("loop://").on(1)
