@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from psmini.errors import InputError, ShapeError
 
@@ -124,3 +124,14 @@ def check_out(out, shapes: tuple[tuple[int, ...], ...], names: tuple[str, ...],
     pointers = [t.untyped_storage().data_ptr() for t in out]
     if len(set(pointers)) != len(pointers) or any(t.untyped_storage().data_ptr() in pointers for t in given):
         raise InputError(f"the out tensors ({', '.join(names)}) must not share memory with each other or the inputs")
+
+
+def check_light_module(light_model: object, name: str) -> None:
+    """Raise :class:`InputError` unless ``light_model`` is a light model (any ``nn.Module``: a user's need not subclass
+    :class:`~psmini.lights.LightModel`); a tensor of directions, which failed as a bare "'Tensor' object is not
+    callable", is told where it goes."""
+    if not isinstance(light_model, nn.Module):
+        hint = (f" of shape {tuple(light_model.shape)}; wrap a (K, 3) tensor of directions in DirectionalLights "
+                "(render_lambertian takes one as it is)" if isinstance(light_model, Tensor) else "")
+        raise InputError(f"{name} must be a light model of psmini.lights (an nn.Module), got "
+                         f"{type(light_model).__name__}{hint}")

@@ -16,6 +16,7 @@ from torch import Tensor, nn
 
 from psmini._checks import (
     all_true,
+    check_light_module,
     check_mask,
     check_positive,
     check_same_size,
@@ -95,11 +96,7 @@ def distant_light_matrix(lights: nn.Module, flatfielded: bool, reference: Tensor
 
 def _check_matrix_arguments(lights: object, reference: object) -> None:
     """Guards of :func:`distant_light_matrix`: a tensor of directions failed as "'Tensor' object is not callable"."""
-    if not isinstance(lights, nn.Module):
-        hint = (f" of shape {tuple(lights.shape)}; wrap a (K, 3) tensor of directions in DirectionalLights"
-                if isinstance(lights, Tensor) else "")
-        raise InputError(f"lights must be a light model of psmini.lights (an nn.Module), got "
-                         f"{type(lights).__name__}{hint}")
+    check_light_module(lights, "lights")
     if not isinstance(reference, Tensor):
         raise InputError(f"reference must be a tensor (the result takes its device and dtype), got "
                          f"{type(reference).__name__}")

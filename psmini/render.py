@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from psmini._checks import check_finite, check_positive, check_shape, check_tensor
+from psmini._checks import check_finite, check_light_module, check_positive, check_shape, check_tensor
 from psmini._tensor import vector_length
 from psmini.errors import InputError, ShapeError
 from psmini.lights import as_batched_lights
@@ -254,7 +254,7 @@ def render(
         >>> round(float(images[0, 0, 0, 0]), 4)                     # 1 / 10² at normal incidence
         0.01
     """
-    _check_light_model(light_model)
+    check_light_module(light_model, "light_model")
     sizes = check_shape(points, ["B", "3", "H", "W"], "points")
     check_shape(normals, ["B", "3", "H", "W"], "normals")
     if normals.shape != points.shape:
@@ -286,15 +286,6 @@ def _blinn_phong(directions: Tensor, normals: Tensor, cosine: Tensor, shininess:
     # clamp to a tiny positive value: x**α has an infinite gradient at 0 for α < 1
     lobe = n_dot_h.clamp_min(torch.finfo(half.dtype).tiny).pow(shininess)
     return lobe * (cosine > 0).to(lobe.dtype)
-
-
-def _check_light_model(light_model: object) -> None:
-    """Refuse what is not a light model: a tensor of directions failed as a bare "'Tensor' object is not callable"."""
-    if not isinstance(light_model, nn.Module):
-        hint = (" (a (K, 3) tensor of directions: render_lambertian takes it, or wrap it in DirectionalLights)"
-                if isinstance(light_model, Tensor) else "")
-        raise InputError(f"light_model must be a light model of psmini.lights (an nn.Module), got "
-                         f"{type(light_model).__name__}{hint}")
 
 
 def _check_map(x: Tensor, sizes: dict[str, int], name: str) -> None:
@@ -334,7 +325,7 @@ class Renderer(nn.Module):
         pixel_pitch_mm: float | None = None,
     ) -> None:
         super().__init__()
-        _check_light_model(light_model)
+        check_light_module(light_model, "light_model")
         if shadows and pixel_pitch_mm is None:
             raise InputError("Renderer(shadows=True) needs pixel_pitch_mm")
         self.light_model = light_model
