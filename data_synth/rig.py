@@ -36,6 +36,7 @@ import torch
 from torch import Tensor, nn
 
 from data_synth.fabrics import CARD_ALBEDO, FABRICS, Fabric, make_fabric
+from psmini._files import nearest_existing
 from psmini.errors import DataFormatError, InputError
 from psmini.geometry import depth_to_points, pixel_grid_mm
 from psmini.lights import DirectionalLights, LEDLights
@@ -619,7 +620,7 @@ def write_synthetic_capture(
     sample_dir = out_dir / fabric_name
     if sample_dir.exists() and not overwrite:  # before anything is rendered or written
         raise DataFormatError(f"{sample_dir} already exists; pass overwrite=True (--overwrite) to replace it")
-    existing = next(folder for folder in (out_dir, *out_dir.parents) if folder.exists())
+    existing = nearest_existing(out_dir)
     if not existing.is_dir():  # a file where a folder of the path should be: found before rendering, not after
         raise DataFormatError(f"cannot write into {out_dir}: {existing} is a file, not a folder")
     # as the manifest will hold it (JSON: tuples come back as lists), to compare with a card already there

@@ -1,4 +1,5 @@
-"""Write a file atomically: into a temporary sibling, renamed into place only when complete. Internal.
+"""Write a file atomically: into a temporary sibling, renamed into place only when complete; find what stands in the
+way of a path before any work. Internal.
 
 Beside :mod:`psmini.io._atomic` (folders) rather than in it: :mod:`psmini.viz`, which the maths modules reach
 through :meth:`~psmini.result.Reconstruction.show`, writes its pages this way and may not import :mod:`psmini.io`.
@@ -58,3 +59,9 @@ def atomic_file(destination: str | Path) -> Iterator[Path]:
             raise DataFormatError(f"cannot write {destination}: {error}") from error
         raise
     logger.debug("wrote file %s", destination)
+
+
+def nearest_existing(path: Path) -> Path:
+    """``path`` when it exists, else the nearest folder above it that does: where creating ``path`` starts, which
+    a caller checks before any work (a file there is a file where a folder should be)."""
+    return next(candidate for candidate in (path, *path.parents) if candidate.exists())

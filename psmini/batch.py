@@ -42,6 +42,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
+from psmini._files import nearest_existing
 from psmini.config import ReconstructionConfig
 from psmini.errors import DataFormatError, InputError, PsminiError
 from psmini.result import Reconstruction
@@ -464,9 +465,7 @@ def _check_out(out: Path) -> Path:
     after every sample was solved."""
     if out.exists() and not out.is_dir():
         raise DataFormatError(f"the output folder {out} exists and is not a folder")
-    above = out
-    while not above.exists() and above != above.parent:
-        above = above.parent
+    above = nearest_existing(out)
     if not above.is_dir():
         raise DataFormatError(f"cannot create the output folder {out}: {above} is a file, not a folder")
     if not os.access(above, os.W_OK | os.X_OK):

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from psmini._files import atomic_file
+from psmini._files import atomic_file, nearest_existing
 from psmini.errors import DataFormatError
 
 
@@ -70,7 +70,7 @@ def check_npy_target(path: str | Path) -> Path:
     path = npy_path(path)
     if path.is_dir():
         raise DataFormatError(f"{path} is a folder; expected the path of a file to write")
-    existing = next(folder for folder in path.parents if folder.exists())
+    existing = nearest_existing(path.parent)
     if not existing.is_dir():
         raise DataFormatError(f"cannot write {path}: {existing} is a file, not a folder")
     return path
