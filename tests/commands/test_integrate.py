@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from psmini.cli import main
+from tests.commands._cli import fails_in_one_line
 
 
 @pytest.fixture
@@ -17,35 +18,26 @@ def normals(tmp_path):
     return tmp_path / "n.npy"
 
 
-def _fails(capsys, argv: list[str], *expected: str) -> str:
-    assert main(argv) == 1
-    err = capsys.readouterr().err
-    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
-    for text in expected:
-        assert text in err, err
-    return err
-
-
 def test_empty_or_missing_inputs(tmp_path, capsys, normals):
     (tmp_path / "empty.npy").write_bytes(b"")
     out = str(tmp_path / "d.npy")
-    _fails(capsys, ["integrate", str(tmp_path / "empty.npy"), "--out", out], "normals", "empty.npy", "empty")
-    _fails(capsys, ["integrate", str(normals), "--mask", str(tmp_path / "empty.npy"), "--out", out],
+    fails_in_one_line(capsys, ["integrate", str(tmp_path / "empty.npy"), "--out", out], "normals", "empty.npy", "empty")
+    fails_in_one_line(capsys, ["integrate", str(normals), "--mask", str(tmp_path / "empty.npy"), "--out", out],
            "mask", "empty.npy", "empty")
-    _fails(capsys, ["integrate", str(normals), "--mask", str(tmp_path / "nowhere.npy"), "--out", out],
+    fails_in_one_line(capsys, ["integrate", str(normals), "--mask", str(tmp_path / "nowhere.npy"), "--out", out],
            "mask file", "nowhere.npy", "does not exist")
     np.save(tmp_path / "flat.npy", np.ones(8))
-    _fails(capsys, ["integrate", str(normals), "--mask", str(tmp_path / "flat.npy"), "--out", out],
+    fails_in_one_line(capsys, ["integrate", str(normals), "--mask", str(tmp_path / "flat.npy"), "--out", out],
            "mask", "the normals 8x8")
     assert not (tmp_path / "d.npy").exists()
 
 
 def test_unwritable_output(tmp_path, capsys, normals):
     (tmp_path / "results").write_text("a file")
-    _fails(capsys, ["integrate", str(normals), "--out", str(tmp_path / "results" / "d.npy")],
+    fails_in_one_line(capsys, ["integrate", str(normals), "--out", str(tmp_path / "results" / "d.npy")],
            "cannot write", "results")
     (tmp_path / "d.npy").mkdir()
-    _fails(capsys, ["integrate", str(normals), "--out", str(tmp_path / "d.npy")], "is a folder")
+    fails_in_one_line(capsys, ["integrate", str(normals), "--out", str(tmp_path / "d.npy")], "is a folder")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d.npy", "n.npy", "results"]
 
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from psmini.cli import main
+from tests.commands._cli import fails_in_one_line
 
 
 @pytest.fixture
@@ -16,30 +17,22 @@ def stack(tmp_path):
     return tmp_path / "stack.npy"
 
 
-def _fails(capsys, argv: list[str], *expected: str) -> None:
-    assert main(argv) == 1
-    err = capsys.readouterr().err
-    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
-    for text in expected:
-        assert text in err, err
-
-
 def test_empty_cut_or_missing_stack(tmp_path, capsys, stack):
     out = str(tmp_path / "d.npy")
     (tmp_path / "empty.npy").write_bytes(b"")
-    _fails(capsys, ["sff", str(tmp_path / "empty.npy"), "--out", out], "focus stack", "empty.npy", "empty")
+    fails_in_one_line(capsys, ["sff", str(tmp_path / "empty.npy"), "--out", out], "focus stack", "empty.npy", "empty")
     (tmp_path / "cut.npy").write_bytes(stack.read_bytes()[:500])
-    _fails(capsys, ["sff", str(tmp_path / "cut.npy"), "--out", out], "focus stack", "cut.npy")
-    _fails(capsys, ["sff", str(tmp_path / "nowhere.npy"), "--out", out], "nowhere.npy", "does not exist")
+    fails_in_one_line(capsys, ["sff", str(tmp_path / "cut.npy"), "--out", out], "focus stack", "cut.npy")
+    fails_in_one_line(capsys, ["sff", str(tmp_path / "nowhere.npy"), "--out", out], "nowhere.npy", "does not exist")
     assert not (tmp_path / "d.npy").exists()
 
 
 def test_unwritable_output(tmp_path, capsys, stack):
     (tmp_path / "results").write_text("a file")
-    _fails(capsys, ["sff", str(stack), "--window", "3", "--out", str(tmp_path / "results" / "d.npy")],
+    fails_in_one_line(capsys, ["sff", str(stack), "--window", "3", "--out", str(tmp_path / "results" / "d.npy")],
            "cannot write", "results")
     (tmp_path / "d.npy").mkdir()
-    _fails(capsys, ["sff", str(stack), "--window", "3", "--out", str(tmp_path / "d.npy")], "is a folder")
+    fails_in_one_line(capsys, ["sff", str(stack), "--window", "3", "--out", str(tmp_path / "d.npy")], "is a folder")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d.npy", "results", "stack.npy"]
 
 
@@ -53,6 +46,6 @@ def test_writes_as_numpy_would(tmp_path, stack):
 def test_unwritable_reliability_leaves_no_depth(tmp_path, capsys, stack):
     # the depth map was written whole, then the run failed on the reliability map's path
     (tmp_path / "r.npy").mkdir()
-    _fails(capsys, ["sff", str(stack), "--window", "3", "--out", str(tmp_path / "d.npy"), "--reliability",
+    fails_in_one_line(capsys, ["sff", str(stack), "--window", "3", "--out", str(tmp_path / "d.npy"), "--reliability",
                     str(tmp_path / "r.npy")], "r.npy is a folder")
     assert not (tmp_path / "d.npy").exists()
