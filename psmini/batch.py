@@ -109,7 +109,7 @@ def parse_outputs(outputs: str | Sequence[str] | None) -> tuple[str, ...]:
     """The output kinds of ``--outputs`` (``"normals,albedo,depth,ply"``), validated; None means all.
 
     Raises:
-        InputError: an empty list or a name that is not one of :data:`OUTPUT_KINDS`.
+        InputError: an empty list, a name that is not one of :data:`OUTPUT_KINDS`, or neither a string nor names.
 
     Example:
         >>> parse_outputs("depth, normals")
@@ -117,6 +117,8 @@ def parse_outputs(outputs: str | Sequence[str] | None) -> tuple[str, ...]:
     """
     if outputs is None:
         return OUTPUT_KINDS
+    if not (isinstance(outputs, str) or (isinstance(outputs, Sequence) and all(isinstance(n, str) for n in outputs))):
+        raise InputError(f"outputs must be a comma-separated string or a sequence of names, got {outputs!r}")
     names = [n.strip() for n in (outputs.split(",") if isinstance(outputs, str) else outputs)]
     names = [n for n in names if n]
     unknown = sorted(set(names) - set(OUTPUT_KINDS))
@@ -447,9 +449,9 @@ def _check_arguments(root: str | Path, batch_size: int, workers: int, config: Re
     root = Path(root)
     if not root.is_dir():
         raise InputError(f"ROOT {root} does not exist or is not a folder")
-    if not isinstance(batch_size, int) or batch_size < 1:
+    if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
         raise InputError(f"batch_size must be a positive integer, got {batch_size!r}")
-    if not isinstance(workers, int) or workers < 0:
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
         raise InputError(f"workers must be an integer >= 0, got {workers!r}")
     if not isinstance(config, ReconstructionConfig):
         raise InputError(f"config must be a psmini ReconstructionConfig, got {type(config).__name__}")

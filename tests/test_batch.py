@@ -187,10 +187,12 @@ class TestReconstructDataset:
             reconstruct_dataset(tmp_path / "empty", tmp_path / "out")
         with pytest.raises(InputError, match="subset of normals,albedo,depth,ply"):
             reconstruct_dataset(tree, tmp_path / "out", DISTANT, outputs="normals,mesh")
-        with pytest.raises(InputError, match="batch_size"):
-            reconstruct_dataset(tree, tmp_path / "out", DISTANT, batch_size=0)
-        with pytest.raises(InputError, match="workers"):
-            reconstruct_dataset(tree, tmp_path / "out", DISTANT, workers=-1)
+        for bad in (0, True, 2.0):  # True was taken as a batch of 1
+            with pytest.raises(InputError, match="batch_size"):
+                reconstruct_dataset(tree, tmp_path / "out", DISTANT, batch_size=bad)
+        for bad in (-1, False):
+            with pytest.raises(InputError, match="workers"):
+                reconstruct_dataset(tree, tmp_path / "out", DISTANT, workers=bad)
         with pytest.raises(InputError, match="ReconstructionConfig"):
             reconstruct_dataset(tree, tmp_path / "out", {"solver": "far"})
         assert not (tmp_path / "out").exists()
@@ -230,8 +232,11 @@ def test_parse_outputs():
     assert parse_outputs(None) == ("normals", "albedo", "depth", "ply")
     assert parse_outputs(["ply", "albedo"]) == ("albedo", "ply")
     for bad in ("", "depth,mesh", ","):
-        with pytest.raises(InputError):
+        with pytest.raises(InputError, match="subset of"):
             parse_outputs(bad)
+    for bad in (3, [3], b"depth"):  # a TypeError from split or strip before
+        with pytest.raises(InputError, match="a comma-separated string or a sequence of names"):
+            parse_outputs(bad)  # type: ignore[arg-type]
 
 
 class TestCommand:

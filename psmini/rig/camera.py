@@ -274,6 +274,9 @@ class RigCamera:
         backend = backend or default_backend()
         if backend not in BACKENDS:
             raise RigError(f"unknown camera backend {backend!r}; expected one of {', '.join(BACKENDS)}")
+        if not (isinstance(frame_size, (tuple, list)) and len(frame_size) == 2
+                and all(isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in frame_size)):
+            raise RigError(f"frame_size must be a (width, height) pair of positive integers, got {frame_size!r}")
         width, height = frame_size
         if not (isinstance(crop_size, int) and 0 < crop_size <= min(width, height)):
             raise RigError(f"crop_size must be an integer in 1..{min(width, height)} for {width}x{height} frames, "

@@ -355,6 +355,11 @@ class LEDController:
         if identity.version.split(".")[0] != "1":
             raise RigError(f"the device on {self.name} runs {identity}, a protocol version this host does not speak "
                            "(1.x)")
+        low, high = WATCHDOG_RANGE_MS
+        if not low <= identity.watchdog_ms <= high:
+            # psmini-leds keeps its watchdog in this range; outside it (0: none) a crashed host leaves the LEDs lit
+            raise RigError(f"the device on {self.name} reports a watchdog of {identity.watchdog_ms} ms, outside the "
+                           f"protocol's {low}..{high} ms: not the psmini-leds firmware, or a damaged build of it")
 
     def _await_reply(self, port: SerialPort, expected: str, text: str) -> Reply:
         deadline = time.monotonic() + self.command_timeout_s

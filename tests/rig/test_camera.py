@@ -135,6 +135,9 @@ def test_open_failures():
         RigCamera(0, backend="firewire")
     with pytest.raises(RigError, match="crop_size"):
         RigCamera(0, crop_size=600)
+    for bad in ("640x480", (640,), (640.0, 480), (0, 480), (True, 480)):  # a bare unpacking error before
+        with pytest.raises(RigError, match=r"frame_size must be a \(width, height\) pair of positive integers"):
+            RigCamera(0, frame_size=bad)  # type: ignore[arg-type]
 
 
 def test_no_frame_after_retries():

@@ -220,6 +220,16 @@ def test_foreign_firmware_is_refused():
         LEDController(port, **FAST).open()
 
 
+@pytest.mark.parametrize("wdt", [0, 99, 60001])
+def test_a_watchdog_outside_the_protocol_is_refused(wdt):
+    """wdt=0 (no watchdog) was accepted: a crashed host would then leave an LED lit."""
+    port = serial.serial_for_url("loop://", timeout=0.01)
+    port.write(b"READY psmini-leds 1.0.0 leds=8 wdt=%d\n" % wdt)
+    with pytest.raises(RigError, match=f"reports a watchdog of {wdt} ms, outside the protocol's 100..60000 ms"):
+        LEDController(port, **FAST).open()
+    assert not port.is_open
+
+
 def test_port_that_cannot_be_opened():
     with pytest.raises(RigError, match="cannot open the LED controller port"):
         LEDController("/dev/psmini-no-such-port", **FAST).open()

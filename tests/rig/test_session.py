@@ -129,6 +129,34 @@ def test_write_with_card_refuses_an_existing_folder(tmp_path):
     assert load_sample(folder).reference is not None
 
 
+def test_write_with_card_keeps_the_old_folder_when_the_last_rename_fails(tmp_path, monkeypatch):
+    """With overwrite, the old capture was moved into the staging folder before the new one was renamed into place;
+    a failure of that rename removed the staging folder, the old capture with it."""
+    import psmini.rig.session as session_module
+
+    with SimulatedRig("jute", 0, 32, pixel_pitch_mm=0.1) as rig:
+        folder = capture_with_card(rig, tmp_path / "jute")
+        before = sorted(p.relative_to(folder) for p in folder.rglob("*"))
+        leds, camera = open_rig(rig)
+        with leds, camera:
+            session = CaptureSession(leds, camera, rig.lights, pixel_pitch_mm=rig.pixel_pitch_mm)
+            card, sample = session.acquire("flatfield"), session.acquire("sample")
+    real_replace = session_module.os.replace
+
+    def failing_replace(source, target):
+        # the new capture's rename into place fails (the old one's return is allowed)
+        if Path(target) == folder and ".staging-" in Path(source).parent.name and Path(source).name == folder.name:
+            raise OSError(28, "No space left on device")
+        return real_replace(source, target)
+
+    monkeypatch.setattr(session_module.os, "replace", failing_replace)
+    with pytest.raises(DataFormatError, match=r"cannot move the capture into .*jute.*No space left"):
+        write_with_card(folder, session, sample, card, card_albedo=CARD_ALBEDO, overwrite=True)
+    assert sorted(p.relative_to(folder) for p in folder.rglob("*")) == before
+    assert [p.name for p in tmp_path.iterdir()] == ["jute"]  # no staging folder left behind
+    assert load_sample(folder).reference is not None
+
+
 def test_focus_sweep_finds_the_focal_plane(tmp_path):
     config = RigConfig(shadows=False)  # shadows cost time and do not move focus
     with SimulatedRig("jute", 0, 48, pixel_pitch_mm=0.05, config=config) as rig:
