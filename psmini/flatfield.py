@@ -191,13 +191,15 @@ class _CardEntry(NamedTuple):
     terms: tuple[Tensor, Tensor, bool]
 
 
-_last_card: list[_CardEntry] = []  # the last card's terms (a batch run flat-fields every sample with one card)
+#: How many cards' terms are kept, the latest first: a batch run flat-fields every sample with one card, and a
+#: comparison of the two solvers alternates two sets of terms for it (near light's card is smoothed with its shading).
+_KEPT_CARDS = 2
+_kept_cards: list[_CardEntry] = []
 
 
 def _forget(key: tuple, _: weakref.ref) -> None:
-    """Drop the kept terms once their card (or its dark frame) is freed, unless another card replaced them."""
-    if _last_card and _last_card[0].key == key:
-        _last_card.clear()
+    """Drop the kept terms once their card (or its dark frame) is freed."""
+    _kept_cards[:] = [entry for entry in _kept_cards if entry.key != key]
 
 
 def _data_of(x: Tensor) -> tuple[Tensor, tuple]:
@@ -214,10 +216,10 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
     """The card's scale ``card_albedo / (R - D_R)`` (0 where not trusted), where it is trusted, and whether it
     is everywhere: everything that depends on the card alone, computed at the card's size, not per sample.
 
-    The last card's terms are kept while the caller's reference (and dark) data (``originals``, before any
-    reshaping view: the tensors that own their data, and where they lie in it) are alive and unmodified (same
-    ``_version``), the shading is equal (compared by value: a light model computes it afresh), and none needs a
-    gradient: a batch run passes one card with every batch, and its ten passes over the card (a third of the
+    The last :data:`_KEPT_CARDS` cards' terms are kept while the caller's reference (and dark) data (``originals``,
+    before any reshaping view: the tensors that own their data, and where they lie in it) are alive and unmodified
+    (same ``_version``), the shading is equal (compared by value: a light model computes it afresh), and none needs
+    a gradient: a batch run passes one card with every batch, and its ten passes over the card (a third of the
     flat-field's time at batch 4; with near light's smoothing and shading, half a second) are then done once, also
     when the caller slices the card's dark frame afresh in every call. The card's test for NaN and infinities runs
     with the terms: a kept card was tested when they were computed (8 of the ~40 passes over a capture's worth of
@@ -227,8 +229,7 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
     owners, wheres = zip(*((None, None) if x is None else _data_of(x) for x in originals), strict=True)
     key = (wheres, images.dtype, images.device, card_albedo, min_reference, saturation_level, smoothing_px,
            None if shading is None else (tuple(shading.shape), shading.dtype, shading.device))
-    if cacheable and _last_card:
-        entry = _last_card[0]
+    for entry in _kept_cards if cacheable else []:
         if (entry.key == key and all((ref is None and owner is None) or (ref is not None and ref() is owner)
                                      for ref, owner in zip(entry.sources, owners, strict=True))
                 and (shading is None or (entry.shading is not None and torch.equal(entry.shading, shading)))):
@@ -250,8 +251,9 @@ def _card_terms(reference: Tensor, reference_dark: Tensor | None, originals: tup
     scale = card_albedo / torch.where(trusted, card, torch.inf)
     terms = (scale, trusted, bool(trusted.all()))
     if cacheable:
-        _last_card[:] = [_CardEntry(key, tuple(None if owner is None else weakref.ref(owner, partial(_forget, key))
-                                               for owner in owners), shading, terms)]
+        entry = _CardEntry(key, tuple(None if owner is None else weakref.ref(owner, partial(_forget, key))
+                                      for owner in owners), shading, terms)
+        _kept_cards[:] = [entry, *(kept for kept in _kept_cards if kept.key != key)][:_KEPT_CARDS]
     return terms
 
 

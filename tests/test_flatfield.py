@@ -150,28 +150,47 @@ class TestFlatField(BaseTester):
         self.assert_close(flatfield(images, torch.full_like(reference, 0.25)).images, first * 2)
         dark = torch.full((1, 1, 4, 5), 0.05, device=device, dtype=dtype)
         self.assert_close(flatfield(images, reference, reference_dark=dark).images, images / 0.95)
-        from psmini.flatfield import _last_card  # the one-entry list, updated in place
+        from psmini.flatfield import _kept_cards  # the list of kept terms, updated in place
 
-        assert _last_card  # kept while the card lives ...
+        assert _kept_cards  # kept while the card lives ...
         del reference, dark
-        assert not _last_card  # ... and dropped with it
+        assert not _kept_cards  # ... and dropped with it
 
     def test_card_terms_kept_for_fresh_views_of_the_same_data(self, device, dtype):
         """``darks[:1]`` sliced afresh in every call reuses the card's terms; a change through any view, or another
         slice, does not."""
-        from psmini.flatfield import _last_card
+        from psmini.flatfield import _kept_cards
 
         images = torch.rand(2, 3, 4, 5, device=device, dtype=dtype) + 0.3
         reference = torch.full((1, 3, 4, 5), 0.6, device=device, dtype=dtype)
         darks = torch.stack([torch.full((1, 4, 5), value, device=device, dtype=dtype) for value in (0.1, 0.2)])
         first = flatfield(images, reference, darks, darks[:1]).images
-        terms = _last_card[0].terms
+        terms = _kept_cards[0].terms
         self.assert_close(flatfield(images, reference, darks, darks[:1]).images, first)
-        assert _last_card[0].terms is terms  # the same data: not recomputed
+        assert _kept_cards[0].terms is terms  # the same data: not recomputed
         other = flatfield(images, reference, darks, darks[1:]).images  # another slice: its own terms
         self.assert_close(other, (images - darks).clamp_min(0) / 0.4)
         darks[:1].fill_(0.3)  # a change through a view bumps the shared version
         self.assert_close(flatfield(images, reference, darks, darks[:1]).images, (images - darks).clamp_min(0) / 0.3)
+
+    def test_two_cards_terms_are_kept_in_turn(self, device, dtype):
+        """Near light and the distant pipeline flat-field one card with different terms (a smoothed card): called in
+        turn, each recomputed the card (0.34 s at 400², where a warm distant call takes 12 ms). The last two sets of
+        terms are kept; a third evicts the oldest."""
+        from psmini.flatfield import _kept_cards
+
+        images = torch.rand(1, 3, 16, 16, device=device, dtype=dtype) + 0.3
+        reference = torch.rand(3, 16, 16, device=device, dtype=dtype) + 0.5
+        smoothed = flatfield(images, reference, card_smoothing_px=2.0).images
+        plain = flatfield(images, reference).images
+        terms = {id(entry.terms) for entry in _kept_cards}
+        assert len(terms) == 2
+        self.assert_close(flatfield(images, reference, card_smoothing_px=2.0).images, smoothed)
+        self.assert_close(flatfield(images, reference).images, plain)
+        assert {id(entry.terms) for entry in _kept_cards} == terms  # neither recomputed
+        assert not torch.equal(smoothed, plain)
+        flatfield(images, reference, card_smoothing_px=3.0)
+        assert len(_kept_cards) == 2 and _kept_cards[0].key[6] == 3.0 and _kept_cards[1].key[6] is None
 
     def test_gradcheck_with_dark_and_saturation(self):
         """The in-place path (difference, clamp, scale, saturation fill on one new tensor) keeps its gradients."""
