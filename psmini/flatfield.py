@@ -314,24 +314,26 @@ def _gaussian_taps(sigma: float, like: Tensor) -> list[Tensor]:
     return [taps * offset**power for power in range(5)]
 
 
-def _window_sums(x: Tensor, along_rows: Tensor, along_columns: Tensor) -> Tensor:
-    """Sums over each pixel's window of ``x`` (N, C, H, W) weighted by separable taps, zero outside the image:
-    ``along_columns`` weights the offset u within a row, ``along_rows`` the offset v within a column.
+def _window_sums(x: Tensor, taps: list[Tensor], powers: list[tuple[int, int]]) -> dict[tuple[int, int], Tensor]:
+    """Sums over each pixel's window of ``x`` (N, C, H, W) weighted by separable taps, zero outside the image, for
+    each ``(u, v)`` of ``powers``: ``taps[u]`` weights the offset within a row, ``taps[v]`` the offset within a
+    column. The pass along the rows is made once for each ``u`` and shared by its column passes.
 
     Each pass is the sum of the taps times shifted views of the zero-padded image: 12 times faster than ``conv2d``
     with a 1 × 19 kernel on one channel, which torch's CPU build runs as a general convolution (76 against 6.4 ms on
     8 × 400², one thread).
     """
-    n, radius = along_columns.numel(), along_columns.numel() // 2
-    height, width = x.shape[-2:]
-    padded = F.pad(x, (radius, radius))
-    rows = along_columns[0] * padded[..., :width]
-    for i in range(1, n):
-        rows = rows + along_columns[i] * padded[..., i : i + width]
-    padded = F.pad(rows, (0, 0, radius, radius))
-    total = along_rows[0] * padded[..., :height, :]
-    for i in range(1, n):
-        total = total + along_rows[i] * padded[..., i : i + height, :]
+    rows = {u: _tap_sum(x, taps[u], -1) for u in dict.fromkeys(u for u, _ in powers)}
+    return {(u, v): _tap_sum(rows[u], taps[v], -2) for u, v in powers}
+
+
+def _tap_sum(x: Tensor, taps: Tensor, dim: int) -> Tensor:
+    """The sum of ``taps`` times ``x`` shifted along ``dim`` (-1 or -2) by each tap's offset, zero outside."""
+    radius, size = taps.numel() // 2, x.shape[dim]
+    padded = F.pad(x, (radius, radius) if dim == -1 else (0, 0, radius, radius))
+    total = taps[0] * padded.narrow(dim, 0, size)
+    for i in range(1, taps.numel()):
+        total = total + taps[i] * padded.narrow(dim, i, size)
     return total
 
 
@@ -396,10 +398,10 @@ def smooth_card(card: Tensor, sigma_px: float = 5.0, usable: Tensor | None = Non
     ratio = card / torch.where(mean > 0, mean, torch.ones_like(mean))
     window = positive.all(dim=1, keepdim=True).to(card.dtype)  # pixels where every LED is usable
     taps = _gaussian_taps(sigma, card)
-    moments = {(u, v): _window_sums(window, taps[v], taps[u]) for u in range(5) for v in range(5 - u)}
+    moments = _window_sums(window, taps, [(u, v) for u in range(5) for v in range(5 - u)])
     basis = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))  # powers of the offsets (u along a row, v down)
     weighted = ratio * window
-    sums = [_window_sums(weighted, taps[v], taps[u]) for u, v in basis]  # each (B, K, H, W)
+    sums = list(_window_sums(weighted, taps, list(basis)).values())  # each (B, K, H, W), in the basis' order
     linear, plane_pinned = _linear_fit([moments[key] for key in basis], sums[:3])
     quadratic, quadric_pinned = _quadratic_fit(moments, basis, sums)
     fitted = torch.where(quadric_pinned, quadratic, linear)
