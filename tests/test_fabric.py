@@ -819,6 +819,22 @@ class TestLattice:
         found = fabric_structure(lattice_surface(400, f, f, 0.0, waves), PITCH)[0]
         assert found.threads_per_cm == pytest.approx([10 * f, 10 * f], rel=2e-3)
 
+    def test_a_nets_fundamental_a_third_of_a_bin_below_its_harmonics(self):
+        """Thin yarns far apart (a net, 9 per cm in a 10 mm field: nine frequency bins) have harmonics nearly as strong
+        as the fundamental, and near light's depth put the fundamental a third of a bin (3.5 %) below a third of the
+        third harmonic, the peak of most slope: beyond a 3 % tolerance, so the third harmonic was read as the yarn
+        system, three times too dense (two of the five net captures of ``test_reconstructed_captures``)."""
+        f = 0.909  # cycles/mm
+        waves = {(0.965, 0): 0.03, (2, 0): 0.027, (3, 0): 0.022, (0, 0.965): 0.03, (0, 2): 0.027, (0, 3): 0.022}
+        found = fabric_structure(lattice_surface(400, f, f, 37.0, waves), PITCH)[0]
+        assert found.threads_per_cm == pytest.approx([10 * f, 10 * f], rel=0.05)
+        from psmini.fabric.structure import SpectralPeak, _fundamental
+
+        # in a field ten times as large the same 3.5 % is three bins: another peak, not the fundamental
+        third, fundamental = SpectralPeak(0.0, 3 * f, 40.0, 0.025), SpectralPeak(0.0, 0.965 * f, 40.0, 0.03)
+        assert _fundamental(third, [third, fundamental], StructureOptions(), field_mm=10.0) is fundamental
+        assert _fundamental(third, [third, fundamental], StructureOptions(), field_mm=100.0) is third
+
     @pytest.mark.parametrize(("comb", "repeat"), [
         ({(0.32, 0.5): 0.003, (0.69, 0.5): 0.003, (0.86, 0.5): 0.003, (0.5, 0.63): 0.003, (0.5, 0.83): 0.003}, 2),
         ({(0.32, 0.41): 0.003, (0.69, 0.37): 0.003, (0.86, 0.62): 0.003, (0.41, 0.63): 0.003, (0.37, 0.83): 0.003}, 1),

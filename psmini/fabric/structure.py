@@ -400,17 +400,21 @@ def _openness(height: Tensor, valid: Tensor, options: StructureOptions) -> float
     return float((total - z.numel() + holes) / total)
 
 
-def _fundamental(peak: SpectralPeak, peaks: list[SpectralPeak], options: StructureOptions) -> SpectralPeak:
+def _fundamental(peak: SpectralPeak, peaks: list[SpectralPeak], options: StructureOptions,
+                 field_mm: float) -> SpectralPeak:
     """The peak's fundamental: the peak at the lowest 1/d (d = 2..6) of its frequency vector that holds at least
     80% of its amplitude (thin yarns far apart, as in a net, have harmonics nearly as strong as the
-    fundamental; the aliases of fine yarns' harmonics are weaker than the thread peak)."""
+    fundamental; the aliases of fine yarns' harmonics are weaker than the thread peak). "At" means within 3% or
+    half a frequency bin of the field (1 / ``field_mm``), whichever is wider: a peak nine bins out is placed to a
+    fraction of a bin, which is more than 3% of it (near light's depth of a net puts its fundamental a third of a
+    bin below a ninth of its third harmonic)."""
     for divisor in (6, 5, 4, 3, 2):
         target = np.array([peak.fx_per_mm, peak.fy_per_mm]) / divisor
+        tolerance = max(0.03 * np.linalg.norm(target), 0.5 / field_mm)
         for p in peaks:
             v = np.array([p.fx_per_mm, p.fy_per_mm])
             close = min(np.linalg.norm(v - target), np.linalg.norm(v + target))
-            if close <= 0.03 * np.linalg.norm(target) and p.amplitude_um >= 0.8 * peak.amplitude_um \
-                    and p.snr_db >= options.strong_db:
+            if close <= tolerance and p.amplitude_um >= 0.8 * peak.amplitude_um and p.snr_db >= options.strong_db:
                 return p
     return peak
 
@@ -703,7 +707,7 @@ def _lattice(peaks: list[SpectralPeak], openness: float, options: StructureOptio
                                f"no spectral peak stands {options.strong_db:.0f} dB above the background (the "
                                f"strongest: {peaks[0].snr_db:.1f} dB): no clear yarn system", openness=openness,
                                peaks=peaks)
-    strong = [_fundamental(p, peaks, options) for p in strong]
+    strong = [_fundamental(p, peaks, options, field_mm) for p in strong]
     vec = [_vector(p) for p in strong]
     # a stitch lattice with alternate courses shifted (purl): two equal diagonal peaks, oblique to each other
     twins = [k for k in range(1, len(strong)) if 20.0 <= _angle_between(vec[0], vec[k]) < 80.0
