@@ -482,26 +482,27 @@ class TestStructure:
     @pytest.mark.slow
     @pytest.mark.parametrize("solver", ["distant", "near"])
     @pytest.mark.parametrize("name", STRUCTURED)
-    def test_reconstructed_captures(self, name, solver, request):
+    def test_reconstructed_captures(self, name, solver):
         """From the simulator's noisy 8-bit captures, reconstructed by the default pipeline (near light, for LED
         captures) and by the classical one (distant lights with the card): within 2% and 1°, at 0, 0.5 and 1 mm
         above the card and five orientations (every pair for the classical pipeline; for near light, at about a
         second per capture on a CPU, each orientation at one of the lifts in turn). Near light finds the net's mesh
         but reads its densities 1.2-3.7% off (the step from its yarns down to the card in its holes is flattened:
-        docs/guides/fabric.md), a known failure kept visible here."""
-        if name == "net" and solver == "near":  # strict: a fix shows up as a failure to update this
-            request.applymarker(pytest.mark.xfail(strict=True, reason="near light reads the net's densities 1-4% off"))
+        docs/guides/fabric.md): a known failure kept visible as an xfail, under a bound it must still hold (5%: a
+        strict xfail on the whole test hid a third harmonic read as the yarns, 198% off, on two captures)."""
         from data_synth import make_fabric
         from data_synth.rig import RigConfig, render_capture, render_card
         from psmini.config import ReconstructionConfig
         from psmini.fabric import reconstruct_for_description
         from psmini.io.sample import Sample
 
+        known_limit = name == "net" and solver == "near"
         config = RigConfig(bit_depth=8)
         card = render_card(config, seed=99)
         orientations, lifts = (0.0, 37.0, 90.0, 121.0, 163.0), (0.0, 0.5, 1.0)
         cases = [(lift, orientation) for lift in lifts for orientation in orientations] if solver == "distant" \
             else [(lifts[i % 3], orientation) for i, orientation in enumerate(orientations)]
+        worst = 0.0
         for lift, orientation in cases:
             fabric = make_fabric(name, size=400, seed=11, orientation_deg=orientation, randomness=0.25)
             capture = render_capture(fabric, config, seed=11, height_offset_mm=lift)
@@ -511,7 +512,11 @@ class TestStructure:
             rec = reconstruct_for_description(sample, ReconstructionConfig(solver=solver))
             surface = structure_surface(rec.p, rec.q, PITCH, rec.mask)  # where describe_reconstruction reads it
             density, angle = structure_errors(fabric_structure(surface, PITCH, rec.mask)[0], truth_systems(fabric))
-            assert density < 0.02 and angle < 1.0, (lift, orientation, density, angle)
+            assert density < (0.05 if known_limit else 0.02) and angle < 1.0, (lift, orientation, density, angle)
+            worst = max(worst, density)
+        if known_limit:
+            assert worst >= 0.02, "near light now reads the net within 2%: drop its known limit here and in the guide"
+            pytest.xfail(f"near light reads the net's densities up to {100 * worst:.1f}% off (the 2% not met)")
 
 
 class TestStructureSurface:
