@@ -362,7 +362,8 @@ def autofocus_sweep(move_to: Callable[[float], object], grab: Callable[[], Tenso
         the :class:`AutofocusResult`.
 
     Raises:
-        InputError: bad sweep parameters or frames (see :class:`AutofocusController`, :mod:`psmini.focus`).
+        InputError: bad sweep parameters or frames (see :class:`AutofocusController`, :mod:`psmini.focus`), or a
+            ``move_to`` or ``grab`` that is not callable.
 
     Example:
         >>> stage = {"z": 0.0}
@@ -373,6 +374,11 @@ def autofocus_sweep(move_to: Callable[[float], object], grab: Callable[[], Tenso
         >>> round(result.best_position, 1), round(stage["z"], 1)
         (0.3, 0.3)
     """
+    # the positions in move_to's place, or a frame for grab, failed as a bare TypeError (not callable)
+    for name, function in (("move_to", move_to), ("grab", grab)):
+        if not callable(function):
+            raise InputError(f"{name} must be callable ({'move_to(z)' if name == 'move_to' else 'grab()'}), got "
+                             f"{type(function).__name__}")
     controller = AutofocusController(positions, start=start, stop=stop, step=step, bounds=bounds, measure=measure,
                                      roi=roi, patience=patience, margin=margin, prominence=prominence, refine=refine)
     position = controller.position

@@ -89,6 +89,10 @@ def point_cloud(depth: Tensor, pixel_pitch_mm: float) -> Tensor:
     Returns:
         points :math:`(B, H \\cdot W, 3)`, mm.
 
+    Raises:
+        ShapeError: a depth that is not :math:`(B, 1, H, W)`. InputError: a pitch that is not a positive number, a
+            depth that is not a floating-point tensor (as :func:`depth_to_points`).
+
     Example:
         >>> point_cloud(torch.zeros(2, 1, 4, 5), 0.025).shape
         torch.Size([2, 20, 3])

@@ -48,7 +48,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from psmini._checks import check_finite, check_positive, check_shape, check_tensor
+from psmini._checks import check_finite, check_light_module, check_positive, check_shape, check_tensor
 from psmini.errors import CalibrationError, InputError, ShapeError
 from psmini.geometry import pixel_grid_mm
 from psmini.lights import DirectionalLights, LEDLights, LightModel, PointLights, lights_from_dict, lights_to_dict
@@ -206,12 +206,25 @@ def card_loss(
     Returns:
         a scalar, differentiable with respect to the light model's parameters.
 
+    Raises:
+        InputError: ``lights`` that are not a light model (a tensor of directions), a ``huber_delta`` that is not
+            a positive number. ShapeError: images, points or weights of the wrong shape (images and shading of
+            another K: the model's light count).
+
     Example:
         >>> points = torch.zeros(1, 3, 3, 3)
         >>> images = card_shading(nominal_leds(4), points)
         >>> float(card_loss(nominal_leds(4), images / images.mean(), points)) < 1e-12
         True
     """
+    # a tensor of directions failed as a bare TypeError (not callable), a delta of 0 and weights of another shape
+    # as bare RuntimeErrors of huber_loss and broadcasting; python checks only: the loss runs at every fit step
+    check_light_module(lights, "lights")
+    check_positive(huber_delta, "huber_delta")
+    check_shape(images, ["N", "K", "H", "W"], "images")
+    if weights is not None and (not isinstance(weights, Tensor) or weights.shape != images.shape):
+        got = tuple(weights.shape) if isinstance(weights, Tensor) else type(weights).__name__
+        raise ShapeError(f"weights must have the images' shape {tuple(images.shape)}, got {got}")
     residuals, _ = eliminate_gain(images, card_shading(lights, points), weights)
     loss = F.huber_loss(residuals, torch.zeros_like(residuals), reduction="none", delta=huber_delta)
     if weights is None:

@@ -14,7 +14,16 @@ from typing import overload
 import torch
 from torch import Tensor, nn
 
-from psmini._checks import all_true, any_true, check_finite, check_mask, check_out, check_same_size, check_shape
+from psmini._checks import (
+    all_true,
+    any_true,
+    check_finite,
+    check_mask,
+    check_out,
+    check_same_size,
+    check_shape,
+    check_tensor,
+)
 from psmini.errors import CalibrationError, InputError, ShapeError
 from psmini.lights import as_batched_lights, check_spans_3d
 
@@ -140,7 +149,24 @@ def solve_normal_equations(gram: Tensor, rhs: Tensor, dim: int = 1) -> tuple[Ten
         solutions (three along ``dim``; 0 where not well posed) and where the system is well posed (``dim``
         kept with size 1): its determinant is at least ``_RANK_RATIO`` times (trace / 3)³, which holds when three
         usable, non-coplanar lights remain.
+
+    Raises:
+        InputError: ``gram`` or ``rhs`` not a floating-point tensor. ShapeError: ``gram`` without six entries or
+            ``rhs`` without three along ``dim``, a ``dim`` out of range, or other sizes that differ.
     """
+    # other counts failed as bare TypeErrors and ValueErrors of unpacking, other shapes as RuntimeErrors; python
+    # checks only (no sync: the solvers call this once per chunk)
+    check_tensor(gram, "gram")
+    check_tensor(rhs, "rhs")
+    ndim = gram.ndim
+    if not (isinstance(dim, int) and -ndim <= dim < ndim) or rhs.ndim != ndim:
+        raise ShapeError(f"gram and rhs must have the same number of dimensions and dim must index one, got gram "
+                         f"{tuple(gram.shape)}, rhs {tuple(rhs.shape)}, dim {dim!r}")
+    axis = dim % ndim
+    others = [[size for i, size in enumerate(x.shape) if i != axis] for x in (gram, rhs)]
+    if (gram.shape[axis], rhs.shape[axis]) != (6, 3) or others[0] != others[1]:
+        raise ShapeError(f"gram must hold 6 entries and rhs 3 along dim {dim}, with the same other sizes, got gram "
+                         f"{tuple(gram.shape)} and rhs {tuple(rhs.shape)}")
     r0, r1, r2 = rhs.unbind(dim)
     (c00, c01, c02, c11, c12, c22), det, well_posed = _symmetric_adjugate(*gram.unbind(dim))
     well_posed = well_posed.unsqueeze(dim)

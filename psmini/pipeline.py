@@ -330,8 +330,9 @@ def reconstruct(sample, config: ReconstructionConfig | None = None) -> Reconstru
         :class:`Reconstruction` with batch size 1, on the config's device.
 
     Raises:
-        InputError: a configuration that does not fit the sample (see :class:`PhotometricStereo`); something
-            that is not a loaded sample (a tensor of images: those go to :class:`PhotometricStereo`).
+        InputError: a configuration that does not fit the sample (see :class:`PhotometricStereo`), or that is not
+            a ReconstructionConfig; something that is not a loaded sample (a tensor of images: those go to
+            :class:`PhotometricStereo`).
 
     Example:
         >>> from psmini.io import Sample
@@ -347,6 +348,8 @@ def reconstruct(sample, config: ReconstructionConfig | None = None) -> Reconstru
                          "PhotometricStereo(lights, pixel_pitch_mm)(images)")
     check_tensor(sample.images, "sample.images")
     config = ReconstructionConfig() if config is None else config
+    if not isinstance(config, ReconstructionConfig):  # a solver name failed as a bare AttributeError on device
+        raise InputError(f"config must be a ReconstructionConfig, got {type(config).__name__}")
     device, dtype = torch.device(config.device), config.torch_dtype
 
     def batch(x: Tensor | None) -> Tensor | None:

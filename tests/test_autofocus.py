@@ -254,6 +254,24 @@ class TestSweep:
         assert abs(result.best_position - 0.35) <= 0.1
         assert state["moves"] == positions[: len(state["moves"])]
 
+    def test_sweep_misuse_raise(self):
+        move_to, grab, state = blurred_stage(0.35)
+        positions = np.linspace(-1.0, 1.0, 21).tolist()
+        move_to(0.0)
+        frame = grab()
+        state["moves"].clear()
+        # the positions in move_to's place, or a frame for grab, failed as a bare TypeError (not callable), the
+        # latter after the stage had moved
+        with pytest.raises(InputError, match="move_to must be callable \\(move_to\\(z\\)\\), got list"):
+            autofocus_sweep(positions, grab, positions)
+        with pytest.raises(InputError, match="grab must be callable \\(grab\\(\\)\\), got Tensor"):
+            autofocus_sweep(move_to, frame, positions)
+        assert state["moves"] == []  # refused before the stage moved
+        with pytest.raises(InputError, match="positions, or all of start"):
+            autofocus_sweep(move_to, grab, start=-1.0)
+        with pytest.raises(InputError, match="frame tensor or a score .* NoneType"):
+            autofocus_sweep(move_to, lambda: None, positions)
+
 
 class TestBestOfScores:
     def test_global_max_and_stop_index(self):

@@ -344,6 +344,38 @@ class TestErrors:
         with pytest.raises(InputError, match="got list; pass the list's entries one by one"):
             descriptor_vector([{"iso25178": {}}])
 
+    def test_structure_spectrum_misuse_raise(self):
+        z = torch.zeros(1, 1, 16, 16)
+        with pytest.raises(ShapeError, match="height must have shape \\(B, 1, H, W\\), got \\(16, 16\\)"):
+            structure_spectrum(z[0, 0], PITCH)
+        with pytest.raises(InputError, match="pixel_pitch_mm must be a positive number .* got 0.0"):
+            structure_spectrum(z, 0.0)
+        with pytest.raises(InputError, match="no valid pixel"):
+            structure_spectrum(torch.full_like(z, math.nan), PITCH)
+        # options=None failed as a bare AttributeError ('NoneType' object has no attribute 'form_degree')
+        for function in (structure_spectrum, fabric_structure):
+            with pytest.raises(InputError, match="options must be a StructureOptions, got NoneType"):
+                function(z, PITCH, options=None)
+
+    def test_structure_row_of_a_tensor_raise(self):
+        # a height tensor failed as "height must be a torch.Tensor, got NoneType" (its depth read as None)
+        with pytest.raises(InputError, match="reconstruction must have depth and mask .* got Tensor without depth "
+                                             "or mask"):
+            structure_row(torch.zeros(1, 1, 16, 16), PITCH)
+        assert structure_row(None, None)["structure_found"] is False  # no pitch: the empty columns, as before
+
+    def test_reconstruct_for_description_misuse_raise(self):
+        from psmini.fabric import reconstruct_for_description
+        from psmini.io.sample import Sample
+        from psmini.lights import DirectionalLights, ring_lights
+
+        with pytest.raises(InputError, match="needs a loaded sample .* got Tensor"):
+            reconstruct_for_description(torch.rand(8, 16, 16))
+        sample = Sample(name="s", images=torch.rand(8, 16, 16) + 0.1, lights=DirectionalLights(ring_lights(8, 55.0)))
+        # a solver name for the config failed as a bare AttributeError ('str' object has no attribute 'device')
+        with pytest.raises(InputError, match="config must be a ReconstructionConfig, got str"):
+            reconstruct_for_description(sample, "near")
+
     def test_options(self):
         with pytest.raises(InputError, match="shorter"):
             SurfaceOptions(s_cutoff_mm=1.0, l_cutoff_mm=0.5)

@@ -41,6 +41,14 @@ class TestGeometry(BaseTester):
         with pytest.raises(ShapeError, match="depth"):
             depth_to_points(torch.zeros(1, 2, 2, 2), 1.0)
 
+    def test_point_cloud_misuse_raise(self):
+        with pytest.raises(ShapeError, match="depth must have shape \\(B, 1, H, W\\), got \\(4, 5\\)"):
+            point_cloud(torch.zeros(4, 5), 0.025)
+        with pytest.raises(InputError, match="pixel_pitch_mm must be a positive finite number, got nan"):
+            point_cloud(torch.zeros(1, 1, 4, 5), float("nan"))
+        with pytest.raises(InputError, match="floating-point"):
+            point_cloud(torch.zeros(1, 1, 4, 5, dtype=torch.int64), 0.025)
+
     def test_gradcheck(self):
         depth = torch.rand(1, 1, 3, 3, dtype=torch.float64, requires_grad=True)
         self.gradcheck(lambda d: point_cloud(d, 0.5), (depth,))

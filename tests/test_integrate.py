@@ -382,6 +382,66 @@ class TestMaskedLeastSquares(BaseTester):
             masked_least_squares(p, p, mask=torch.zeros(1, 1, 8, 8, dtype=torch.bool))
 
 
+class TestWeightedPoissonErrors:
+    """The grid solver under masked_least_squares and near light, and its operators, called directly."""
+
+    def system(self, height=6, width=7):
+        gen = torch.Generator().manual_seed(0)
+        wu, wv = torch.ones(1, 1, height, width - 1), torch.ones(1, 1, height - 1, width)
+        tu = torch.rand(1, 1, height, width - 1, generator=gen)
+        tv = torch.rand(1, 1, height - 1, width, generator=gen)
+        return wu, wv, tu, tv, torch.ones(1, 1, height, width)
+
+    def test_solver_misuse_raise(self):
+        from psmini.integrate.poisson import solve_weighted_poisson
+
+        wu, wv, tu, tv, mask = self.system()
+        # the column edges' targets for the row edges' failed as a bare RuntimeError of broadcasting
+        with pytest.raises(ShapeError, match="tu must be a \\(B, 1, 6, 6\\) tensor, got \\(1, 1, 5, 7\\)"):
+            solve_weighted_poisson(wu, wv, tv, tu, mask)
+        with pytest.raises(ShapeError, match="mask must be a \\(B, 1, H, W\\) tensor, got \\(6, 7\\)"):
+            solve_weighted_poisson(wu, wv, tu, tv, mask[0, 0])  # was a bare IndexError
+        with pytest.raises(ShapeError, match="x0 must be a \\(B, 1, 6, 7\\) tensor, got \\(1, 1, 4, 4\\)"):
+            solve_weighted_poisson(wu, wv, tu, tv, mask, x0=torch.zeros(1, 1, 4, 4))
+        with pytest.raises(ShapeError, match="wu must be .* got list"):
+            solve_weighted_poisson(wu.tolist(), wv, tu, tv, mask)
+        # an empty mask failed as a bare RuntimeError of min()
+        with pytest.raises(ShapeError, match="mask must select at least one pixel, got an empty mask of 6x7"):
+            solve_weighted_poisson(wu, wv, tu, tv, torch.zeros_like(mask))
+        # a NaN target gave zeros after maxiter iterations; a NaN weight dropped its pixels silently
+        bad = tu.clone()
+        bad[0, 0, 2, 3] = math.nan
+        with pytest.raises(InputError, match="tu must be finite, got 1 NaN"):
+            solve_weighted_poisson(wu, wv, bad, tv, mask)
+        with pytest.raises(InputError, match="wv must be finite"):
+            solve_weighted_poisson(wu, torch.full_like(wv, math.inf), tu, tv, mask)
+        # outside the mask's bounding box a NaN is never read, as before
+        inner = torch.zeros_like(mask)
+        inner[..., :, :4] = 1
+        outside = tu.clone()
+        outside[..., 5] = math.nan
+        torch.testing.assert_close(solve_weighted_poisson(wu, wv, outside, tv, inner),
+                                   solve_weighted_poisson(wu, wv, tu, tv, inner))
+        assert solve_weighted_poisson(wu, wv, tu, tv, mask.bool()).shape == (1, 1, 6, 7)  # a bool mask works
+
+    def test_operators_misuse_raise(self):
+        from psmini.integrate.poisson import edge_mask, grid_differences
+
+        # a 1-D tensor failed as a bare IndexError, a list as a TypeError, a bool map as a RuntimeError
+        with pytest.raises(ShapeError, match="z must have shape \\(B, 1, H, W\\), got \\(5,\\)"):
+            grid_differences(torch.ones(5))
+        with pytest.raises(InputError, match="z must be a torch.Tensor, got list"):
+            grid_differences([[1.0]])
+        with pytest.raises(InputError, match="z must be a floating-point tensor .* got torch.bool"):
+            grid_differences(torch.ones(1, 1, 4, 4, dtype=torch.bool))
+        with pytest.raises(ShapeError, match="mask must be a \\(B, 1, H, W\\) tensor, got \\(5,\\)"):
+            edge_mask(torch.ones(5))
+        with pytest.raises(ShapeError, match="mask must be .* got list"):
+            edge_mask([[1.0]])
+        mu, mv = edge_mask(torch.ones(2, 1, 4, 5, dtype=torch.bool))  # a bool mask gives bool edges, as before
+        assert mu.shape == (2, 1, 4, 4) and mv.shape == (2, 1, 3, 5) and mu.dtype == torch.bool
+
+
 def perspective_plane(height, width, device, dtype):
     """A tilted plane seen by a pinhole camera: intrinsics, psmini normals and the true depth (mm)."""
     k = torch.tensor([[300.0, 0, width / 2 - 3], [0, 320.0, height / 2 + 2], [0, 0, 1]], device=device, dtype=dtype)
@@ -446,6 +506,26 @@ class TestIntegrateNormals(BaseTester):
             integrate_normals(n, intrinsics=torch.diag(torch.tensor([0.0, 1.0, 1.0])))
         with pytest.raises(InputError, match="masked"):
             integrate_normals(n, method="nope")
+
+    def test_log_gradients_errors(self):
+        k = torch.tensor([[500.0, 0, 4], [0, 500.0, 4], [0, 0, 1]])
+        n = torch.zeros(1, 3, 8, 8)
+        n[:, 2] = 1
+        # two channels gave empty gradients, a (3, H, W) map gradients of a batch of 3, a NaN normal NaN gradients
+        with pytest.raises(ShapeError, match="normals must have shape \\(B, 3, H, W\\), got \\(1, 2, 8, 8\\)"):
+            perspective_log_gradients(n[:, :2], k)
+        with pytest.raises(ShapeError, match="got \\(3, 8, 8\\)"):
+            perspective_log_gradients(n[0], k)
+        with pytest.raises(InputError, match="normals must be a torch.Tensor, got list"):
+            perspective_log_gradients(n.tolist(), k)
+        bad = n.clone()
+        bad[0, :, 3, 3] = math.nan
+        with pytest.raises(InputError, match="normals must be finite, got 3 NaN"):
+            perspective_log_gradients(bad, k)
+        with pytest.raises(ShapeError, match="intrinsics"):
+            perspective_log_gradients(n, torch.eye(2))
+        with pytest.raises(CalibrationError, match="focal"):
+            perspective_log_gradients(n, -k)
 
 
 class TestDispatchAndModules(BaseTester):

@@ -230,6 +230,22 @@ class TestModel(BaseTester):
         np.testing.assert_allclose(gain[0, 0].numpy(), expected, rtol=1e-12)
         self.assert_close(residuals, images - gain * shading)
 
+    def test_card_loss_misuse_raise(self):
+        points = torch.zeros(1, 3, 3, 3)
+        leds = nominal_leds(4)
+        images = card_shading(leds, points)
+        # a tensor of directions failed as a bare TypeError ('Tensor' object is not callable)
+        with pytest.raises(InputError, match="lights must be a light model .* got Tensor of shape \\(4, 3\\)"):
+            card_loss(leds.positions_mm, images, points)
+        # weights of another size failed as a bare RuntimeError of broadcasting
+        with pytest.raises(ShapeError, match="weights must have the images' shape \\(1, 4, 3, 3\\), got \\(1, 4, 2,"):
+            card_loss(leds, images, points, torch.ones(1, 4, 2, 2))
+        # a delta of 0 failed as a bare RuntimeError of huber_loss
+        with pytest.raises(InputError, match="huber_delta must be a positive finite number, got 0.0"):
+            card_loss(leds, images, points, huber_delta=0.0)
+        with pytest.raises(ShapeError, match="shading must have the images' shape \\(1, 6, 3, 3\\)"):
+            card_loss(leds, torch.rand(1, 6, 3, 3), points)  # 6 images for 4 lights
+
     def test_eliminate_gain_shape_error(self):
         with pytest.raises(ShapeError, match="shading"):
             eliminate_gain(torch.rand(1, 2, 3, 3), torch.rand(1, 3, 3, 3))

@@ -235,6 +235,27 @@ class TestSolveNormalEquations(BaseTester):
         m, well_posed = solve_normal_equations(gram, torch.ones(1, 3), dim=1)
         assert not bool(well_posed.any()) and m.abs().sum() == 0
 
+    def test_misuse_raise(self):
+        from psmini.normals import solve_normal_equations
+
+        gram, rhs = torch.rand(5, 6), torch.rand(5, 3)
+        # five entries failed as a bare TypeError of _symmetric_adjugate, four right-hand sides as a ValueError of
+        # unpacking, another count of systems as a RuntimeError, dim=2 as an IndexError, a list as an AttributeError
+        with pytest.raises(ShapeError, match="gram must hold 6 entries and rhs 3 along dim 1, .* got gram \\(5, 5\\)"):
+            solve_normal_equations(gram[:, :5], rhs)
+        with pytest.raises(ShapeError, match="rhs \\(5, 4\\)"):
+            solve_normal_equations(gram, torch.rand(5, 4))
+        with pytest.raises(ShapeError, match="with the same other sizes, got gram \\(5, 6\\) and rhs \\(4, 3\\)"):
+            solve_normal_equations(gram, rhs[:4])
+        with pytest.raises(ShapeError, match="dim must index one, .* dim 2"):
+            solve_normal_equations(gram, rhs, dim=2)
+        with pytest.raises(InputError, match="gram must be a torch.Tensor, got list"):
+            solve_normal_equations(gram.tolist(), rhs)
+        with pytest.raises(InputError, match="rhs must be a floating-point tensor"):
+            solve_normal_equations(gram, torch.ones(5, 3, dtype=torch.int64))
+        m, _ = solve_normal_equations(gram.T, rhs.T, dim=-2)  # a negative dim, as before
+        assert m.shape == (3, 5)
+
     def test_weighted_matches_lstsq_per_pixel(self):
         lights = ring_lights(8, 50.0, dtype=torch.float64)
         images = torch.rand(1, 8, 3, 3, dtype=torch.float64)

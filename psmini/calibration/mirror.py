@@ -186,10 +186,15 @@ def card_distance_from_spheres(placements: Sequence[SphereCalibration]) -> float
     A sphere of radius R resting on the card has its centre R above it, so the card plane lies at
     ``z = centre_z - R`` in the camera frame; the mean over placements is returned (positive, mm).
 
+    Raises:
+        InputError: something that is not a sequence of :class:`SphereCalibration` (a list of tensors).
+        CalibrationError: no placement, or one that is not perspective (no centre in space).
+
     Example:
         >>> card_distance_from_spheres([first, second])  # doctest: +SKIP
         40.0
     """
+    _check_placements(placements)  # a list of tensors failed as a bare AttributeError on centre_mm
     spheres = [(p.centre_mm, p.radius_mm) for p in placements if p.centre_mm is not None and p.radius_mm is not None]
     if not placements or len(spheres) != len(placements):
         raise CalibrationError("the card's distance follows only from perspective placements")

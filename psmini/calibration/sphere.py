@@ -180,7 +180,8 @@ def silhouette_edges(mask: Tensor, image: Tensor | None = None) -> Tensor:
         edge points ``(u, v)``, shape :math:`(N, 2)`, in the image's dtype (float32 without one).
 
     Raises:
-        ShapeError: when the mask is not 2-D or the image's size differs.
+        ShapeError: when the mask is not 2-D or empty, or the image's size differs.
+        InputError: an image that is not a floating-point tensor.
 
     Example:
         >>> mask = torch.zeros(9, 9, dtype=torch.bool)
@@ -188,14 +189,16 @@ def silhouette_edges(mask: Tensor, image: Tensor | None = None) -> Tensor:
         >>> silhouette_edges(mask).shape
         torch.Size([12, 2])
     """
-    if not isinstance(mask, Tensor) or mask.ndim != 2:
-        raise ShapeError(f"mask must be a 2-D (H, W) tensor, got {getattr(mask, 'shape', type(mask).__name__)}")
+    # an empty mask failed as a bare RuntimeError of narrow(), an image that is not a tensor as an AttributeError
+    if not isinstance(mask, Tensor) or mask.ndim != 2 or mask.numel() == 0:
+        raise ShapeError(f"mask must be a non-empty 2-D (H, W) tensor, got "
+                         f"{getattr(mask, 'shape', type(mask).__name__)}")
     mask = mask.bool()
-    dtype = image.dtype if image is not None else torch.float32
     if image is not None:
         check_shape(image, ["H", "W"], "image")
         if image.shape != mask.shape:
             raise ShapeError(f"image {tuple(image.shape)} and mask {tuple(mask.shape)} must have the same size")
+    dtype = image.dtype if image is not None else torch.float32
     points = []
     for axis in (1, 0):  # horizontal pairs (u varies), then vertical pairs (v varies)
         first = mask.narrow(axis, 0, mask.shape[axis] - 1)
@@ -443,6 +446,9 @@ def sphere_centre_from_silhouette(
 
     Raises:
         CalibrationError: for fewer than 3 points, or an outline that is not a cone (a degenerate fit).
+        ShapeError: edge points that are not :math:`(N, 2)`, weights that are not :math:`(N,)`, intrinsics that
+            are not :math:`(3, 3)`. InputError: NaN or infinite edge points or weights, a radius that is not a
+            positive number.
 
     Example:
         >>> K = torch.tensor([[1600.0, 0, 199.5], [0, 1600.0, 199.5], [0, 0, 1]])
@@ -451,8 +457,16 @@ def sphere_centre_from_silhouette(
         >>> round(float(sphere_centre_from_silhouette(edges, K, 1.5)[2]), 1)
         -38.7
     """
-    check_shape(edge_px, ["N", "2"], "edge_px")
+    # NaN edge points were reported as "not a cone (|w| = nan)"; weights of another length or not a tensor failed
+    # as bare RuntimeErrors and AttributeErrors
+    sizes = check_shape(edge_px, ["N", "2"], "edge_px")
+    check_finite(edge_px, "edge_px")
     check_positive(radius_mm, "radius_mm")
+    if weights is not None:  # any dtype: the inliers of find_sphere as they are, or their floats
+        if not isinstance(weights, Tensor) or tuple(weights.shape) != (sizes["N"],):
+            got = tuple(weights.shape) if isinstance(weights, Tensor) else type(weights).__name__
+            raise ShapeError(f"weights must have shape ({sizes['N']},), one per edge point, got {got}")
+        check_finite(weights, "weights")
     if edge_px.shape[0] < 3:
         raise CalibrationError(f"the sphere's outline needs at least 3 points, got {edge_px.shape[0]}")
     rays = pixel_rays(edge_px, intrinsics)

@@ -115,6 +115,10 @@ def reconstruct_for_description(sample: Any, config: Any = None) -> Any:
     Returns:
         a :class:`psmini.pipeline.Reconstruction` (batch of one).
 
+    Raises:
+        InputError: as :func:`psmini.pipeline.reconstruct`: something that is not a loaded sample (a tensor of
+            images), a ``config`` that is not a ReconstructionConfig, a configuration that does not fit the sample.
+
     Example:
         >>> from psmini.io import Sample
         >>> from psmini.lights import DirectionalLights, ring_lights
@@ -383,15 +387,21 @@ def describe_reconstruction(reconstruction: Any, pixel_pitch_mm: float, surface:
         >>> round(describe_reconstruction(rec, 0.025)[0]["threads_per_cm"][0], 2)
         40.0
     """
-    missing = [name for name in ("depth", "mask") if not hasattr(reconstruction, name)]
-    if missing:  # a height tensor failed as a bare AttributeError
-        raise InputError(f"reconstruction must have depth and mask (a psmini.pipeline.Reconstruction), got "
-                         f"{type(reconstruction).__name__} without {' or '.join(missing)}; describe a height map "
-                         "with describe(height, pixel_pitch_mm, mask)")
+    _check_reconstruction(reconstruction)
     p, q, mask = getattr(reconstruction, "p", None), getattr(reconstruction, "q", None), reconstruction.mask
     structure_height = structure_surface(p, q, pixel_pitch_mm, mask) if p is not None and q is not None else None
     return describe(reconstruction.depth, pixel_pitch_mm, mask, getattr(reconstruction, "albedo", None), surface,
                     structure, structure_height)
+
+
+def _check_reconstruction(reconstruction: Any) -> None:
+    """Raise :class:`InputError` unless ``reconstruction`` has ``depth`` and ``mask`` (a height tensor failed as a
+    bare AttributeError, or as a "height must be a torch.Tensor, got NoneType" in :func:`structure_row`)."""
+    missing = [name for name in ("depth", "mask") if not hasattr(reconstruction, name)]
+    if missing:
+        raise InputError(f"reconstruction must have depth and mask (a psmini.pipeline.Reconstruction), got "
+                         f"{type(reconstruction).__name__} without {' or '.join(missing)}; describe a height map "
+                         "with describe(height, pixel_pitch_mm, mask)")
 
 
 def _number(x: Tensor | float) -> float | None:
@@ -415,6 +425,10 @@ def structure_row(reconstruction: Any, pixel_pitch_mm: float | None) -> dict[str
         "Sq_um", ..., "Std_deg"}`` (the repeats along the two systems in the densities' order); numbers or
         ``None`` (empty cells) where not defined.
 
+    Raises:
+        InputError, ShapeError: as :func:`describe_reconstruction` (with a pixel pitch): an InputError for something
+            that is not a reconstruction (no ``depth`` or ``mask``).
+
     Example:
         >>> from psmini.result import Reconstruction
         >>> z = torch.zeros(1, 1, 32, 32)
@@ -431,6 +445,7 @@ def structure_row(reconstruction: Any, pixel_pitch_mm: float | None) -> dict[str
         row["structure_found"] = False
         row["structure_reason"] = "the pixel pitch is unknown: no lengths in mm"
         return row
+    _check_reconstruction(reconstruction)
 
     def first_sample(name: str) -> Tensor | None:
         value = getattr(reconstruction, name, None)

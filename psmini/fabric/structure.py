@@ -223,6 +223,11 @@ def _levelled(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None,
     return surface, window * valid.to(height.dtype), valid
 
 
+def _check_options(options: object) -> None:
+    if not isinstance(options, StructureOptions):  # None failed as a bare AttributeError on form_degree
+        raise InputError(f"options must be a StructureOptions, got {type(options).__name__}")
+
+
 def structure_spectrum(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None = None,
                        options: StructureOptions = StructureOptions()) -> tuple[Tensor, float]:
     """The power spectrum :func:`fabric_structure` searches: levelled, Hann-windowed, zero-padded twice.
@@ -238,11 +243,16 @@ def structure_spectrum(height: Tensor, pixel_pitch_mm: float, mask: Tensor | Non
         (growing right) and fy along rows (growing *up*: row N/2 - k is fy = k steps), and the frequency step in
         cycles/mm.
 
+    Raises:
+        InputError: a sample without valid pixels, a bad pitch, ``options`` that are not a
+            :class:`StructureOptions`. ShapeError: bad shapes.
+
     Example:
         >>> power, step = structure_spectrum(torch.rand(1, 1, 32, 32), 0.025)
         >>> power.shape, step
         (torch.Size([1, 1, 64, 64]), 0.625)
     """
+    _check_options(options)
     _check_height(height, mask, pixel_pitch_mm)
     surface, weight, _ = _levelled(height, pixel_pitch_mm, mask, options)
     return _spectrum(surface, weight), 1.0 / (2 * max(height.shape[-2:]) * pixel_pitch_mm)
@@ -327,7 +337,8 @@ def fabric_structure(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None 
         one :class:`FabricStructure` per sample.
 
     Raises:
-        InputError: a sample without valid pixels, a bad pitch. ShapeError: bad shapes.
+        InputError: a sample without valid pixels, a bad pitch, ``options`` that are not a
+            :class:`StructureOptions`. ShapeError: bad shapes.
 
     Example:
         >>> y, x = torch.meshgrid(torch.arange(200.0), torch.arange(200.0), indexing="ij")
@@ -336,6 +347,7 @@ def fabric_structure(height: Tensor, pixel_pitch_mm: float, mask: Tensor | None 
         >>> [round(t, 2) for t in found.threads_per_cm], [round(a, 2) for a in found.thread_angles_deg]
         ([40.0, 20.0], [90.0, 0.0])
     """
+    _check_options(options)
     valid = _check_height(height, mask, pixel_pitch_mm)
     surface, weight, valid = _levelled(height, pixel_pitch_mm, valid, options)
     b, _, h, w = height.shape

@@ -51,6 +51,11 @@ def perspective_log_gradients(normals: Tensor, intrinsics: Tensor) -> tuple[Tens
         ``(gu, gv, scale)``: :math:`\partial_u\log d` and :math:`\partial_v\log d` scaled by ``scale`` (the
         mean focal length, so they read as slopes), each :math:`(B, 1, H, W)`, and ``scale`` :math:`(B, 1, 1, 1)`.
 
+    Raises:
+        ShapeError: when ``normals`` is not :math:`(B, 3, H, W)` or the intrinsics do not fit.
+        CalibrationError: when the intrinsics have non-positive focal lengths.
+        InputError: when the normals hold NaN/inf or are not a floating-point tensor.
+
     Example:
         >>> k = torch.tensor([[500.0, 0, 8], [0, 500.0, 8], [0, 0, 1]])
         >>> n = torch.zeros(1, 3, 16, 16); n[:, 2] = 1
@@ -58,6 +63,9 @@ def perspective_log_gradients(normals: Tensor, intrinsics: Tensor) -> tuple[Tens
         >>> float(gu.abs().max()), float(scale)
         (0.0, 500.0)
     """
+    # normals of 2 channels gave empty gradients, a (3, H, W) map a batch of 3, a NaN normal NaN gradients
+    check_shape(normals, ["B", "3", "H", "W"], "normals")
+    check_finite(normals, "normals")
     gu, gv, scale, _ = _perspective_terms(normals, _check_intrinsics(intrinsics, normals))
     return gu, gv, scale
 

@@ -26,6 +26,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from psmini._checks import any_true, check_finite, check_shape
+from psmini.errors import ShapeError
+
 logger = logging.getLogger(__name__)
 
 __all__ = ["solve_weighted_poisson", "edge_mask", "grid_differences"]
@@ -37,8 +40,23 @@ _CHECK_EVERY = 5  # iterations between convergence checks (each check syncs with
 _STAGNATION = 20  # iterations without a better residual before giving up
 
 
+def _check_grid(x: object, name: str, size: tuple[int, int] | None = None) -> None:
+    """Raise :class:`ShapeError` unless ``x`` is a ``(B, 1, H, W)`` tensor (any dtype: a bool mask works), of
+    ``size`` (H, W) when given."""
+    if (not isinstance(x, Tensor) or x.ndim != 4 or x.shape[1] != 1
+            or (size is not None and tuple(x.shape[2:]) != size)):
+        expected = "(B, 1, H, W)" if size is None else f"(B, 1, {size[0]}, {size[1]})"
+        got = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+        raise ShapeError(f"{name} must be a {expected} tensor, got {got}")
+
+
 def grid_differences(z: Tensor) -> tuple[Tensor, Tensor]:
-    """Forward differences of ``z`` ``(B, 1, H, W)`` along columns ``(B, 1, H, W-1)`` and rows ``(B, 1, H-1, W)``."""
+    """Forward differences of ``z`` ``(B, 1, H, W)`` along columns ``(B, 1, H, W-1)`` and rows ``(B, 1, H-1, W)``.
+
+    Raises:
+        ShapeError: a ``z`` that is not :math:`(B, 1, H, W)`. InputError: one that is not a floating-point tensor.
+    """
+    check_shape(z, ["B", "1", "H", "W"], "z")  # a 1-D z failed as a bare IndexError, a bool one as a RuntimeError
     return z[..., :, 1:] - z[..., :, :-1], z[..., 1:, :] - z[..., :-1, :]
 
 
@@ -48,7 +66,12 @@ def divergence(fu: Tensor, fv: Tensor) -> Tensor:
 
 
 def edge_mask(mask: Tensor) -> tuple[Tensor, Tensor]:
-    """Edges with both ends inside ``mask`` (float ``(B,1,H,W)``): shapes ``(B,1,H,W-1)`` and ``(B,1,H-1,W)``."""
+    """Edges with both ends inside ``mask`` (float ``(B,1,H,W)``): shapes ``(B,1,H,W-1)`` and ``(B,1,H-1,W)``.
+
+    Raises:
+        ShapeError: a mask that is not a :math:`(B, 1, H, W)` tensor.
+    """
+    _check_grid(mask, "mask")  # a 1-D mask failed as a bare IndexError, a list as a TypeError
     return mask[..., :, 1:] * mask[..., :, :-1], mask[..., 1:, :] * mask[..., :-1, :]
 
 
@@ -293,8 +316,24 @@ def solve_weighted_poisson(
     Returns:
         :math:`z` of shape :math:`(B, 1, H, W)`, zero mean over the mask, 0 outside it. Several disconnected
         regions each get their own arbitrary offset. Differentiable in the weights and the targets.
+
+    Raises:
+        ShapeError: a tensor of another shape (targets of the column edges for the row edges', a 2-D mask), or a
+            mask that selects no pixel.
+        InputError: NaN or infinite weights, targets or ``x0`` within the mask's bounding box.
     """
+    # shapes that do not fit failed as bare RuntimeErrors of broadcasting or IndexErrors, an empty mask as a
+    # RuntimeError of min(); NaN targets gave zeros after maxiter, NaN weights dropped their pixels silently
+    _check_grid(mask, "mask")
     height, width = mask.shape[-2:]
+    for name, x in (("wu", wu), ("tu", tu)):
+        _check_grid(x, name, (height, width - 1))
+    for name, x in (("wv", wv), ("tv", tv)):
+        _check_grid(x, name, (height - 1, width))
+    if x0 is not None:
+        _check_grid(x0, "x0", (height, width))
+    if not any_true(mask > 0):
+        raise ShapeError(f"mask must select at least one pixel, got an empty mask of {height}x{width}")
     rows, cols = (mask > 0).any(dim=0).any(dim=0).any(dim=1), (mask > 0).any(dim=0).any(dim=0).any(dim=0)
     r0, r1 = int(rows.nonzero().min()), int(rows.nonzero().max()) + 1
     c0, c1 = int(cols.nonzero().min()), int(cols.nonzero().max()) + 1
@@ -305,6 +344,9 @@ def solve_weighted_poisson(
             tol, maxiter,
         )
         return F.pad(z, (c0, width - c1, r0, height - r1))
+    for name, given in (("wu", wu), ("wv", wv), ("tu", tu), ("tv", tv), ("x0", x0)):  # over the bounding box only
+        if given is not None:
+            check_finite(given, name)
     mu, mv = edge_mask(mask)
     wu, wv = wu * mu, wv * mv
     if tol is None:

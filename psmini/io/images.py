@@ -126,12 +126,16 @@ def read_image_tensor(
 
     Raises:
         DataFormatError: as :func:`read_image`.
+        InputError: a ``dtype`` that is not a floating torch dtype.
 
     Example:
         >>> image, bits = read_image_tensor("001.png")  # doctest: +SKIP
         >>> image.shape  # doctest: +SKIP
         torch.Size([3, 512, 612])
     """
+    # an integer dtype truncated [0, 1] to zeros and ones; a dtype's name failed as a bare TypeError of to()
+    if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+        raise InputError(f"dtype must be a floating torch dtype (torch.float32, torch.float64), got {dtype!r}")
     image, bits = read_image(path)
     tensor = torch.from_numpy(image[None] if image.ndim == 2 else np.ascontiguousarray(image.transpose(2, 0, 1)))
     return tensor.to(device=device, dtype=dtype), bits
@@ -149,14 +153,19 @@ def rgb_to_gray(image: np.ndarray, weights: Sequence[float] = DILIGENT_GRAY_WEIG
         the gray image, shape :math:`(...)`, ``float32``.
 
     Raises:
-        InputError: when ``weights`` does not hold three numbers.
+        InputError: when ``weights`` does not hold three finite numbers.
 
     Example:
         >>> round(float(rgb_to_gray(np.ones((2, 2, 3), np.float32))[0, 0]), 4)
         0.9999
     """
-    if len(weights) != 3:
-        raise InputError(f"weights must hold 3 numbers (R, G, B), got {len(weights)}")
+    # None failed as a bare TypeError of len(), letters as a ValueError of numpy; a NaN weight made a NaN image
+    try:
+        values = np.asarray(weights, dtype=np.float64)
+    except (TypeError, ValueError):
+        values = np.empty(0)
+    if values.shape != (3,) or not np.isfinite(values).all():
+        raise InputError(f"weights must hold 3 numbers (R, G, B), finite, got {weights!r:.80}")
     if image.ndim == 2:
         return image
     return (image[..., :3] @ np.asarray(weights, dtype=np.float32)).astype(np.float32)
@@ -174,6 +183,7 @@ def read_gray(path: str | Path, weights: Sequence[float] = DILIGENT_GRAY_WEIGHTS
 
     Raises:
         DataFormatError: as :func:`read_image`.
+        InputError: ``weights`` that are not three finite numbers (as :func:`rgb_to_gray`).
 
     Example:
         >>> gray, bits = read_gray("001.png")  # doctest: +SKIP

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from psmini.calibration.reference import CardReference
-from psmini.errors import DataFormatError
+from psmini.errors import DataFormatError, InputError
 from psmini.io.capture import write_capture
 from psmini.io.matfile import read_mat
 from psmini.lights import LEDLights, LightModel
@@ -54,12 +54,19 @@ def write_flatfield_capture(
         the folder.
 
     Raises:
-        InputError, DataFormatError: as :func:`psmini.io.write_capture`.
+        InputError, DataFormatError: as :func:`psmini.io.write_capture`; an InputError for a ``card`` that is not a
+            :class:`CardReference` (the reference tensor alone) or ``metadata`` that is not a dict.
 
     Example:
         >>> write_flatfield_capture("card", card_reference(frames), lights, card_albedo=0.8,
         ...                         pixel_pitch_mm=0.025)  # doctest: +SKIP
     """
+    # the reference tensor alone failed as a bare AttributeError on dark, a list of metadata as a TypeError
+    if not isinstance(card, CardReference):
+        raise InputError(f"card must be a CardReference (psmini.calibration.card_reference's result), got "
+                         f"{type(card).__name__}")
+    if metadata is not None and not isinstance(metadata, dict):
+        raise InputError(f"metadata must be a dict or None, got {type(metadata).__name__}")
     dark = card.dark if card.dark is not None else torch.zeros_like(card.reference[:1])
     images = (card.reference + dark).clamp(0, 1)
     info = {"flatfield_reference": {"frames": card.frames, "residual": card.residual.tolist()}}

@@ -86,6 +86,16 @@ def test_triangulate_leds_wrong_types_raise():
         triangulate_leds(None)
 
 
+def test_card_distance_from_spheres_wrong_types_raise():
+    # a list of tensors (the sphere centres) failed as a bare AttributeError ('Tensor' has no 'centre_mm')
+    with pytest.raises(InputError, match="SphereCalibration s .* got Tensor at index 0"):
+        card_distance_from_spheres([torch.zeros(3), torch.zeros(3)])
+    with pytest.raises(InputError, match="sequence of SphereCalibration .* got NoneType"):
+        card_distance_from_spheres(None)
+    with pytest.raises(CalibrationError, match="perspective"):
+        card_distance_from_spheres([])
+
+
 def test_triangulate_leds_gradcheck():
     """Gradients reach each placement's reflection points and directions (through :func:`triangulate_rays`)."""
     gen = torch.Generator().manual_seed(0)

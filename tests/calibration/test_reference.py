@@ -3,7 +3,7 @@ import torch
 
 from data_synth.rig import RigConfig, render_card
 from psmini.calibration import card_reference, polynomial_surface
-from psmini.errors import InputError, ShapeError
+from psmini.errors import DataFormatError, InputError, ShapeError
 from psmini.io import read_capture, write_flatfield_capture
 from psmini.lights import DirectionalLights, ring_lights
 
@@ -97,3 +97,26 @@ def test_written_capture_gives_back_the_reference(tmp_path, cards):
     capture = read_capture(folder)
     assert capture.kind == "flatfield" and capture.card_albedo == 0.8
     assert torch.allclose(capture.images - capture.dark, card.reference, atol=2 / 65535)
+
+
+def test_write_flatfield_capture_misuse_raise(tmp_path):
+    from psmini.calibration.reference import CardReference
+
+    lights = DirectionalLights(ring_lights(8, 58.0))
+    reference = torch.rand(8, 6, 7) * 0.5
+    # the reference tensor alone failed as a bare AttributeError ('Tensor' object has no attribute 'dark')
+    with pytest.raises(InputError, match="card must be a CardReference .* got Tensor"):
+        write_flatfield_capture(tmp_path / "a", reference, lights, card_albedo=0.8, pixel_pitch_mm=0.1)
+    card = CardReference(reference, None, torch.ones(8, 6, 7, dtype=torch.bool), 4, torch.zeros(8))
+    # a list of metadata failed as a bare TypeError ('list' object is not a mapping)
+    with pytest.raises(InputError, match="metadata must be a dict or None, got list"):
+        write_flatfield_capture(tmp_path / "b", card, lights, card_albedo=0.8, pixel_pitch_mm=0.1, metadata=["x"])
+    with pytest.raises(InputError, match="card_albedo"):
+        write_flatfield_capture(tmp_path / "c", card, lights, card_albedo=-1.0, pixel_pitch_mm=0.1)
+    with pytest.raises(InputError, match="8 images but 6 lights"):
+        write_flatfield_capture(tmp_path / "d", card, DirectionalLights(ring_lights(6, 58.0)), card_albedo=0.8,
+                                pixel_pitch_mm=0.1)
+    write_flatfield_capture(tmp_path / "e", card, lights, card_albedo=0.8, pixel_pitch_mm=0.1)
+    with pytest.raises(DataFormatError, match="already exists"):
+        write_flatfield_capture(tmp_path / "e", card, lights, card_albedo=0.8, pixel_pitch_mm=0.1)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["e"]  # nothing written by the refused calls

@@ -82,6 +82,19 @@ class TestSilhouette:
         assert torch.allclose(edges[:, 0], torch.full((20,), 10.3, dtype=torch.float64))
         assert torch.allclose(silhouette_edges(image > 0.5)[:, 0], torch.full((20,), 10.5))
 
+    def test_edges_misuse_raise(self):
+        mask = torch.zeros(9, 9, dtype=torch.bool)
+        mask[3:6, 3:6] = True
+        with pytest.raises(ShapeError, match="mask must be a non-empty 2-D \\(H, W\\) tensor, got .*\\[1, 9, 9\\]"):
+            silhouette_edges(mask[None])
+        # an empty mask failed as a bare RuntimeError of narrow(); an image as a list as a bare AttributeError
+        with pytest.raises(ShapeError, match="non-empty .* got torch.Size\\(\\[0, 0\\]\\)"):
+            silhouette_edges(torch.zeros(0, 0, dtype=torch.bool))
+        with pytest.raises(InputError, match="image must be a torch.Tensor, got list"):
+            silhouette_edges(mask, [[0.0] * 9] * 9)
+        with pytest.raises(ShapeError, match="image \\(8, 9\\) and mask \\(9, 9\\) must have the same size"):
+            silhouette_edges(mask, torch.rand(8, 9))
+
     @pytest.mark.parametrize("darker", [True, False])
     def test_segment_and_fit_a_disc(self, darker):
         disc = _disc(160, 77.3, 81.6, 30.2)
@@ -135,6 +148,31 @@ class TestPerspective(BaseTester):
         centre = torch.tensor(centre, dtype=torch.float64)
         estimate = sphere_centre_from_silhouette(_outline(centre, 1.5), K, 1.5)
         self.assert_close(estimate, centre, rtol=1e-9, atol=1e-9)
+
+    def test_centre_from_outline_misuse_raise(self):
+        edges = _outline(torch.tensor([0.0, 0.0, -38.5], dtype=torch.float64), 1.5, 24)
+        with pytest.raises(ShapeError, match="edge_px must have shape \\(N, 2\\), got \\(24, 3\\)"):
+            sphere_centre_from_silhouette(torch.cat([edges, edges[:, :1]], dim=1), K, 1.5)
+        # a NaN edge point was reported as an outline that is not a cone (|w| = nan)
+        bad = edges.clone()
+        bad[3, 0] = math.nan
+        with pytest.raises(InputError, match="edge_px must be finite, got 1 NaN"):
+            sphere_centre_from_silhouette(bad, K, 1.5)
+        # weights of another length failed as a bare RuntimeError, a list of them as an AttributeError
+        with pytest.raises(ShapeError, match="weights must have shape \\(24,\\), one per edge point, got \\(12,\\)"):
+            sphere_centre_from_silhouette(edges, K, 1.5, torch.ones(12))
+        with pytest.raises(ShapeError, match="weights .* got list"):
+            sphere_centre_from_silhouette(edges, K, 1.5, [1.0] * 24)
+        with pytest.raises(InputError, match="weights must be finite"):
+            sphere_centre_from_silhouette(edges, K, 1.5, torch.full((24,), math.nan))
+        with pytest.raises(InputError, match="radius_mm must be a positive finite number, got 0.0"):
+            sphere_centre_from_silhouette(edges, K, 0.0)
+        with pytest.raises(ShapeError, match="intrinsics must have shape \\(3, 3\\)"):
+            sphere_centre_from_silhouette(edges, torch.eye(2, dtype=torch.float64), 1.5)
+        # the inliers of find_sphere serve as weights as they are (bool)
+        inliers = torch.ones(24, dtype=torch.bool)
+        expected = sphere_centre_from_silhouette(edges, K, 1.5)
+        self.assert_close(sphere_centre_from_silhouette(edges, K, 1.5, inliers), expected)
 
     def test_reflection_reaches_the_led(self):
         centre = torch.tensor([2.0, 1.0, -38.0], dtype=torch.float64)

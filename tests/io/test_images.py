@@ -79,6 +79,19 @@ class TestRoundTrip:
         gray, _ = read_image_tensor(tmp_path / "g.png")
         assert gray.shape == (1, 4, 5)
 
+    def test_tensor_variant_errors(self, tmp_path):
+        with pytest.raises(DataFormatError, match="none.png does not exist"):
+            read_image_tensor(tmp_path / "none.png")
+        (tmp_path / "bad.png").write_bytes(b"")
+        with pytest.raises(DataFormatError, match="cannot decode"):
+            read_image_tensor(tmp_path / "bad.png")
+        write_image(tmp_path / "x.png", np.full((2, 3), 128, np.uint8))
+        # an integer dtype truncated the [0, 1] image to zeros; a dtype's name failed as a bare TypeError of to()
+        with pytest.raises(InputError, match="dtype must be a floating torch dtype .* got torch.int64"):
+            read_image_tensor(tmp_path / "x.png", dtype=torch.int64)
+        with pytest.raises(InputError, match="got 'float32'"):
+            read_image_tensor(tmp_path / "x.png", dtype="float32")
+
     def test_16_bit_diligent_file_keeps_16_bits(self):
         image, bits = read_image(shared_data("DiLiGenT", "ball", "001.png"))
         assert bits == 16 and image.shape == (512, 612, 3)
@@ -104,6 +117,23 @@ class TestGray:
     def test_bad_weights(self):
         with pytest.raises(InputError, match="3 numbers"):
             rgb_to_gray(np.zeros((2, 2, 3), np.float32), (0.5, 0.5))
+
+    def test_read_gray_errors(self, tmp_path):
+        with pytest.raises(DataFormatError, match="none.png does not exist"):
+            read_gray(tmp_path / "none.png")
+        (tmp_path / "bad.png").write_bytes(b"not an image at all")
+        with pytest.raises(DataFormatError, match="cannot decode"):
+            read_gray(tmp_path / "bad.png")
+        write_image(tmp_path / "x.png", np.zeros((2, 3, 3), np.uint8))
+        # None failed as a bare TypeError of len(), letters as a ValueError of numpy; a NaN weight made a NaN image
+        with pytest.raises(InputError, match="weights must hold 3 numbers \\(R, G, B\\), finite, got None"):
+            read_gray(tmp_path / "x.png", None)
+        with pytest.raises(InputError, match="got 'abc'"):
+            read_gray(tmp_path / "x.png", "abc")
+        with pytest.raises(InputError, match="got \\(nan, 0.5, 0.5\\)"):
+            read_gray(tmp_path / "x.png", (float("nan"), 0.5, 0.5))
+        gray, _ = read_gray(tmp_path / "x.png", np.array([0.2, 0.3, 0.5]))  # an array of three, as before
+        assert gray.shape == (2, 3)
 
 
 class TestStack:

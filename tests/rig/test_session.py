@@ -194,6 +194,16 @@ def test_session_guards():
         nominal_ring_lights(2)
 
 
+def test_led_azimuths_misuse_raise():
+    from psmini.lights import DirectionalLights
+
+    # a (K, 3) tensor of LED positions for the light model; a light straight down the optical axis
+    with pytest.raises(RigError, match="lights must be a psmini.lights model, got Tensor"):
+        led_azimuths(nominal_ring_lights(4).positions_mm)
+    with pytest.raises(RigError, match="a light on the optical axis has no azimuth"):
+        led_azimuths(DirectionalLights(torch.tensor([[1.0, 0.0, 1.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 1.0]])))
+
+
 def test_write_with_card_under_a_file_is_a_data_format_error(tmp_path):
     """A folder path under a file raised FileExistsError from mkdir: a traceback from psmini capture, after the
     whole acquisition."""
