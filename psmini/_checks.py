@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Sequence
 
 import torch
@@ -124,6 +125,17 @@ def check_out(out, shapes: tuple[tuple[int, ...], ...], names: tuple[str, ...],
     pointers = [t.untyped_storage().data_ptr() for t in out]
     if len(set(pointers)) != len(pointers) or any(t.untyped_storage().data_ptr() in pointers for t in given):
         raise InputError(f"the out tensors ({', '.join(names)}) must not share memory with each other or the inputs")
+
+
+def as_index(value: object) -> int | None:
+    """``value`` as an ``int`` when it is an integer (an int, a numpy integer, a one-element integer tensor), else
+    ``None``: a bool is no count, and 2.5 or a float tensor no index (``operator.index`` refuses them)."""
+    if isinstance(value, bool):
+        return None
+    try:
+        return operator.index(value)  # type: ignore[arg-type]  # refused below when not an index
+    except TypeError:
+        return None
 
 
 def check_light_module(light_model: object, name: str) -> None:

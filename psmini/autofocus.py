@@ -21,13 +21,13 @@ from __future__ import annotations
 import itertools
 import logging
 import math
-import operator
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
+from psmini._checks import as_index
 from psmini.errors import InputError, ShapeError
 from psmini.focus import FocusMeasure, Roi
 
@@ -131,10 +131,7 @@ def refine_peak(positions: Sequence[float], scores: Sequence[float], index: int,
         raise InputError(f"refine must be one of {', '.join(_REFINE)}, got {method!r}")
     if len(positions) != len(scores):
         raise InputError(f"positions ({len(positions)}) and scores ({len(scores)}) must have the same length")
-    try:  # 1.5 failed as a bare TypeError of list indexing; numpy and 0-d integer tensors are indices
-        peak = None if isinstance(index, bool) else operator.index(index)
-    except TypeError:
-        peak = None
+    peak = as_index(index)  # 1.5 failed as a bare TypeError of list indexing; numpy and 0-d integer tensors are indices
     if peak is None:
         raise InputError(f"peak index must be an integer (the peak sample's index), got {index!r}")
     index = peak

@@ -7,12 +7,10 @@ optical axis, at the centre of the image, x right, y up, z toward the camera.
 
 from __future__ import annotations
 
-import operator
-
 import torch
 from torch import Tensor
 
-from psmini._checks import check_positive, check_shape
+from psmini._checks import as_index, check_positive, check_shape
 from psmini.errors import InputError
 
 __all__ = ["pixel_grid_mm", "depth_to_points", "point_cloud"]
@@ -49,7 +47,8 @@ def pixel_grid_mm(
         ([-0.5, 0.0, 0.5], [0.5, 0.0, -0.5])
     """
     for name, size in (("height", height), ("width", width)):
-        if isinstance(size, bool) or not hasattr(size, "__index__") or operator.index(size) < 1:
+        index = as_index(size)
+        if index is None or index < 1:
             raise InputError(f"pixel_grid_mm's {name} must be a positive integer (pixels), got {size!r}")
     pitch = check_positive(pixel_pitch_mm, "pixel_pitch_mm")
     dtype = dtype or torch.get_default_dtype()

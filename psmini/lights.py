@@ -21,7 +21,6 @@ from __future__ import annotations
 import importlib
 import importlib.metadata
 import math
-import operator
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -31,7 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from psmini._checks import check_finite, check_shape, check_tensor
+from psmini._checks import as_index, check_finite, check_shape, check_tensor
 from psmini.errors import CalibrationError, DataFormatError, InputError, ShapeError
 
 __all__ = [
@@ -82,9 +81,10 @@ def ring_lights(
         >>> ring_lights(8, zenith_deg=55.0).shape
         torch.Size([8, 3])
     """
-    if isinstance(count, bool) or not hasattr(count, "__index__"):
+    index = as_index(count)
+    if index is None:
         raise InputError(f"ring_lights' count must be an integer (lights), got {count!r}")
-    count = operator.index(count)
+    count = index
     if count < 1:
         raise CalibrationError(f"a ring needs at least one light, got count={count}")
     for name, angle in (("zenith_deg", zenith_deg), ("azimuth_offset_deg", azimuth_offset_deg)):

@@ -34,6 +34,8 @@ class TestGeometry(BaseTester):
             pixel_grid_mm(-1, 3, 0.5)
         with pytest.raises(InputError, match="width must be a positive integer .* got 6.5"):
             pixel_grid_mm(3, 6.5, 0.5)
+        with pytest.raises(InputError, match="height must be a positive integer .* got tensor\\(3.\\)"):
+            pixel_grid_mm(torch.tensor(3.0), 3, 0.5)  # a float tensor failed as a bare TypeError of operator.index
         x, _ = pixel_grid_mm(np.int64(2), np.int64(3), 0.5)  # integers of numpy are sizes too
         assert x[0].tolist() == [-0.5, 0.0, 0.5]
 

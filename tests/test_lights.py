@@ -52,6 +52,8 @@ class TestRingLights(BaseTester):
         # 2.5 lights silently made 3 at the wrong spacing; a NaN zenith, NaN directions
         with pytest.raises(InputError, match="count must be an integer .* got 2.5"):
             ring_lights(2.5, 55.0)
+        with pytest.raises(InputError, match="count must be an integer .* got tensor\\(4.\\)"):
+            ring_lights(torch.tensor(4.0), 55.0)  # a float tensor failed as a bare TypeError of operator.index
         with pytest.raises(InputError, match="zenith_deg must be a finite number .* got nan"):
             ring_lights(8, float("nan"))
         with pytest.raises(InputError, match="azimuth_offset_deg must be a finite number .* got None"):
