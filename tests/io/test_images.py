@@ -79,12 +79,7 @@ class TestRoundTrip:
         gray, _ = read_image_tensor(tmp_path / "g.png")
         assert gray.shape == (1, 4, 5)
 
-    def test_tensor_variant_errors(self, tmp_path):
-        with pytest.raises(DataFormatError, match="none.png does not exist"):
-            read_image_tensor(tmp_path / "none.png")
-        (tmp_path / "bad.png").write_bytes(b"")
-        with pytest.raises(DataFormatError, match="cannot decode"):
-            read_image_tensor(tmp_path / "bad.png")
+    def test_tensor_variant_errors(self, tmp_path):  # its missing and corrupt files: TestErrors
         write_image(tmp_path / "x.png", np.full((2, 3), 128, np.uint8))
         # an integer dtype truncated the [0, 1] image to zeros; a dtype's name failed as a bare TypeError of to()
         with pytest.raises(InputError, match="dtype must be a floating torch dtype .* got torch.int64"):
@@ -118,12 +113,7 @@ class TestGray:
         with pytest.raises(InputError, match="3 numbers"):
             rgb_to_gray(np.zeros((2, 2, 3), np.float32), (0.5, 0.5))
 
-    def test_read_gray_errors(self, tmp_path):
-        with pytest.raises(DataFormatError, match="none.png does not exist"):
-            read_gray(tmp_path / "none.png")
-        (tmp_path / "bad.png").write_bytes(b"not an image at all")
-        with pytest.raises(DataFormatError, match="cannot decode"):
-            read_gray(tmp_path / "bad.png")
+    def test_read_gray_errors(self, tmp_path):  # its missing and corrupt files: TestErrors
         write_image(tmp_path / "x.png", np.zeros((2, 3, 3), np.uint8))
         # None failed as a bare TypeError of len(), letters as a ValueError of numpy; a NaN weight made a NaN image
         with pytest.raises(InputError, match="weights must hold 3 numbers \\(R, G, B\\), finite, got None"):
@@ -202,20 +192,25 @@ class TestStack:
             read_image_stack([])
 
 
+READERS = [read_image, read_image_tensor, read_gray]
+
+
 class TestErrors:
-    def test_missing_file(self, tmp_path):
-        with pytest.raises(DataFormatError, match="does not exist"):
-            read_image(tmp_path / "none.png")
+    @pytest.mark.parametrize("reader", READERS)
+    def test_missing_file(self, tmp_path, reader):
+        with pytest.raises(DataFormatError, match="none.png does not exist"):
+            reader(tmp_path / "none.png")
 
     def test_folder_is_not_a_file(self, tmp_path):
         with pytest.raises(DataFormatError, match="not a file"):
             read_image(tmp_path)
 
+    @pytest.mark.parametrize("reader", READERS)
     @pytest.mark.parametrize("content", [b"", b"not an image at all", b"\x89PNG\r\n\x1a\n\x00\x00garbage"])
-    def test_corrupt_file(self, tmp_path, content):
+    def test_corrupt_file(self, tmp_path, content, reader):
         (tmp_path / "bad.png").write_bytes(content)
         with pytest.raises(DataFormatError, match="cannot decode"):
-            read_image(tmp_path / "bad.png")
+            reader(tmp_path / "bad.png")
 
     def test_truncated_png(self, tmp_path):
         write_image(tmp_path / "x.png", np.random.default_rng(1).integers(0, 65535, (64, 64), dtype=np.uint16))
