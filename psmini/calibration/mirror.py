@@ -176,7 +176,7 @@ def _check_placements(placements: object) -> None:
                          f"{type(placements).__name__}")
     wrong = [i for i, p in enumerate(placements) if not isinstance(p, SphereCalibration)]
     if wrong:
-        raise InputError(f"placements must be SphereCalibration s (calibrate_sphere's results), got "
+        raise InputError(f"placements must each be a SphereCalibration (calibrate_sphere's results), got "
                          f"{type(placements[wrong[0]]).__name__} at index {wrong[0]}")
 
 

@@ -78,7 +78,7 @@ def test_bad_input(placements):
 
 def test_triangulate_leds_wrong_types_raise():
     # a list of tensors (the directions or points) failed as a bare AttributeError ('Tensor' has no 'points_mm')
-    with pytest.raises(InputError, match="SphereCalibration s .* got Tensor at index 0"):
+    with pytest.raises(InputError, match="each be a SphereCalibration .* got Tensor at index 0"):
         triangulate_leds([torch.zeros(8, 3), torch.zeros(8, 3)])
     with pytest.raises(InputError, match="sequence of SphereCalibration .* got Tensor"):
         triangulate_leds(torch.zeros(2, 8, 3))
@@ -88,7 +88,7 @@ def test_triangulate_leds_wrong_types_raise():
 
 def test_card_distance_from_spheres_wrong_types_raise():
     # a list of tensors (the sphere centres) failed as a bare AttributeError ('Tensor' has no 'centre_mm')
-    with pytest.raises(InputError, match="SphereCalibration s .* got Tensor at index 0"):
+    with pytest.raises(InputError, match="each be a SphereCalibration .* got Tensor at index 0"):
         card_distance_from_spheres([torch.zeros(3), torch.zeros(3)])
     with pytest.raises(InputError, match="sequence of SphereCalibration .* got NoneType"):
         card_distance_from_spheres(None)
