@@ -22,8 +22,7 @@ def atomic_folder(destination: str | Path, overwrite: bool = False) -> Iterator[
 
     The temporary folder is named ``.NAME.tmp-XXXX`` in the destination's parent (same file system, so the
     rename is atomic). On any exception it is removed and the exception propagates: the destination is
-    never left half-written. With ``overwrite=True`` an existing destination is moved aside, the new folder
-    renamed in, and the old one deleted.
+    never left half-written. With ``overwrite=True`` an existing destination is replaced by :func:`swap_in`.
 
     Raises:
         DataFormatError: when the destination exists and ``overwrite`` is False, exists and is not a folder,
@@ -39,17 +38,30 @@ def atomic_folder(destination: str | Path, overwrite: bool = False) -> Iterator[
     try:
         yield temporary
         _refuse_existing(destination, overwrite)  # again: someone may have created it meanwhile
-        if destination.exists():
-            old = _fresh_sibling(destination, "old")
-            os.replace(destination, old / destination.name)
-            os.replace(temporary, destination)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(temporary, destination)
+        swap_in(temporary, destination)
     except BaseException:
         shutil.rmtree(temporary, ignore_errors=True)
         raise
     logger.debug("wrote folder %s", destination)
+
+
+def swap_in(new: Path, destination: Path) -> None:
+    """Rename the folder ``new`` to ``destination``. An existing ``destination`` is first moved aside, into a fresh
+    hidden sibling, and deleted once ``new`` is in place; when that rename fails it is moved back, so the old folder
+    is never lost nor left hidden beside it."""
+    if not destination.exists():
+        os.replace(new, destination)
+        return
+    old = _fresh_sibling(destination, "old")
+    aside = old / destination.name
+    os.replace(destination, aside)
+    try:
+        os.replace(new, destination)
+    except BaseException:
+        os.replace(aside, destination)
+        shutil.rmtree(old, ignore_errors=True)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def _fresh_sibling(destination: Path, tag: str) -> Path:

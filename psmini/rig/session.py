@@ -20,7 +20,6 @@ from __future__ import annotations
 import datetime
 import logging
 import math
-import os
 import secrets
 import shutil
 import time
@@ -372,24 +371,13 @@ def write_with_card(folder: str | Path, session: CaptureSession, sample: Acquisi
         staged = staging / folder.name
         session.write(staged, sample, flatfield={"path": "card", "albedo": card_albedo}, gt=gt, metadata=metadata)
         session.write(staged / "card", card, card_albedo=card_albedo, metadata=metadata)
-        _swap_into_place(staged, folder, staging / "replaced")
+        from psmini.io._atomic import swap_in
+
+        try:
+            swap_in(staged, folder)  # the old folder moved back should this rename fail
+        except OSError as error:
+            raise DataFormatError(f"cannot move the capture into {folder}: {error}") from error
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return folder
 
-
-def _swap_into_place(staged: Path, folder: Path, replaced: Path) -> None:
-    """Rename ``staged`` to ``folder``, the old ``folder`` (if any) first moved to ``replaced`` and moved back when
-    the last rename fails: the staging folder, ``replaced`` included, is removed afterwards, so the old capture must
-    not be left in it."""
-    try:
-        if folder.exists():
-            os.replace(folder, replaced)
-        try:
-            os.replace(staged, folder)
-        except OSError:
-            if replaced.exists():
-                os.replace(replaced, folder)
-            raise
-    except OSError as error:
-        raise DataFormatError(f"cannot move the capture into {folder}: {error}") from error

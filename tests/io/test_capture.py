@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -244,6 +245,24 @@ class TestWriteErrors:
         back = np.rint(read_capture(tmp_path / "s").images.numpy() * 65535).astype(np.uint16)
         np.testing.assert_array_equal(back, codes(16))
 
+
+    def test_failed_rename_during_overwrite_puts_the_old_folder_back(self, tmp_path, monkeypatch):
+        """The old folder was moved into a hidden .s.old-* sibling before the new one was renamed in; when that
+        rename failed, the capture was left there, hidden, and s was gone."""
+        write_capture(tmp_path / "s", codes(16), directional(), pixel_pitch_mm=0.025)
+        real_replace = os.replace
+
+        def failing_replace(source, target):
+            if Path(target) == tmp_path / "s" and Path(source).name.startswith(".s.tmp-"):
+                raise OSError(28, "No space left on device")
+            return real_replace(source, target)
+
+        monkeypatch.setattr(os, "replace", failing_replace)
+        with pytest.raises(OSError, match="No space left"):
+            write_capture(tmp_path / "s", codes(16, seed=1), directional(), pixel_pitch_mm=0.025, overwrite=True)
+        assert os.listdir(tmp_path) == ["s"]
+        back = np.rint(read_capture(tmp_path / "s").images.numpy() * 65535).astype(np.uint16)
+        np.testing.assert_array_equal(back, codes(16))
 
 @pytest.fixture
 def sample_folder(tmp_path):

@@ -132,7 +132,7 @@ def test_write_with_card_refuses_an_existing_folder(tmp_path):
 def test_write_with_card_keeps_the_old_folder_when_the_last_rename_fails(tmp_path, monkeypatch):
     """With overwrite, the old capture was moved into the staging folder before the new one was renamed into place;
     a failure of that rename removed the staging folder, the old capture with it."""
-    import psmini.rig.session as session_module
+    import os
 
     with SimulatedRig("jute", 0, 32, pixel_pitch_mm=0.1) as rig:
         folder = capture_with_card(rig, tmp_path / "jute")
@@ -141,7 +141,7 @@ def test_write_with_card_keeps_the_old_folder_when_the_last_rename_fails(tmp_pat
         with leds, camera:
             session = CaptureSession(leds, camera, rig.lights, pixel_pitch_mm=rig.pixel_pitch_mm)
             card, sample = session.acquire("flatfield"), session.acquire("sample")
-    real_replace = session_module.os.replace
+    real_replace = os.replace
 
     def failing_replace(source, target):
         # the new capture's rename into place fails (the old one's return is allowed)
@@ -149,7 +149,7 @@ def test_write_with_card_keeps_the_old_folder_when_the_last_rename_fails(tmp_pat
             raise OSError(28, "No space left on device")
         return real_replace(source, target)
 
-    monkeypatch.setattr(session_module.os, "replace", failing_replace)
+    monkeypatch.setattr(os, "replace", failing_replace)
     with pytest.raises(DataFormatError, match=r"cannot move the capture into .*jute.*No space left"):
         write_with_card(folder, session, sample, card, card_albedo=CARD_ALBEDO, overwrite=True)
     assert sorted(p.relative_to(folder) for p in folder.rglob("*")) == before
