@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from psmini._checks import any_true, check_finite, check_shape
+from psmini._checks import check_finite, check_shape
 from psmini.errors import ShapeError
 
 logger = logging.getLogger(__name__)
@@ -332,11 +332,12 @@ def solve_weighted_poisson(
         _check_grid(x, name, (height - 1, width))
     if x0 is not None:
         _check_grid(x0, "x0", (height, width))
-    if not any_true(mask > 0):
+    inside = (mask > 0).any(dim=0).any(dim=0)  # (H, W): inside for some sample
+    rows, cols = inside.any(dim=1).nonzero().flatten(), inside.any(dim=0).nonzero().flatten()  # ascending
+    if rows.numel() == 0:
         raise ShapeError(f"mask must select at least one pixel, got an empty mask of {height}x{width}")
-    rows, cols = (mask > 0).any(dim=0).any(dim=0).any(dim=1), (mask > 0).any(dim=0).any(dim=0).any(dim=0)
-    r0, r1 = int(rows.nonzero().min()), int(rows.nonzero().max()) + 1
-    c0, c1 = int(cols.nonzero().min()), int(cols.nonzero().max()) + 1
+    r0, r1 = int(rows[0]), int(rows[-1]) + 1
+    c0, c1 = int(cols[0]), int(cols[-1]) + 1
     if (r1 - r0, c1 - c0) != (height, width):  # solve on the mask's bounding box only
         z = solve_weighted_poisson(
             wu[..., r0:r1, c0 : c1 - 1], wv[..., r0 : r1 - 1, c0:c1], tu[..., r0:r1, c0 : c1 - 1],
