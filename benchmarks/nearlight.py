@@ -32,11 +32,7 @@ third item of a batch of four, and with another thread count (two, or one if mor
 summation): the mean and the largest change of the normals, and the depth's RMS change, for each. Recorded on its
 own.
 
-With ``--compile-diagnostic``, what ``torch.compile`` would buy: the solver's per-pixel fits and light field compiled
-against the eager solve on four captures, the compilation's time and the results' difference (psmini itself does
-not compile; this measures whether it should). Recorded on its own.
-
-    python benchmarks/nearlight.py [--quick | --speed | --stability | --compile-diagnostic] [--json] [--size N]
+    python benchmarks/nearlight.py [--quick | --speed | --stability] [--json] [--size N]
                                    [--device cpu|cuda] [--threads N] [--no-record]
 """
 
@@ -44,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -58,8 +55,9 @@ from benchmarks._ledger import append_results, table  # noqa: E402
 from data_synth import make_fabric  # noqa: E402
 from data_synth.rig import RigConfig, render_capture, render_card  # noqa: E402
 from psmini import PhotometricStereo, albedo_normals, angular_error_deg, fit_leds, flatfield  # noqa: E402
+from psmini._compile import compile_blocker  # noqa: E402
 from psmini.config import ReconstructionConfig  # noqa: E402
-from psmini.nearlight import near_light_vectors  # noqa: E402
+from psmini.nearlight import NearLightOptions, near_light_vectors  # noqa: E402
 from tests.user_light_models import GaussianBeamLEDs  # noqa: E402
 
 NEAR, DISTANT = ReconstructionConfig(solver="near"), ReconstructionConfig(solver="distant")
@@ -164,7 +162,9 @@ def evaluate_case(fabric, config, offset_mm, calibrated, card, device) -> dict[s
 def batch_speed(size: int, pitch: float, device: torch.device, count: int = 16) -> dict[str, float]:
     """Seconds per sample of near light on one batch of ``count`` noisy captures against single calls, and of the
     distant pipeline on the same captures one by one (each single call timed twice, interleaved near/distant, the
-    faster kept: the machines are shared; the batch timed twice as well)."""
+    faster kept: the machines are shared; the batch timed twice as well); and of near light compiled
+    (``NearLightOptions(compile=True)``, where this machine can compile), its first call (the compilation) and how
+    far its results are from the eager ones on every capture."""
     config = RigConfig(size=size, pixel_pitch_mm=pitch, noise=True, bit_depth=8, intensity_spread=0.05)
     card = render_card(config, CARD_ALBEDO, device=device)
     fabrics = [make_fabric(FULL_FABRICS[i % len(FULL_FABRICS)], size=size, pixel_pitch_mm=pitch, seed=0)
@@ -177,6 +177,7 @@ def batch_speed(size: int, pitch: float, device: torch.device, count: int = 16) 
     # a user's model as cheap as the LED's (tests/user_light_models.py: a Gaussian beam overriding forward)
     user = PhotometricStereo(GaussianBeamLEDs(lights.positions_mm, lights.principal_directions, lights.intensities),
                              pitch, NEAR)
+    fused = PhotometricStereo(lights, pitch, ReconstructionConfig(solver="near", near=NearLightOptions(compile=True)))
 
     def timed(run) -> float:
         start = time.perf_counter()
@@ -186,19 +187,37 @@ def batch_speed(size: int, pitch: float, device: torch.device, count: int = 16) 
         return time.perf_counter() - start
 
     reference, reference_dark = card.images[None], card.dark[None]
-    def single_call(method, i: int) -> float:
-        return min(timed(lambda: method(images[i : i + 1], reference, dark[i : i + 1], reference_dark,
-                                        card_albedo=CARD_ALBEDO, saturation_level=1.0)) for _ in range(2))
+    def solve(method, i: int):
+        return method(images[i : i + 1], reference, dark[i : i + 1], reference_dark, card_albedo=CARD_ALBEDO,
+                      saturation_level=1.0)
 
-    single = distant = users = 0.0
+    def single_call(method, i: int) -> float:
+        return min(timed(lambda: solve(method, i)) for _ in range(2))
+
+    can_compile = compile_blocker(device) is None
+    first_compiled = timed(lambda: solve(fused, 0)) if can_compile else math.nan
+    single = distant = users = compiled = 0.0
     for i in range(count):
         single += single_call(near, i) / count
         distant += single_call(far, i) / count
         users += single_call(user, i) / count
+        compiled += single_call(fused, i) / count if can_compile else math.nan
+    # the compiled results against the eager ones: the normals' angle, the relief (the depth less its mean height)
+    # and the mean height
+    apart: dict[str, list[float]] = {"mean_deg": [], "max_deg": [], "relief_um": [], "offset_um": []}
+    for i in range(count if can_compile else 0):
+        eager, other = solve(near, i), solve(fused, i)
+        angle = angular_error_deg(eager.normals.double(), other.normals.double())
+        offset = other.offset_mm - eager.offset_mm
+        apart["mean_deg"].append(float(angle.mean()))
+        apart["max_deg"].append(float(angle.max()))
+        apart["relief_um"].append(1e3 * float((other.depth - eager.depth - offset.view(-1, 1, 1, 1)).abs().max()))
+        apart["offset_um"].append(1e3 * float(offset.abs().max()))
     # the batch timed twice too, the faster kept, like each single call
     batch = min(timed(lambda: near(images, reference, dark, reference_dark, card_albedo=CARD_ALBEDO,
                                    saturation_level=1.0)) for _ in range(2)) / count
-    return {"single": single, "batch": batch, "far": distant, "user": users}
+    return {"single": single, "batch": batch, "far": distant, "user": users, "compiled": compiled,
+            "first_compiled": first_compiled} | {f"compiled_{k}": max(v, default=math.nan) for k, v in apart.items()}
 
 
 def speed_only(size: int, pitch: float, device: torch.device, args: argparse.Namespace) -> int:
@@ -208,13 +227,20 @@ def speed_only(size: int, pitch: float, device: torch.device, args: argparse.Nam
             ["near light, batch of 16", f"{speed['batch']:.3f}", f"{speed['batch'] / speed['far']:.1f}"],
             ["near light, a user's Gaussian-beam model, single calls", f"{speed['user']:.3f}",
              f"{speed['user'] / speed['far']:.1f}"],
+            ["near light compiled (NearLightOptions(compile=True)), single calls", f"{speed['compiled']:.3f}",
+             f"{speed['compiled'] / speed['far']:.1f}"],
             ["distant pipeline, single calls", f"{speed['far']:.3f}", "1.0"]]
     report = table(["run", "s per sample", "× distant"], rows)
     note = (f"16 noisy 8-bit captures of the 11 fabrics, 8 × {size} × {size} px at {pitch:.4f} mm/px, on {device}, "
             f"{torch.get_num_threads()} thread(s): flat-field, normals and depth. Each single call and the batch timed "
             f"twice, the faster kept. Batch / single: {speed['batch'] / speed['single']:.2f}; the user's model (a "
             f"LEDLights subclass overriding forward, tests/user_light_models.py) / the built-in LED: "
-            f"{speed['user'] / speed['single']:.2f}. Load average at the end: "
+            f"{speed['user'] / speed['single']:.2f}. Compiled / eager: {speed['compiled'] / speed['single']:.2f}, "
+            f"after a first call of {speed['first_compiled']:.0f} s (the compilation); compiled against eager over the "
+            f"16 captures: normals {speed['compiled_mean_deg']:.1e}° apart on average (the largest mean), "
+            f"{speed['compiled_max_deg']:.2f}° at most (one pixel), the relief (depth less its mean height) "
+            f"{speed['compiled_relief_um']:.3f} µm at most, the mean height {speed['compiled_offset_um']:.2f} µm (the "
+            f"solver's own sensitivity to rounding: --stability). Load average at the end: "
             f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores.")
     print(report)
     print(note)
@@ -224,80 +250,6 @@ def speed_only(size: int, pitch: float, device: torch.device, args: argparse.Nam
         print(json.dumps(speed, sort_keys=True))
     return 0
 
-
-#: What ``--compile-diagnostic`` hands to ``torch.compile``: the near-light solver's per-pixel fits, its energy and its
-#: light field, where the profile puts most of a solve (elementwise passes over (B, K, H, W) tensors).
-COMPILED = ("_robust_step", "_initial_fit", "_normal_std", "_predicted_std", "_fit_noise", "_predict", "_energy")
-
-
-def compile_diagnostic(size: int, pitch: float, device: torch.device, args: argparse.Namespace) -> int:
-    """What ``torch.compile`` would buy near light (a diagnostic, not a configuration): four noisy captures (cotton,
-    knit, net, twill, 0.5 mm above the card) solved eagerly, then with :data:`COMPILED` and the light field's call
-    compiled (dynamic shapes; the solver calls them at half and full resolution and on strided grids), each pass over
-    the four timed three times, the fastest kept, beside the distant pipeline on the same captures; the first
-    compiled call's time (the compilation) and how far the compiled solve's normals and depth are from the eager
-    ones'."""
-    solver = sys.modules["psmini.nearlight"]
-    config = RigConfig(size=size, pixel_pitch_mm=pitch, noise=True, bit_depth=8, intensity_spread=0.05)
-    card = render_card(config, CARD_ALBEDO, device=device)
-    captures = [render_capture(make_fabric(name, size=size, pixel_pitch_mm=pitch, seed=0), config,
-                               height_offset_mm=0.5, device=device) for name in ("cotton", "knit", "net", "twill")]
-    near = PhotometricStereo(captures[0].lights, pitch, NEAR)
-    far = PhotometricStereo(captures[0].lights, pitch, DISTANT)
-
-    def solve(method, capture):
-        return method(capture.images[None], card.images[None], capture.dark[None], card.dark[None],
-                      card_albedo=CARD_ALBEDO, saturation_level=1.0)
-
-    def per_sample(method) -> float:
-        best = float("inf")
-        for _ in range(3):
-            start = time.perf_counter()
-            for capture in captures:
-                solve(method, capture)
-            best = min(best, (time.perf_counter() - start) / len(captures))
-        return best
-
-    eager_results = [solve(near, capture) for capture in captures]
-    eager, distant = per_sample(near), per_sample(far)
-    originals = {name: getattr(solver, name) for name in COMPILED}
-    call = solver._LightField.__call__
-    limit = torch._dynamo.config.cache_size_limit
-    try:
-        torch._dynamo.config.cache_size_limit = 64
-        for name in COMPILED:
-            setattr(solver, name, torch.compile(originals[name], dynamic=True))
-        solver._LightField.__call__ = torch.compile(call, dynamic=True)
-        start = time.perf_counter()
-        compiled_results = [solve(near, capture) for capture in captures]
-        first = time.perf_counter() - start
-        compiled = per_sample(near)
-    finally:
-        for name, function in originals.items():
-            setattr(solver, name, function)
-        solver._LightField.__call__ = call
-        torch._dynamo.config.cache_size_limit = limit
-    moved = [angular_error_deg(a.normals.double(), b.normals.double())
-             for a, b in zip(eager_results, compiled_results, strict=True)]
-    normals, normals_mean = max(float(m.max()) for m in moved), max(float(m.mean()) for m in moved)
-    depth = max(float((a.depth - b.depth).abs().max()) for a, b in zip(eager_results, compiled_results, strict=True))
-    rows = [["near light, eager", f"{eager:.3f}", f"{eager / distant:.1f}"],
-            ["near light, compiled", f"{compiled:.3f}", f"{compiled / distant:.1f}"],
-            ["distant pipeline", f"{distant:.4f}", "1.0"]]
-    report = table(["run", "s per sample", "× distant"], rows)
-    note = (f"Noisy 8-bit captures of cotton, knit, net and twill 0.5 mm above the card, 8 × {size} × {size} px at "
-            f"{pitch:.4f} mm/px, on {device}, {torch.get_num_threads()} thread(s). Compiled: "
-            f"{', '.join(COMPILED)} and the light field's call (torch.compile, dynamic shapes). Eager / compiled: "
-            f"{eager / compiled:.2f}; the first compiled pass over the four captures took {first:.0f} s (the "
-            f"compilation). Compiled against eager: normals {normals_mean:.1e}° apart on average (the largest mean of "
-            f"the four), {normals:.2f}° at most (one pixel), depth at most {1e3 * depth:.2f} µm: float32 sums in "
-            "another order, a rounding change. A diagnostic: psmini does not compile.")
-    print(report)
-    print(note)
-    if not args.no_record:
-        append_results(f"Near-light speed with torch.compile (benchmarks/nearlight.py --compile-diagnostic, {size} px)",
-                       report + "\n\n" + note, device)
-    return 0
 
 
 def stability_only(size: int, pitch: float, device: torch.device, args: argparse.Namespace) -> int:
@@ -360,9 +312,6 @@ def main(argv: list[str] | None = None) -> int:
                         help="only the speed of near light against the distant pipeline")
     parser.add_argument("--stability", action="store_true",
                         help="only how far a change of one part in 10^7 of the card carries through near light")
-    parser.add_argument("--compile-diagnostic", action="store_true",
-                        help="only: near light's hottest functions handed to torch.compile against the eager solve "
-                        "(how much compilation would buy; psmini does not compile)")
     parser.add_argument("--json", action="store_true", help="last line: one JSON object of mean errors")
     parser.add_argument("--size", type=int, default=None, help="image side in pixels (default 400, quick 128)")
     parser.add_argument("--device", default="cpu")
@@ -384,8 +333,6 @@ def main(argv: list[str] | None = None) -> int:
         return speed_only(size, pitch, device, args)
     if args.stability:
         return stability_only(size, pitch, device, args)
-    if args.compile_diagnostic:
-        return compile_diagnostic(size, pitch, device, args)
 
     rows, summary, worst, floors = [], {}, {}, {False: [], True: []}
     per_fabric: dict[str, list[tuple[float, float, float, float]]] = {}

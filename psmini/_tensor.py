@@ -68,5 +68,29 @@ def masked_median(x: Tensor, region: Tensor) -> Tensor:
         >>> masked_median(x, x > 2).flatten()
         tensor([3., 5.])
     """
-    return torch.stack([values[keep].median() if bool(keep.any()) else values.new_ones(())
-                        for values, keep in zip(x, region.expand_as(x), strict=True)]).view(-1, 1, 1, 1)
+    # NaN outside the region and nanmedian, not a boolean index: no shape that depends on the data (torch.compile
+    # traces it in one graph); the same lower median of the same values
+    region = region.expand_as(x)
+    median = torch.where(region, x, torch.nan).flatten(1).nanmedian(dim=1).values
+    return torch.where(region.flatten(1).any(1), median, torch.ones_like(median)).view(-1, 1, 1, 1)
+
+
+def non_negative_solve(normal: Tensor, rhs: Tensor) -> Tensor:
+    """Least squares with non-negative solutions from normal equations (B, n, n), (B, n): the parameters that the
+    unconstrained solution makes negative are held at 0 and the others solved again (an active set, two passes).
+
+    Example:
+        >>> non_negative_solve(torch.eye(2)[None], torch.tensor([[1.0, -1.0]]))   # x = (1, -1) is refused
+        tensor([[1.0000, 0.0000]])
+    """
+    free = torch.ones_like(rhs, dtype=torch.bool)
+    eye = torch.eye(rhs.shape[1], device=rhs.device, dtype=rhs.dtype)
+    scale = normal.diagonal(dim1=1, dim2=2).amax(dim=1).view(-1, 1, 1)
+    for _ in range(2):
+        pair = free.unsqueeze(1) & free.unsqueeze(2)
+        # a ridge of a rounding's size keeps the system regular (and all zero where no reading counts: solution 0)
+        system = torch.where(pair, normal, eye * scale) + eye * (torch.finfo(rhs.dtype).eps * scale
+                                                                 + torch.finfo(rhs.dtype).tiny)
+        solution = torch.linalg.solve(system, torch.where(free, rhs, torch.zeros_like(rhs)))
+        free = free & (solution > 0)
+    return solution.clamp_min(0)

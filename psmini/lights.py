@@ -638,7 +638,9 @@ class PointLights(LightModel):
         offsets = self.positions_mm.to(points)[None, :, :, None, None] - points[:, None]
         # the summed squares, not Tensor.norm: a norm along dim 2 is 45 times slower on the CPU (psmini._tensor)
         squared = offsets.square().sum(dim=2, keepdim=True)
-        if bool((squared.detach() <= 0).any()):
+        # not checked inside torch.compile (a graph break would split the light field in two): a solve's surface lies
+        # millimetres below its lights
+        if not torch.compiler.is_compiling() and bool((squared.detach() <= 0).any()):
             raise CalibrationError("a surface point coincides with a light position")
         return offsets, squared.sqrt()
 

@@ -34,7 +34,8 @@ from torch import Tensor, nn
 
 from psmini._checks import check_finite, check_mask, check_positive, check_shape
 from psmini._chunks import batch_part, chunks
-from psmini._tensor import box_sum, masked_mean, masked_median, vector_length
+from psmini._compile import _eager, compiler
+from psmini._tensor import box_sum, masked_mean, masked_median, non_negative_solve, vector_length
 from psmini.errors import InputError, ShapeError
 from psmini.flatfield import _check_frame
 from psmini.geometry import pixel_grid_mm
@@ -48,14 +49,12 @@ from psmini.metrics import angular_error_deg
 from psmini.normals import _slopes_of, _symmetric_adjugate
 from psmini.render import normals_from_height
 from psmini.result import Reconstruction
+from psmini.robust import _EFFICIENT_SCALES, _Penalty
 
 __all__ = ["NearLightOptions", "NearLightResult", "near_light_vectors", "near_light_energy", "solve_near_light"]
 
 logger = logging.getLogger(__name__)
 
-# The scale of each robust penalty (in noise levels) at which it has 95% of least squares' efficiency on Gaussian
-# noise (Holland and Welsch 1977).
-_EFFICIENT_SCALES = {"welsch": 2.9846, "cauchy": 2.3849}
 # The model's relative accuracy (the light model's and the flat-field's), a floor under every reading's noise level:
 # a thousandth, finer than any LED calibration, so that a render without noise is fitted to its model error rather
 # than to the rounding of 16 bits (which would make every model error an outlier).
@@ -65,9 +64,6 @@ _LIT_SIGMAS = 3.0
 # The max's Jacobian: the chance Φ(m·L / σ) that a reading predicted at m·L, noise σ, is lit, as a logistic of scale
 # 1/1.702 (Φ to 1%). A narrower one (0.25) let rounding move single pixels by 1.3°; a step would flip weights.
 _HINGE_WIDTH = 1 / 1.702
-# Welsch's exp(-z) is taken at z <= this: e^-64 (1.6e-28) is nothing beside any weight that counts, and exp's
-# underflow toward float32's subnormals runs ten times slower on CPUs (shadows put most readings there).
-_WELSCH_CUTOFF = 64.0
 # The first fit weighs each reading by I² / (I² + (this × the pixel's brightest)² + (3σ)²): a penumbra is no light.
 _INIT_SHARE = 0.1
 # A pixel's prior toward the current surface's normal (times its albedo): a Gaussian of this fraction of its length (23°
@@ -137,6 +133,9 @@ class NearLightOptions:
         integrator: the final integration of the normals: ``"masked"`` (weighted least squares on the mask, slopes
             weighted by their inverse variance, an edge's from the side where the depth runs smoother, the finest
             relief restored on the whole rectangle) or another method of :func:`psmini.integrate.integrate`.
+        compile: compile the per-pixel steps with ``torch.compile`` (for many captures: about 1.6 times faster warm
+            on a CPU, a first call spends a minute or two compiling; the same result up to float rounding); without
+            a C++ compiler (CPU) or Triton (CUDA) the solve runs eagerly, with a warning.
 
     Raises:
         InputError: for values out of range.
@@ -157,6 +156,7 @@ class NearLightOptions:
     initial_height_mm: float = 0.0
     search_mm: tuple[float, float] = (-3.0, 3.0)
     integrator: str = "masked"
+    compile: bool = False
 
     def __post_init__(self) -> None:
         def bad(name: str, expected: str) -> InputError:
@@ -173,7 +173,7 @@ class NearLightOptions:
                 raise bad(name, "a positive number" + (" or None" if name == "robust_scale" else ""))
         if self.penalty not in _EFFICIENT_SCALES:
             raise bad("penalty", f"one of {', '.join(sorted(_EFFICIENT_SCALES))}")
-        for name in ("estimate_offset", "estimate_tilt", "estimate_bend"):
+        for name in ("estimate_offset", "estimate_tilt", "estimate_bend", "compile"):
             if not isinstance(getattr(self, name), bool):
                 raise bad(name, "a bool")
         if not (isinstance(self.initial_height_mm, (int, float)) and math.isfinite(self.initial_height_mm)):
@@ -263,20 +263,25 @@ class _LightField:
     (E_k(x_c)\\,l_{k,z}(x_c))`, the camera's gain, vignetting and the LEDs' intensities cancelled."""
 
     def __init__(self, model: nn.Module, size: tuple[int, int], pitch: float, card_height: float | None,
-                 like: Tensor, stride: int = 1) -> None:
+                 like: Tensor, steps: _Steps, stride: int = 1) -> None:
         x, y = pixel_grid_mm(*size, pitch, device=like.device, dtype=like.dtype)
         self.model, self.xy = model, torch.stack([x[::stride, ::stride], y[::stride, ::stride]])[None]  # (1, 2, h, w)
-        self.card_scale: Tensor | None = None
+        self.evaluate, self.card_scale = steps.light_vectors, None
         if card_height is not None:
-            directions, irradiance = self.model(torch.cat([self.xy, torch.full_like(self.xy[:, :1], card_height)], 1))
-            if bool((directions[:, :, 2:3].detach() <= 0).any()):
-                raise InputError("flat-fielding needs every light above the card plane at every pixel")
-            self.card_scale = 1 / (irradiance * directions[:, :, 2:3])  # (1, K, 1, h, w)
+            card = self.evaluate(model, self.xy, torch.full_like(self.xy[:, :1], card_height), None)[:, :, 2:3]
+            if bool((card.detach() <= 0).any()):
+                raise InputError("flat-fielding needs every light above the card plane, lighting it, at every pixel")
+            self.card_scale = 1 / card  # (1, K, 1, h, w)
 
     def __call__(self, depth: Tensor) -> Tensor:
         """Light vectors at the heights ``depth`` :math:`(B, 1, h, w)` (mm): :math:`(B, K, 3, h, w)`."""
-        directions, irradiance = self.model(torch.cat([self.xy.expand(depth.shape[0], -1, -1, -1), depth], dim=1))
-        return directions * (irradiance if self.card_scale is None else irradiance * self.card_scale)
+        return self.evaluate(self.model, self.xy, depth, self.card_scale)
+
+
+def _light_vectors(model: nn.Module, xy: Tensor, depth: Tensor, card_scale: Tensor | None) -> Tensor:
+    """The model's light vectors at the points ``xy`` (1, 2, h, w), ``depth`` (B, 1, h, w), times ``card_scale``."""
+    directions, irradiance = model(torch.cat([xy.expand(depth.shape[0], -1, -1, -1), depth], dim=1))
+    return directions * (irradiance if card_scale is None else irradiance * card_scale)
 
 
 def near_light_vectors(light_model: nn.Module, depth: Tensor, pixel_pitch_mm: float,
@@ -309,7 +314,8 @@ def near_light_vectors(light_model: nn.Module, depth: Tensor, pixel_pitch_mm: fl
     sizes = check_shape(depth, ["B", "1", "H", "W"], "depth")
     check_positive(pixel_pitch_mm, "pixel_pitch_mm")
     _check_light_model(light_model)
-    return _LightField(light_model, (sizes["H"], sizes["W"]), pixel_pitch_mm, card_height_mm, depth)(depth)
+    return _LightField(light_model, (sizes["H"], sizes["W"]), pixel_pitch_mm, card_height_mm, depth,
+                       _Steps(False, depth.device))(depth)
 
 
 # --- The robust per-pixel fit at fixed lights -------------------------------------------------------------------
@@ -317,32 +323,56 @@ def near_light_vectors(light_model: nn.Module, depth: Tensor, pixel_pitch_mm: fl
 
 class _Data:
     """One level's images :math:`(B, K, h, w)`, their validity (float 0/1), the flat-field's gain (broadcastable; 1 for
-    raw images), the noise model :math:`(\\alpha, \\beta, \\gamma)` (B, 3, 1, 1) and each :math:`\\lambda_k`."""
+    raw images), the noise model :math:`(\\alpha, \\beta, \\gamma)` (B, 3, 1, 1), each :math:`\\lambda_k` and the
+    steps that compute on them."""
 
-    def __init__(self, images: Tensor, valid: Tensor, gain: Tensor, noise: Tensor) -> None:
-        self.images, self.valid, self.gain, self.noise = images, valid, gain, noise
-        # the variance's terms in the flat-fielded units, once: s²α (1 where not valid: an untrusted card has a gain
-        # of 0, and the weight there is 0 whatever the variance) and sβ
-        self.read = torch.where(valid > 0, gain.square() * noise[:, 0:1], torch.ones_like(valid))
-        self.shot = gain * noise[:, 1:2] * valid
-        reading = images.clamp_min(0)
-        # a reading within its noise of zero is as likely a cast shadow as an attached one: it says little about the
-        # normal, and a bounded penalty would otherwise rather turn a normal away from the LEDs of cast shadows
-        self.reliability = valid * reading.square() / (reading.square() + _LIT_SIGMAS**2 * self.variance(reading)
-                                                       + torch.finfo(reading.dtype).tiny)
+    def __init__(self, images: Tensor, valid: Tensor, gain: Tensor, noise: Tensor, steps: _Steps) -> None:
+        self.images, self.valid, self.gain, self.noise, self.steps = images, valid, gain, noise, steps
+        self.read, self.shot, self.reliability = steps.reading_terms(images, valid, gain, noise)
 
     def variance(self, predicted: Tensor) -> Tensor:
         """:math:`s^2\\alpha + s\\beta\\hat I + \\gamma\\hat I^2` at the predicted readings."""
-        reading = predicted.clamp_min(0)
-        return self.read + (self.shot + self.noise[:, 2:3] * reading) * reading
+        return _variance(self.read, self.shot, self.noise, predicted)
 
     def set_noise(self, noise: Tensor) -> None:
         """Replace the noise model (and the readings' weights that follow from it)."""
-        self.__init__(self.images, self.valid, self.gain, noise)  # type: ignore[misc]
+        self.__init__(self.images, self.valid, self.gain, noise, self.steps)  # type: ignore[misc]
 
     def every(self, stride: int) -> _Data:
         """The same data on every ``stride``-th pixel in each direction."""
-        return _Data(_stride(self.images, stride), _stride(self.valid, stride), _stride(self.gain, stride), self.noise)
+        return _Data(_stride(self.images, stride), _stride(self.valid, stride), _stride(self.gain, stride), self.noise,
+                     self.steps)
+
+
+class _Steps:
+    """The per-pixel steps of the solve (chains of elementwise passes over the K readings, bound by memory): the
+    functions themselves, or with ``NearLightOptions.compile`` each compiled by ``torch.compile``, which fuses a chain
+    into a few loops (where it can run: :func:`psmini._compile.compiler`)."""
+
+    def __init__(self, compile: bool, device: torch.device) -> None:
+        wrap = compiler(device) if compile else _eager
+        self.robust_step, self.initial_fit, self.energy = wrap(_robust_step), wrap(_initial_fit), wrap(_energy)
+        self.normal_std, self.predicted_std, self.fit_noise = wrap(_normal_std), wrap(_predicted_std), wrap(_fit_noise)
+        self.light_vectors, self.reading_terms = wrap(_light_vectors), wrap(_reading_terms)
+        self.height_terms, self.blended_slopes = wrap(_height_terms), wrap(_blended_slopes)
+
+
+def _variance(read: Tensor, shot: Tensor, noise: Tensor, predicted: Tensor) -> Tensor:
+    reading = predicted.clamp_min(0)
+    return read + (shot + noise[:, 2:3] * reading) * reading
+
+
+def _reading_terms(images: Tensor, valid: Tensor, gain: Tensor, noise: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The variance's terms in the flat-fielded units, :math:`s^2\\alpha` (1 where not valid: an untrusted card has a
+    gain of 0, and the weight there is 0 whatever the variance) and :math:`s\\beta`, and each :math:`\\lambda_k`."""
+    read = torch.where(valid > 0, gain.square() * noise[:, 0:1], torch.ones_like(valid))
+    shot = gain * noise[:, 1:2] * valid
+    reading = images.clamp_min(0)
+    # a reading within its noise of zero is as likely a cast shadow as an attached one: it says little about the
+    # normal, and a bounded penalty would otherwise rather turn a normal away from the LEDs of cast shadows
+    variance = _variance(read, shot, noise, reading)
+    return read, shot, valid * reading.square() / (reading.square() + _LIT_SIGMAS**2 * variance
+                                                   + torch.finfo(reading.dtype).tiny)
 
 
 class _Fit:
@@ -371,8 +401,8 @@ class _Fit:
     def every(self, stride: int) -> _Fit:
         """The same fit on every ``stride``-th pixel in each direction (views)."""
         part = copy.copy(self)
-        part.inverse = tuple(c[..., ::stride, ::stride] for c in self.inverse)
-        part.weights, part.m = self.weights[..., ::stride, ::stride], self.m[..., ::stride, ::stride]
+        part.inverse = tuple(_stride(c, stride) for c in self.inverse)
+        part.weights, part.m = _stride(self.weights, stride), _stride(self.m, stride)
         return part
 
     def solve(self, rhs: list[Tensor]) -> Tensor:
@@ -394,46 +424,6 @@ class _Fit:
 def _predict(m: Tensor, lights: Tensor) -> Tensor:
     """:math:`m \\cdot L_k` per light, :math:`(B, K, h, w)` (before the clamp at 0)."""
     return (lights * m.unsqueeze(1)).sum(2)
-
-
-@dataclass(frozen=True)
-class _Penalty:
-    """A robust penalty of standardised residuals :math:`r`: its value :math:`\\psi(r)`, its IRLS weight
-    :math:`\\psi'(r)/r` and the Gaussian expectations that make its estimates consistent."""
-
-    name: str
-    scale: float
-
-    def weight(self, residual_sq: Tensor) -> Tensor:
-        z = residual_sq / self.scale**2
-        return 1 / (1 + z) if self.name == "cauchy" else torch.exp(-z.clamp(max=_WELSCH_CUTOFF))
-
-    def value(self, residual_sq: Tensor) -> Tensor:
-        z = residual_sq / self.scale**2
-        return 0.5 * self.scale**2 * (torch.log1p(z) if self.name == "cauchy"
-                                      else -torch.expm1(-z.clamp(max=_WELSCH_CUTOFF)))
-
-    @functools.cached_property
-    def _moments(self) -> dict[str, float]:
-        r = torch.linspace(-12, 12, 24001, dtype=torch.float64)
-        density = torch.exp(-0.5 * r**2)
-        density = density / density.sum()
-        weight, z = self.weight(r**2), r**2 / self.scale**2
-        derivative = (1 - z) * weight**2 if self.name == "cauchy" else (1 - 2 * z) * weight  # d(r w)/dr
-        return {"w": float((weight * density).sum()), "wz": float((r**2 * weight * density).sum()),
-                "psi2": float(((r * weight) ** 2 * density).sum()), "dpsi": float((derivative * density).sum())}
-
-    @property
-    def consistency(self) -> float:
-        """:math:`E[r^2 w] / E[w]` for Gaussian :math:`r`: by how much weighted squared residuals underestimate a
-        variance (0.817 for Welsch at 2.985)."""
-        return self._moments["wz"] / self._moments["w"]
-
-    @property
-    def covariance_factor(self) -> float:
-        """The M-estimator's covariance :math:`E[\\psi^2]/E[\\psi']^2\\,\\sigma^2 (L^\\top L)^{-1}` in terms of its IRLS
-        weights' normal matrix: :math:`E[\\psi^2]\\,E[w] / E[\\psi']^2` (0.951 for Welsch at 2.985)."""
-        return self._moments["psi2"] * self._moments["w"] / self._moments["dpsi"] ** 2
 
 
 def _initial_fit(data: _Data, lights: Tensor, prior: Tensor) -> _Fit:
@@ -491,25 +481,9 @@ def _fit_noise(data: _Data, lights: Tensor, fit: _Fit, penalty: _Penalty, rounds
         weight = (weight / weight.amax(dim=(1, 2, 3), keepdim=True).clamp_min(torch.finfo(level.dtype).tiny))
         normal = torch.einsum("bikhw,bjkhw->bij", features * weight.unsqueeze(1), features)
         rhs = (features * (weight * (target / penalty.consistency - model)).unsqueeze(1)).sum(dim=(2, 3, 4))
-        solution = _non_negative_solve(normal, rhs)
+        solution = non_negative_solve(normal, rhs)
         alpha, beta = solution[:, 0].view(-1, 1, 1, 1).clamp_min(floor), solution[:, 1].view(-1, 1, 1, 1)
     return torch.cat([alpha, beta, torch.full_like(alpha, _MODEL_ERROR**2)], dim=1)
-
-
-def _non_negative_solve(normal: Tensor, rhs: Tensor) -> Tensor:
-    """Least squares with non-negative solutions from normal equations (B, n, n), (B, n): the parameters that the
-    unconstrained solution makes negative are held at 0 and the others solved again (an active set, two passes)."""
-    free = torch.ones_like(rhs, dtype=torch.bool)
-    eye = torch.eye(rhs.shape[1], device=rhs.device, dtype=rhs.dtype)
-    scale = normal.diagonal(dim1=1, dim2=2).amax(dim=1).view(-1, 1, 1)
-    for _ in range(2):
-        pair = free.unsqueeze(1) & free.unsqueeze(2)
-        # a ridge of a rounding's size keeps the system regular (and all zero where no reading counts: solution 0)
-        system = torch.where(pair, normal, eye * scale) + eye * (torch.finfo(rhs.dtype).eps * scale
-                                                                 + torch.finfo(rhs.dtype).tiny)
-        solution = torch.linalg.solve(system, torch.where(free, rhs, torch.zeros_like(rhs)))
-        free = free & (solution > 0)
-    return solution.clamp_min(0)
 
 
 def _normal_std(data: _Data, lights: Tensor, fit: _Fit, prior: Tensor, penalty: _Penalty) -> Tensor:
@@ -576,7 +550,7 @@ def _up(like: Tensor) -> Tensor:
 # --- Depth: integration of the normals, the height, the tilt and the bend ---------------------------------------
 
 
-def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float, method: str,
+def _integrate(steps: _Steps, normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float, method: str,
                warm: Tensor | None = None, one_sided: bool = False) -> Tensor:
     """Relative depth (mm, zero mean over ``domain``) of the normals: ``"masked"``, weighted least squares from
     ``warm`` (or the Neumann (DCT) solve); ``"fill"``, that Neumann solve alone; another method of
@@ -588,15 +562,7 @@ def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float
     mean, or with ``one_sided`` and ``warm`` mostly the slope of the pixel on whose side the warm depth runs smoother
     (Cao et al., "Bilateral normal integration", ECCV 2022): where two flanks meet (a crevice between yarns, a ridge)
     their mean is neither's, and the crevice comes out shallow. A filled slope, or its neighbour's, keeps the mean."""
-    p, q = _slopes_of(normals)
-    slope_variance = (normal_std * (math.pi / 180)).square() / normals[:, 2:3].clamp_min(0.05).pow(4)
-    confidence = 1 / (slope_variance + _SLOPE_FLOOR**2)
-    confidence = (confidence / masked_median(confidence, domain)).clamp(max=1) * domain
-    decided = 1 / (1 + (normal_std / _FILL_ABOVE_DEG).pow(4) + slope_variance.square() / _FILL_SLOPE_STD**8)
-    settled = -F.max_pool2d(-decided, 3, stride=1, padding=1)  # decided, and so are its eight neighbours
-    support = confidence * settled
-    local = box_sum(support, _FILL_SIZE).clamp_min(torch.finfo(p.dtype).tiny)
-    p, q = (decided * g + (1 - decided) * box_sum(support * g, _FILL_SIZE) / local for g in (p, q))
+    p, q, support, settled = steps.blended_slopes(normals, normal_std, domain)
     if method not in ("masked", "fill"):
         return integrate(p, q, method, pitch, domain)
     start = dct_poisson(p, q, pitch) if method == "fill" or warm is None else warm
@@ -610,6 +576,21 @@ def _integrate(normals: Tensor, normal_std: Tensor, domain: Tensor, pitch: float
     # solution, so the one computed must be it
     tolerance = None if torch.is_grad_enabled() and wu.requires_grad else _CG_TOLERANCE
     return solve_weighted_poisson(wu, wv, tu, tv, domain.to(p.dtype), x0=start, tol=tolerance)
+
+
+def _blended_slopes(normals: Tensor, normal_std: Tensor, domain: Tensor) -> tuple[Tensor, ...]:
+    """:func:`_integrate`'s slopes p, q, each blended into its neighbourhood's as far as it is not decided, their
+    weights and where the pixel and its neighbours are decided, each (B, 1, h, w)."""
+    p, q = _slopes_of(normals)
+    slope_variance = (normal_std * (math.pi / 180)).square() / normals[:, 2:3].clamp_min(0.05).pow(4)
+    confidence = 1 / (slope_variance + _SLOPE_FLOOR**2)
+    confidence = (confidence / masked_median(confidence, domain)).clamp(max=1) * domain
+    decided = 1 / (1 + (normal_std / _FILL_ABOVE_DEG).pow(4) + slope_variance.square() / _FILL_SLOPE_STD**8)
+    settled = -F.max_pool2d(-decided, 3, stride=1, padding=1)  # decided, and so are its eight neighbours
+    support = confidence * settled
+    local = box_sum(support, _FILL_SIZE).clamp_min(torch.finfo(p.dtype).tiny)
+    p, q = (decided * g + (1 - decided) * box_sum(support * g, _FILL_SIZE) / local for g in (p, q))
+    return p, q, support, settled
 
 
 def _placed(relative: Tensor, basis: Tensor, theta: Tensor) -> Tensor:
@@ -660,14 +641,10 @@ def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain:
     for _ in range(steps):
         depth = _placed(relative, basis, theta)
         lights = field(depth)
-        fit = _robust_step(data, lights, m, m, penalty)  # the normals at this height, one step from the last
+        fit = data.steps.robust_step(data, lights, m, m, penalty)  # the normals at this height, one step from the last
         m = fit.m
-        along = _predict(m, (field(depth + _HEIGHT_STEP_MM) - lights) / _HEIGHT_STEP_MM)  # (B, K, h, w)
-        across = along - _predict(fit.solve([(fit.weights * along * lights[:, :, j]).sum(1) for j in range(3)]), lights)
-        predicted = _predict(m, lights)
-        residual = data.images - predicted.clamp_min(0)
-        curvature = (fit.weights * across.square()).sum(1) * domain[:, 0]
-        gradient = (fit.weights * across * residual).sum(1, keepdim=True) * domain
+        curvature, gradient, predicted = data.steps.height_terms(data, fit, lights, field(depth + _HEIGHT_STEP_MM),
+                                                                 domain)
         hessian = torch.einsum("bihw,bjhw,bhw->bij", features, features, curvature) + torch.diag(1 - chosen)
         # a ridge of a rounding's size: far from the height every reading is an outlier and the curvature vanishes
         ridge = torch.finfo(theta.dtype).eps * hessian.diagonal(dim1=1, dim2=2).amax(1) + torch.finfo(theta.dtype).tiny
@@ -677,11 +654,11 @@ def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain:
         largest = ((basis * step[:, :, None, None]).sum(1, keepdim=True).abs() * domain).amax(dim=(1, 2, 3))
         step = step * (_MAX_STEP_MM / largest.clamp_min(_MAX_STEP_MM)).unsqueeze(1)
         if line_search:
-            energies = [_energy(data, predicted, penalty, domain)]
+            energies = [data.steps.energy(data, predicted, penalty, domain)]
             for fraction in (0.5, 1.0):
                 trial_lights = field(_placed(relative, basis, theta + fraction * step))
-                trial = _robust_step(data, trial_lights, m, m, penalty).m
-                energies.append(_energy(data, _predict(trial, trial_lights), penalty, domain))
+                trial = data.steps.robust_step(data, trial_lights, m, m, penalty).m
+                energies.append(data.steps.energy(data, _predict(trial, trial_lights), penalty, domain))
             step = step * _line_minimum(torch.stack(energies, dim=1)).to(step.dtype).unsqueeze(1)
         theta = theta + step
     covariance = torch.linalg.inv(hessian)
@@ -694,6 +671,17 @@ def _place(data: _Data, field: _LightField, relative: Tensor, m: Tensor, domain:
     return theta
 
 
+def _height_terms(data: _Data, fit: _Fit, lights: Tensor, raised: Tensor, domain: Tensor) -> tuple[Tensor, ...]:
+    """Each pixel's curvature (B, h, w) and gradient (B, 1, h, w) of the energy in its height, the normals projected
+    out, from the lights a forward difference ``raised`` above, and the predicted readings."""
+    along = _predict(fit.m, (raised - lights) / _HEIGHT_STEP_MM)  # (B, K, h, w)
+    across = along - _predict(fit.solve([(fit.weights * along * lights[:, :, j]).sum(1) for j in range(3)]), lights)
+    predicted = _predict(fit.m, lights)
+    residual = data.images - predicted.clamp_min(0)
+    curvature = (fit.weights * across.square()).sum(1) * domain[:, 0]
+    return curvature, (fit.weights * across * residual).sum(1, keepdim=True) * domain, predicted
+
+
 def _scan_offset(data: _Data, field: _LightField, relative: Tensor, domain: Tensor, theta: Tensor,
                  search: tuple[float, float], penalty: _Penalty) -> Tensor:
     """The offset of least energy among heights in ``search`` (mm, around the current one; at most :data:`_SCAN_POINTS`,
@@ -701,15 +689,16 @@ def _scan_offset(data: _Data, field: _LightField, relative: Tensor, domain: Tens
     robust step): the start of the Gauss–Newton steps, whose basin is narrower than the search."""
     points = min(_SCAN_POINTS, round((search[1] - search[0]) * 8) + 1)
     offsets = torch.linspace(*search, points, device=relative.device, dtype=relative.dtype)
-    # every height at once, as a batch of each sample repeated for each height
-    repeat = functools.partial(torch.repeat_interleave, repeats=points, dim=0)
+    # every height at once, as a batch of each sample repeated for each height, eagerly (``field``'s steps too): a
+    # batch of 13 would be another compiled graph of each step, for a start
+    repeat, steps = functools.partial(torch.repeat_interleave, repeats=points, dim=0), _Steps(False, theta.device)
     trials = _Data(repeat(data.images), repeat(data.valid), repeat(data.gain) if len(data.gain) > 1 else data.gain,
-                   repeat(data.noise))
+                   repeat(data.noise), steps)
     shifted = (theta.unsqueeze(1) + F.pad(offsets.unsqueeze(1), (0, 5))).flatten(0, 1)
     lights = field(_placed(repeat(relative), repeat(_plane_basis(field.xy, domain)), shifted))
     prior = (trials.images * trials.valid).amax(dim=1, keepdim=True) * _up(repeat(relative))
-    m = _robust_step(trials, lights, _initial_fit(trials, lights, prior).m, prior, penalty).m
-    energies = _energy(trials, _predict(m, lights), penalty, repeat(domain)).view(-1, points)
+    m = steps.robust_step(trials, lights, steps.initial_fit(trials, lights, prior).m, prior, penalty).m
+    energies = steps.energy(trials, _predict(m, lights), penalty, repeat(domain)).view(-1, points)
     return theta + F.pad(offsets[energies.argmin(dim=1)].unsqueeze(1), (0, 5))
 
 
@@ -873,7 +862,8 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, model: nn.Module,
     raw = images / gain.clamp_min(torch.finfo(images.dtype).tiny)
     alpha = (1e-6 * masked_mean(raw.square(), valid)).clamp_min(torch.finfo(images.dtype).tiny)
     data = _Data(images, valid.to(images.dtype), gain,
-                 torch.cat([alpha, torch.zeros_like(alpha), torch.full_like(alpha, _MODEL_ERROR**2)], dim=1))
+                 torch.cat([alpha, torch.zeros_like(alpha), torch.full_like(alpha, _MODEL_ERROR**2)], dim=1),
+                 _Steps(options.compile, images.device))
     start = F.pad(torch.tensor([options.initial_height_mm], device=images.device, dtype=images.dtype), (0, 5))
     free = torch.tensor([options.estimate_offset] + [options.estimate_tilt] * 2 + [options.estimate_bend] * 3,
                         device=images.device)
@@ -882,7 +872,7 @@ def _solve(images: Tensor, valid: Tensor, mask: Tensor | None, model: nn.Module,
     if height % 2 == 0 and width % 2 == 0 and min(height, width) >= _MIN_COARSE_SIZE:
         small_domain = F.avg_pool2d(domain.to(images.dtype), 2) > 0.5
         small = _Data(F.avg_pool2d(images, 2), (F.avg_pool2d(data.valid, 2) > 0.999).to(images.dtype),
-                      F.avg_pool2d(gain, 2) if gain.shape[-1] > 1 else gain, data.noise)
+                      F.avg_pool2d(gain, 2) if gain.shape[-1] > 1 else gain, data.noise, data.steps)
         coarse = _State(F.avg_pool2d(state.relative, 2), state.theta, free)
         _alternate(small, small_domain, model, 2 * pitch, card_height, options, coarse, scan, _COARSE_ITERATIONS,
                    final=False)
@@ -904,10 +894,12 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
     normals moved less than the tolerance stops there; the last alternation at full resolution ends with its fit."""
     size = (data.images.shape[-2], data.images.shape[-1])
     stride = max(1, int((size[0] * size[1] / _PLACE_PIXELS) ** 0.5))
-    field = _LightField(model, size, pitch, card_height, data.images)
-    sub_field = _LightField(model, size, pitch, card_height, data.images, stride)
+    steps = data.steps
+    field = _LightField(model, size, pitch, card_height, data.images, steps)
+    sub_field = _LightField(model, size, pitch, card_height, data.images, steps, stride)
     state.basis = _plane_basis(field.xy, domain)
     penalty = options.penalty_function()
+    cauchy = _Penalty("cauchy", penalty.scale)
     free = state.free & torch.tensor([True] + [final] * 5, device=domain.device)
     method = "masked" if final or not bool(domain.all()) else "fill"
     done = torch.zeros(data.images.shape[0], dtype=torch.bool, device=data.images.device)
@@ -925,17 +917,17 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
         sample_lights = _stride(lights, _NOISE_STRIDE)
         if state.weights is None:  # the level's first fit: a noise model from the lit readings' least squares
             sample = data.every(_NOISE_STRIDE)
-            first = _initial_fit(sample, sample_lights, _stride(prior, _NOISE_STRIDE))
-            data.set_noise(_fit_noise(sample, sample_lights, first, penalty, 6))
+            first = steps.initial_fit(sample, sample_lights, _stride(prior, _NOISE_STRIDE))
+            data.set_noise(steps.fit_noise(sample, sample_lights, first, penalty, 6))
         # first a step of Cauchy's penalty: it pulls the fit back from a glint the least squares followed (graduated
         # non-convexity, Blake and Zisserman 1987), before Welsch's steps reject it
-        least_squares = _initial_fit(data, lights, prior).m
-        m = _robust_step(data, lights, least_squares, prior, _Penalty("cauchy", penalty.scale)).m
+        least_squares = steps.initial_fit(data, lights, prior).m
+        m = steps.robust_step(data, lights, least_squares, prior, cauchy).m
         for _ in range(options.irls_steps):
-            fit = _robust_step(data, lights, m, prior, penalty)
+            fit = steps.robust_step(data, lights, m, prior, penalty)
             m = fit.m
-        data.set_noise(_fit_noise(data.every(_NOISE_STRIDE), sample_lights, fit.every(_NOISE_STRIDE), penalty, 2))
-        normal_std = _normal_std(data, lights, fit, prior, penalty)
+        data.set_noise(steps.fit_noise(data.every(_NOISE_STRIDE), sample_lights, fit.every(_NOISE_STRIDE), penalty, 2))
+        normal_std = steps.normal_std(data, lights, fit, prior, penalty)
         normals = _split(m)[1]
         converging = torch.zeros_like(done)
         if before is not None:  # the mean angle between the normals and the last alternation's, degrees
@@ -950,17 +942,20 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
         state.weights = _keep(done, state.weights, fit.share if fit.share is not None else fit.weights)
         if final and (iteration == iterations - 1 or bool(converging.any())):  # the result's (only it needs them)
             state.predicted_std = _keep(done, state.predicted_std,
-                                        _predicted_std(data, lights, fit, least_squares, normal_std, penalty))
+                                        steps.predicted_std(data, lights, fit, least_squares, normal_std, penalty))
         done = done | converging
         state.converged = bool(done.all())
         if state.converged or final and 0 < iteration == iterations - 1:
             break
-        relative = _integrate(normals, normal_std, domain, pitch, method, state.relative if iteration else None)
+        warm = state.relative if iteration else None
+        relative = _integrate(steps, normals, normal_std, domain, pitch, method, warm)
         theta = state.theta
         if scan is not None and iteration == 0:  # on a quarter of the placement's pixels: only a start
             every = max(1, int((size[0] * size[1] / _PLACE_PIXELS * 4) ** 0.5))
-            theta = _scan_offset(data.every(every), _LightField(model, size, pitch, card_height, data.images, every),
-                                 _stride(relative, every), _stride(domain, every), theta, scan, penalty)
+            coarse_field = _LightField(model, size, pitch, card_height, data.images, _Steps(False, domain.device),
+                                       every)
+            theta = _scan_offset(data.every(every), coarse_field, _stride(relative, every), _stride(domain, every),
+                                 theta, scan, penalty)
         theta = _place(data.every(stride), sub_field, _stride(relative, stride), _stride(m, stride),
                        _stride(domain, stride), theta, free, penalty, steps=2 if iteration == 0 else 1)
         state.relative, state.theta = _keep(done, state.relative, relative), _keep(done, state.theta, theta)
@@ -968,7 +963,7 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
 
 
 def _stride(x: Tensor, stride: int) -> Tensor:
-    return x[..., ::stride, ::stride]
+    return x[..., ::stride, ::stride].contiguous()
 
 
 def _keep(done: Tensor, old: Tensor | None, new: Tensor) -> Tensor:
@@ -984,7 +979,8 @@ def _finish(data: _Data, field: _LightField, state: _State, domain: Tensor, full
     assert state.m is not None and state.normal_std is not None and state.weights is not None
     assert state.predicted_std is not None
     albedo, normals = _split(state.m)
-    relative = _integrate(normals, state.normal_std, domain, pitch, options.integrator, state.relative, one_sided=True)
+    relative = _integrate(data.steps, normals, state.normal_std, domain, pitch, options.integrator, state.relative,
+                          one_sided=True)
     if options.integrator == "masked" and full:
         # the edges' trapezoidal rule flattens the finest relief (a silk's threads to a third): undone on the rectangle
         relative = _undo_edge_averaging(relative)

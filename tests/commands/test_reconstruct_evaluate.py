@@ -149,3 +149,14 @@ def test_reconstruct_near_light_reports_its_predicted_errors(tmp_path, capsys):
     output = capsys.readouterr().out
     assert json.loads(output.strip().splitlines()[-1])["normal_std_median_deg"] is None
     assert "predicted RMS error" not in output and not (tmp_path / "distant" / "normal_std.npy").exists()
+
+
+def test_compiled_near_light_runs_without_a_compiler(tmp_path, capsys, monkeypatch, caplog):
+    """`--near-option compile=true` on a machine without a C++ compiler: a warning, and the eager solve's outputs."""
+    assert main(["synth", "twill", "--out", str(tmp_path), "--size", "32", "--seed", "1"]) == 0
+    monkeypatch.setenv("CXX", "no-such-compiler-for-psmini")
+    for name, extra in (("eager", []), ("fallback", ["--near-option", "compile=true"])):
+        assert main(["reconstruct", str(tmp_path / "twill"), "--out", str(tmp_path / name), *extra]) == 0
+    assert "torch.compile cannot run on cpu: no C++ compiler 'no-such-compiler-for-psmini'" in caplog.text
+    depths = [np.load(tmp_path / name / "depth.npy") for name in ("eager", "fallback")]
+    assert np.array_equal(*depths, equal_nan=True)
