@@ -133,9 +133,9 @@ class NearLightOptions:
         integrator: the final integration of the normals: ``"masked"`` (weighted least squares on the mask, slopes
             weighted by their inverse variance, an edge's from the side where the depth runs smoother, the finest
             relief restored on the whole rectangle) or another method of :func:`psmini.integrate.integrate`.
-        compile: compile the per-pixel steps with ``torch.compile`` (for many captures: about 1.6 times faster warm
-            on a CPU, a first call spends a minute or two compiling; the same result up to float rounding); without
-            a C++ compiler (CPU) or Triton (CUDA) the solve runs eagerly, with a warning.
+        compile: compile the per-pixel steps with ``torch.compile``, for many captures: 1.8 times faster warm on a
+            CPU at 400², after a first call of 25–60 s; the same result up to rounding (the near-light guide's "What
+            it costs"). Without a C++ compiler (CPU) or Triton (CUDA) the solve runs eagerly, with a warning.
 
     Raises:
         InputError: for values out of range.
