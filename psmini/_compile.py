@@ -2,24 +2,23 @@
 
 Inductor writes C++ for the CPU, which needs a C++ compiler on the machine, and Triton kernels for CUDA GPUs. A
 machine without them (a bare container, a laptop without build tools) still runs every psmini command: the caller
-gets the eager function and a logged warning that says what was missing.
+gets the eager function and a ``RuntimeWarning`` that says what was missing (once per place it is asked from, by
+Python's own filter: a batch of captures is not told again for each).
 """
 
 from __future__ import annotations
 
 import importlib.util
-import logging
 import os
 import shutil
 import sys
+import warnings
 from collections.abc import Callable
 from typing import Any
 
 import torch
 
 __all__ = ["compile_blocker", "compiler"]
-
-logger = logging.getLogger(__name__)
 
 Function = Callable[..., Any]
 
@@ -50,11 +49,11 @@ def _eager(function: Function) -> Function:
 def compiler(device: torch.device) -> Callable[[Function], Function]:
     """A decorator: ``torch.compile(function, dynamic=True)`` when :func:`compile_blocker` finds nothing missing for
     ``device`` (one graph for every image size: the solvers call their steps at several), the function itself
-    otherwise, with a warning.
+    otherwise, with a ``RuntimeWarning``.
 
     """
     blocker = compile_blocker(device)
     if blocker is None:
         return lambda function: torch.compile(function, dynamic=True)
-    logger.warning("torch.compile cannot run on %s: %s; running eagerly", device, blocker)
+    warnings.warn(f"torch.compile cannot run on {device}: {blocker}; running eagerly", RuntimeWarning, stacklevel=3)
     return _eager

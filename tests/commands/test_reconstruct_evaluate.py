@@ -151,12 +151,13 @@ def test_reconstruct_near_light_reports_its_predicted_errors(tmp_path, capsys):
     assert "predicted RMS error" not in output and not (tmp_path / "distant" / "normal_std.npy").exists()
 
 
-def test_compiled_near_light_runs_without_a_compiler(tmp_path, capsys, monkeypatch, caplog):
+def test_compiled_near_light_runs_without_a_compiler(tmp_path, monkeypatch):
     """`--near-option compile=true` on a machine without a C++ compiler: a warning, and the eager solve's outputs."""
     assert main(["synth", "twill", "--out", str(tmp_path), "--size", "32", "--seed", "1"]) == 0
     monkeypatch.setenv("CXX", "no-such-compiler-for-psmini")
-    for name, extra in (("eager", []), ("fallback", ["--near-option", "compile=true"])):
-        assert main(["reconstruct", str(tmp_path / "twill"), "--out", str(tmp_path / name), *extra]) == 0
-    assert "torch.compile cannot run on cpu: no C++ compiler 'no-such-compiler-for-psmini'" in caplog.text
+    assert main(["reconstruct", str(tmp_path / "twill"), "--out", str(tmp_path / "eager")]) == 0
+    with pytest.warns(RuntimeWarning, match="torch.compile cannot run on cpu: no C"):
+        assert main(["reconstruct", str(tmp_path / "twill"), "--out", str(tmp_path / "fallback"),
+                     "--near-option", "compile=true"]) == 0
     depths = [np.load(tmp_path / name / "depth.npy") for name in ("eager", "fallback")]
     assert np.array_equal(*depths, equal_nan=True)
