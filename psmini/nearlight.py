@@ -399,7 +399,7 @@ class _Fit:
         self.m = self.solve([r + prior_weight * prior[:, j] for j, r in enumerate(rhs)])
 
     def every(self, stride: int) -> _Fit:
-        """The same fit on every ``stride``-th pixel in each direction (views)."""
+        """The same fit on every ``stride``-th pixel in each direction (copies: passes over strided views are slow)."""
         part = copy.copy(self)
         part.inverse = tuple(_stride(c, stride) for c in self.inverse)
         part.weights, part.m = _stride(self.weights, stride), _stride(self.m, stride)
