@@ -50,7 +50,6 @@ def compiler(device: torch.device) -> Callable[[Function], Function]:
     """A decorator: ``torch.compile(function, dynamic=True)`` when :func:`compile_blocker` finds nothing missing for
     ``device`` (one graph for every image size: the solvers call their steps at several), the function itself
     otherwise, with a ``RuntimeWarning``.
-
     """
     blocker = compile_blocker(device)
     if blocker is None:

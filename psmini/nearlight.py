@@ -266,16 +266,16 @@ class _LightField:
                  like: Tensor, steps: _Steps, stride: int = 1) -> None:
         x, y = pixel_grid_mm(*size, pitch, device=like.device, dtype=like.dtype)
         self.model, self.xy = model, torch.stack([x[::stride, ::stride], y[::stride, ::stride]])[None]  # (1, 2, h, w)
-        self.evaluate, self.card_scale = steps.light_vectors, None
+        self.steps, self.card_scale = steps, None
         if card_height is not None:
-            card = self.evaluate(model, self.xy, torch.full_like(self.xy[:, :1], card_height), None)[:, :, 2:3]
+            card = steps.light_vectors(model, self.xy, torch.full_like(self.xy[:, :1], card_height), None)[:, :, 2:3]
             if bool((card.detach() <= 0).any()):
                 raise InputError("flat-fielding needs every light above the card plane, lighting it, at every pixel")
             self.card_scale = 1 / card  # (1, K, 1, h, w)
 
     def __call__(self, depth: Tensor) -> Tensor:
         """Light vectors at the heights ``depth`` :math:`(B, 1, h, w)` (mm): :math:`(B, K, 3, h, w)`."""
-        return self.evaluate(self.model, self.xy, depth, self.card_scale)
+        return self.steps.light_vectors(self.model, self.xy, depth, self.card_scale)
 
 
 def _light_vectors(model: nn.Module, xy: Tensor, depth: Tensor, card_scale: Tensor | None) -> Tensor:
@@ -689,9 +689,8 @@ def _scan_offset(data: _Data, field: _LightField, relative: Tensor, domain: Tens
     robust step): the start of the Gauss–Newton steps, whose basin is narrower than the search."""
     points = min(_SCAN_POINTS, round((search[1] - search[0]) * 8) + 1)
     offsets = torch.linspace(*search, points, device=relative.device, dtype=relative.dtype)
-    # every height at once, as a batch of each sample repeated for each height, eagerly (``field``'s steps too): a
-    # batch of 13 would be another compiled graph of each step, for a start
-    repeat, steps = functools.partial(torch.repeat_interleave, repeats=points, dim=0), _Steps(False, theta.device)
+    # every height at once, as a batch of each sample repeated for each height, with ``field``'s steps
+    repeat, steps = functools.partial(torch.repeat_interleave, repeats=points, dim=0), field.steps
     trials = _Data(repeat(data.images), repeat(data.valid), repeat(data.gain) if len(data.gain) > 1 else data.gain,
                    repeat(data.noise), steps)
     shifted = (theta.unsqueeze(1) + F.pad(offsets.unsqueeze(1), (0, 5))).flatten(0, 1)
@@ -952,6 +951,7 @@ def _alternate(data: _Data, domain: Tensor, model: nn.Module, pitch: float, card
         theta = state.theta
         if scan is not None and iteration == 0:  # on a quarter of the placement's pixels: only a start
             every = max(1, int((size[0] * size[1] / _PLACE_PIXELS * 4) ** 0.5))
+            # eagerly: the scan's batch of 13 would be another compiled graph of every step, for a start
             coarse_field = _LightField(model, size, pitch, card_height, data.images, _Steps(False, domain.device),
                                        every)
             theta = _scan_offset(data.every(every), coarse_field, _stride(relative, every), _stride(domain, every),
